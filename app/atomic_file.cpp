@@ -1,0 +1,107 @@
+// Atomic file and folder saves.
+#include "app/atomic_file.hpp"
+
+#include <fcntl.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <cstdlib>
+#include <cstring>
+#include <filesystem>
+
+namespace cellsight::app {
+namespace {
+
+namespace fs = std::filesystem;
+
+std::string errno_text() { return std::strerror(errno); }
+
+Status fsync_path(const std::string& path, int flags) {
+  const int fd = ::open(path.c_str(), flags | O_CLOEXEC);
+  if (fd < 0) return make_error(path + ": cannot open to sync: " + errno_text());
+  const int rc = ::fsync(fd);
+  const int saved = errno;
+  ::close(fd);
+  if (rc != 0) return make_error(path + ": fsync failed: " + std::strerror(saved));
+  return {};
+}
+
+std::string parent_of(const std::string& path) {
+  const fs::path parent = fs::path(path).parent_path();
+  return parent.empty() ? "." : parent.string();
+}
+
+}  // namespace
+
+Status write_file_atomic(const std::string& path, std::string_view content) {
+  std::string temp = path + ".tmp-XXXXXX";
+  const int fd = ::mkstemp(temp.data());
+  if (fd < 0) return make_error(path + ": cannot create a temporary file beside it: " + errno_text());
+  std::size_t done = 0;
+  while (done < content.size()) {
+    const ssize_t n = ::write(fd, content.data() + done, content.size() - done);
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) {
+      const std::string why = errno_text();
+      ::close(fd);
+      ::unlink(temp.c_str());
+      return make_error(path + ": write failed: " + why);
+    }
+    done += static_cast<std::size_t>(n);
+  }
+  if (::fchmod(fd, 0644) != 0 || ::fsync(fd) != 0) {
+    const std::string why = errno_text();
+    ::close(fd);
+    ::unlink(temp.c_str());
+    return make_error(path + ": cannot finish the file: " + why);
+  }
+  ::close(fd);
+  if (::rename(temp.c_str(), path.c_str()) != 0) {
+    const std::string why = errno_text();
+    ::unlink(temp.c_str());
+    return make_error(path + ": cannot replace: " + why);
+  }
+  return fsync_path(parent_of(path), O_RDONLY | O_DIRECTORY);
+}
+
+Expected<StagedDirectory> StagedDirectory::create(const std::string& target) {
+  std::error_code ec;
+  if (fs::exists(target, ec) && !(fs::is_directory(target, ec) && fs::is_empty(target, ec))) {
+    return make_error(target + ": already exists and is not an empty folder; choose a new output folder or remove it");
+  }
+  const std::string parent = parent_of(target);
+  if (!fs::is_directory(parent, ec)) return make_error(target + ": the parent folder " + parent + " does not exist");
+  std::string name = fs::path(target).filename().string();
+  name.insert(0, 1, '.');
+  name.append(".tmp-XXXXXX");
+  std::string staging = (fs::path(parent) / name).string();
+  if (::mkdtemp(staging.data()) == nullptr) {
+    return make_error(target + ": cannot write in " + parent + ": " + errno_text());
+  }
+  return StagedDirectory(target, staging);
+}
+
+StagedDirectory::StagedDirectory(StagedDirectory&& other) noexcept
+    : target_(std::move(other.target_)), staging_(std::move(other.staging_)), committed_(other.committed_) {
+  other.committed_ = true;  // the moved-from object owns nothing
+}
+
+StagedDirectory::~StagedDirectory() {
+  if (!committed_ && !staging_.empty()) {
+    std::error_code ec;
+    fs::remove_all(staging_, ec);
+  }
+}
+
+Status StagedDirectory::commit() {
+  std::error_code ec;
+  if (fs::is_directory(target_, ec) && fs::is_empty(target_, ec)) fs::remove(target_, ec);
+  if (::rename(staging_.c_str(), target_.c_str()) != 0) {
+    return make_error(target_ + ": cannot move the finished output into place: " + errno_text());
+  }
+  committed_ = true;
+  return fsync_path(parent_of(target_), O_RDONLY | O_DIRECTORY);
+}
+
+}  // namespace cellsight::app

@@ -1,0 +1,35 @@
+// Atomic saves: write beside the target, fsync, rename — a reader sees the old file or the new one, never half.
+#pragma once
+
+#include <string>
+#include <string_view>
+
+#include "algo/result.hpp"
+
+namespace cellsight::app {
+
+// Writes `content` to `path` atomically (temp file in the same folder, fsync, rename, fsync of the folder).
+[[nodiscard]] Status write_file_atomic(const std::string& path, std::string_view content);
+
+// A folder filled under a temporary name and renamed into place by commit(); removed again if never committed.
+class StagedDirectory {
+ public:
+  // Fails when `target` exists and is not empty (nothing is overwritten), or its parent is not writable.
+  [[nodiscard]] static Expected<StagedDirectory> create(const std::string& target);
+  StagedDirectory(StagedDirectory&& other) noexcept;
+  StagedDirectory& operator=(StagedDirectory&&) = delete;
+  StagedDirectory(const StagedDirectory&) = delete;
+  StagedDirectory& operator=(const StagedDirectory&) = delete;
+  ~StagedDirectory();
+
+  [[nodiscard]] const std::string& path() const { return staging_; }
+  [[nodiscard]] Status commit();
+
+ private:
+  StagedDirectory(std::string target, std::string staging) : target_(std::move(target)), staging_(std::move(staging)) {}
+  std::string target_;
+  std::string staging_;
+  bool committed_ = false;
+};
+
+}  // namespace cellsight::app

@@ -1,0 +1,159 @@
+// Command-line parsing and mode dispatch.
+#include "app/cli.hpp"
+
+#include <cerrno>
+#include <cstdio>
+#include <cstdlib>
+#include <map>
+#include <set>
+#include <string>
+#include <vector>
+
+#include "app/config.hpp"
+#include "app/sim_mode.hpp"
+#include "drivers/log.hpp"
+
+namespace cellsight::app {
+namespace {
+
+constexpr const char* kUsage =
+    "usage: cellsight [--config FILE] [--log-level LEVEL] MODE [options]\n"
+    "\n"
+    "modes:\n"
+    "  sim --part NAME [--seed S] [--pose x_m,y_m,theta_deg[,swing_deg]] --out DIR\n"
+    "        render one simulated pass: DIR/frames/NNNNNN.png (mono8) and DIR/truth.yaml\n"
+    "  sim --list\n"
+    "        list the simulated cell's part catalogue\n"
+    "  help  this text\n"
+    "\n"
+    "global options:\n"
+    "  --config FILE     configuration (default: $CELLSIGHT_CONFIG, ./config/cellsight.yaml, <install>/config)\n"
+    "  --log-level L     debug | info | warn | error | off (overrides log_level in the config)\n"
+    "\n"
+    "exit codes: 0 done, 1 failed while running, 2 bad input (arguments, configuration, data)\n";
+
+// Options that take a value; everything else starting with "--" is a flag.
+const std::set<std::string> kValueOptions = {"--config", "--log-level", "--part", "--seed", "--pose", "--out"};
+
+struct Args {
+  std::string mode;
+  std::map<std::string, std::string> values;
+  std::set<std::string> flags;
+};
+
+int usage_error(const std::string& message) {
+  std::fprintf(stderr, "cellsight: %s\n(run 'cellsight help' for usage)\n", message.c_str());
+  return kExitUsage;
+}
+
+bool parse_args(int argc, char** argv, Args& args, std::string& error) {
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a.rfind("--", 0) == 0) {
+      if (kValueOptions.count(a) != 0) {
+        if (i + 1 >= argc) {
+          error = a + " needs a value";
+          return false;
+        }
+        args.values[a] = argv[++i];
+      } else {
+        args.flags.insert(a);
+      }
+    } else if (args.mode.empty()) {
+      args.mode = a;
+    } else {
+      error = "unexpected argument '" + a + "'";
+      return false;
+    }
+  }
+  return true;
+}
+
+bool check_known(const Args& args, const std::set<std::string>& values, const std::set<std::string>& flags,
+                 std::string& error) {
+  for (const auto& [key, value] : args.values) {
+    if (key != "--config" && key != "--log-level" && values.count(key) == 0) {
+      error = "option " + key + " does not apply to '" + args.mode + "'";
+      return false;
+    }
+  }
+  for (const auto& f : args.flags) {
+    if (flags.count(f) == 0) {
+      error = "unknown option " + f + " for '" + args.mode + "'";
+      return false;
+    }
+  }
+  return true;
+}
+
+int run_sim(const Args& args, const Config& config) {
+  std::string error;
+  if (!check_known(args, {"--part", "--seed", "--pose", "--out"}, {"--list"}, error)) return usage_error(error);
+  auto cell = make_sim_cell(config);
+  if (!cell) return usage_error(cell.error().message);
+  if (args.flags.count("--list") != 0) {
+    std::printf("%-20s %9s %9s  %s\n", "part", "width_mm", "height_mm", "description");
+    for (const auto& p : cell->catalogue()) {
+      std::printf("%-20s %9.0f %9.0f  %s\n", p.name.c_str(), p.width_mm, p.height_mm, p.description.c_str());
+    }
+    return kExitOk;
+  }
+  SimOptions options;
+  const auto part = args.values.find("--part");
+  const auto out = args.values.find("--out");
+  if (part == args.values.end()) return usage_error("sim needs --part NAME (see 'cellsight sim --list')");
+  if (out == args.values.end()) return usage_error("sim needs --out DIR");
+  options.part = part->second;
+  options.out_dir = out->second;
+  if (const auto seed = args.values.find("--seed"); seed != args.values.end()) {
+    char* end = nullptr;
+    errno = 0;
+    const unsigned long long v = std::strtoull(seed->second.c_str(), &end, 10);
+    if (seed->second.empty() || *end != '\0' || errno != 0 || seed->second[0] == '-') {
+      return usage_error("--seed '" + seed->second + "': expected a whole number >= 0");
+    }
+    options.seed = v;
+  }
+  if (const auto pose = args.values.find("--pose"); pose != args.values.end()) {
+    auto parsed = parse_pose(pose->second);
+    if (!parsed) return usage_error(parsed.error().message);
+    options.pose = *parsed;
+  }
+  if (cell->find_part(options.part) == nullptr) {
+    return usage_error(cell->random_pass(options.part, 0).error().message);
+  }
+  if (auto ok = write_sim_pass(config, *cell, options); !ok) {
+    std::fprintf(stderr, "cellsight: %s\n", ok.error().message.c_str());
+    return kExitUsage;
+  }
+  return kExitOk;
+}
+
+}  // namespace
+
+int run_cli(int argc, char** argv) {
+  Args args;
+  std::string error;
+  if (!parse_args(argc, argv, args, error)) return usage_error(error);
+  if (args.mode.empty() || args.mode == "help" || args.flags.count("--help") != 0) {
+    std::fputs(kUsage, args.mode.empty() ? stderr : stdout);
+    return args.mode.empty() ? kExitUsage : kExitOk;
+  }
+  const auto config_arg = args.values.find("--config");
+  auto config = find_and_load_config(config_arg == args.values.end() ? "" : config_arg->second);
+  if (!config) {
+    std::fprintf(stderr, "cellsight: bad configuration:\n%s\n", config.error().message.c_str());
+    return kExitUsage;
+  }
+  std::string level_text = config->log_level;
+  if (const auto level = args.values.find("--log-level"); level != args.values.end()) level_text = level->second;
+  log::Level level{};
+  if (!log::parse_level(level_text.c_str(), level)) return usage_error("--log-level '" + level_text + "': expected debug|info|warn|error|off");
+  log::set_level(level);
+  CS_LOG_DEBUG("config", "using %s", config->source.c_str());
+
+  if (args.mode == "sim") return run_sim(args, *config);
+  return usage_error("unknown mode '" + args.mode + "'");
+}
+
+}  // namespace cellsight::app

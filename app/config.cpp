@@ -1,0 +1,258 @@
+// Reads config/cellsight.yaml into Config, validating every value (ranges carry their units).
+#include "app/config.hpp"
+
+#include <unistd.h>
+
+#include <filesystem>
+
+#include "app/yaml_reader.hpp"
+
+namespace cellsight::app {
+namespace {
+
+namespace fs = std::filesystem;
+
+void read_rig(YamlSection s, sim::RigParams& rig) {
+  YamlSection cam = s.section("camera");
+  auto& k = rig.camera.intrinsics;
+  cam.integer("width_px", k.width_px, 64, 8192, "px");
+  cam.integer("height_px", k.height_px, 64, 8192, "px");
+  cam.number("fx_px", k.fx_px, 50.0, 50000.0, "px");
+  cam.number("fy_px", k.fy_px, 50.0, 50000.0, "px");
+  cam.number("cx_px", k.cx_px, 0.0, 8192.0, "px");
+  cam.number("cy_px", k.cy_px, 0.0, 8192.0, "px");
+  cam.number("k1", k.k1, -2.0, 2.0, "");
+  cam.number("k2", k.k2, -5.0, 5.0, "");
+  cam.number("p1", k.p1, -0.1, 0.1, "");
+  cam.number("p2", k.p2, -0.1, 0.1, "");
+  cam.number("k3", k.k3, -10.0, 10.0, "");
+  cam.number("distance_m", rig.camera.distance_m, 0.3, 10.0, "m");
+  cam.number("triangulation_angle_deg", rig.camera.triangulation_angle_deg, 5.0, 80.0, "deg");
+  cam.vec3("aim_m", rig.camera.aim_world_m, -5.0, 5.0, "m");
+  cam.number("roll_deg", rig.camera.roll_deg, -45.0, 45.0, "deg");
+  cam.finish();
+
+  YamlSection laser = s.section("laser");
+  laser.vec3("normal", rig.laser.normal_world, -1.0, 1.0, "");
+  if (rig.laser.normal_world.norm() < 0.5) laser.error("normal", "must be a direction (length near 1)");
+  laser.number("offset_m", rig.laser.offset_m, -1.0, 1.0, "m");
+  laser.vec3("emitter_m", rig.laser.emitter_world_m, -5.0, 5.0, "m");
+  laser.number("sheet_sigma_mm", rig.laser.sheet_sigma_mm, 0.01, 5.0, "mm");
+  laser.finish();
+  s.finish();
+}
+
+void read_conveyor(YamlSection s, sim::ConveyorParams& c) {
+  s.number("speed_m_per_s", c.speed_m_per_s, 0.001, 1.0, "m/s");
+  s.number("counts_per_mm", c.counts_per_mm, 0.1, 1000.0, "counts/mm");
+  s.integer("trigger_every_counts", c.trigger_every_counts, 1, 100000, "counts");
+  s.finish();
+}
+
+void read_carrier(YamlSection s, sim::CarrierParams& c) {
+  s.number("length_m", c.length_m, 0.1, 3.0, "m");
+  s.number("height_m", c.height_m, 0.1, 3.0, "m");
+  s.number("start_offset_m", c.start_offset_m, -3.0, 3.0, "m");
+  s.number("plane_z_m", c.plane_z_m, -1.0, 1.0, "m");
+  s.number("bar_width_m", c.bar_width_m, 0.005, 0.2, "m");
+  s.number("hanger_spacing_m", c.hanger_spacing_m, 0.0, 3.0, "m");
+  s.number("hook_height_m", c.hook_height_m, 0.1, 3.0, "m");
+  s.number("part_plane_z_m", c.part_plane_z_m, -1.0, 1.0, "m");
+  s.number("reflectivity", c.reflectivity, 0.0, 2.0, "");
+  s.finish();
+}
+
+void read_sim(YamlSection s, Config& cfg) {
+  auto& p = cfg.sim;
+  s.text("catalogue", cfg.catalogue_path);
+  s.number("pose_xy_range_m", p.pose_xy_range_m, 0.0, 0.3, "m");
+  s.number("pose_theta_range_deg", p.pose_theta_range_deg, 0.0, 45.0, "deg");
+  s.number("swing_range_deg", p.swing_range_deg, 0.0, 20.0, "deg");
+  s.number("reflectivity_jitter", p.reflectivity_jitter, 0.0, 0.9, "");
+  s.number("split_probability", p.split_probability, 0.0, 1.0, "");
+  std::int64_t seed = static_cast<std::int64_t>(p.camera_noise_seed);
+  s.integer("camera_noise_seed", seed, 0, INT64_MAX, "");
+  p.camera_noise_seed = static_cast<std::uint64_t>(seed);
+  YamlSection sensor = s.section("sensor");
+  auto& n = cfg.rig.sensor;
+  sensor.number("gain_dn_per_us", n.gain_dn_per_us, 0.0, 100.0, "DN/us");
+  sensor.number("optics_sigma_px", n.optics_sigma_px, 0.3, 10.0, "px");
+  sensor.number("bloom_per_log", n.bloom_per_log, 0.0, 5.0, "");
+  sensor.number("ambient_dn", n.ambient_dn, 0.0, 200.0, "DN");
+  sensor.number("ambient_gradient_dn", n.ambient_gradient_dn, 0.0, 100.0, "DN");
+  sensor.number("ambient_light_dn", n.ambient_light_dn, 0.0, 255.0, "DN");
+  sensor.number("reference_exposure_us", n.reference_exposure_us, 1.0, 1e6, "us");
+  sensor.number("speckle_contrast", n.speckle_contrast, 0.0, 1.0, "");
+  sensor.number("halo_fraction", n.halo_fraction, 0.0, 0.5, "");
+  sensor.number("read_noise_dn", n.read_noise_dn, 0.0, 50.0, "DN");
+  sensor.number("shot_noise_dn_per_dn", n.shot_noise_dn_per_dn, 0.0, 10.0, "DN");
+  sensor.number("hot_pixel_fraction", n.hot_pixel_fraction, 0.0, 0.01, "");
+  sensor.number("spikes_per_frame", n.spikes_per_frame, 0.0, 100.0, "");
+  sensor.number("ghost_probability", n.ghost_probability, 0.0, 1.0, "");
+  sensor.boolean("noise", n.noise);
+  sensor.finish();
+  if (s.has("coatings")) p.coatings.clear();
+  for (YamlSection c : s.list("coatings")) {
+    sim::Coating coating;
+    c.require("name");
+    c.text("name", coating.name);
+    c.number("diffuse", coating.material.diffuse, 0.0, 2.0, "");
+    c.number("specular", coating.material.specular, 0.0, 10.0, "");
+    c.number("lobe_deg", coating.material.lobe_deg, 0.5, 90.0, "deg");
+    c.number("weight", coating.weight, 0.0, 1000.0, "");
+    c.finish();
+    p.coatings.push_back(coating);
+  }
+  s.finish();
+}
+
+void read_rest(YamlSection& root, Config& cfg) {
+  {
+    YamlSection g = root.section("grid");
+    g.vec3("origin_m", cfg.grid.origin_m, -5.0, 5.0, "m");
+    g.integer("nx", cfg.grid.nx, 8, 4096, "cells");
+    g.integer("ny", cfg.grid.ny, 8, 4096, "cells");
+    g.integer("nz", cfg.grid.nz, 8, 4096, "cells");
+    g.number("resolution_m", cfg.grid.resolution_m, 0.0002, 0.05, "m");
+    g.finish();
+  }
+  {
+    YamlSection c = root.section("camera");
+    c.choice("backend", cfg.camera.backend, {"sim", "v4l2"});
+    c.text("device", cfg.camera.device);
+    c.integer("buffers", cfg.camera.buffers, 4, 32, "buffers");
+    c.integer("timeout_ms", cfg.camera.timeout_ms, 10, 60000, "ms");
+    c.number("exposure_us", cfg.camera.exposure_us, 1.0, 1e6, "us");
+    c.number("exposure_min_us", cfg.camera.exposure_min_us, 1.0, 1e6, "us");
+    c.number("exposure_max_us", cfg.camera.exposure_max_us, 1.0, 1e6, "us");
+    if (cfg.camera.exposure_min_us > cfg.camera.exposure_max_us)
+      c.error("exposure_min_us", "must not exceed camera.exposure_max_us");
+    c.finish();
+  }
+  {
+    YamlSection e = root.section("exposure");
+    e.number("width_min_px", cfg.exposure.width_min_px, 0.5, 100.0, "px");
+    e.number("width_max_px", cfg.exposure.width_max_px, 0.5, 100.0, "px");
+    if (cfg.exposure.width_min_px >= cfg.exposure.width_max_px) e.error("width_min_px", "must be below exposure.width_max_px");
+    e.number("max_step_ratio", cfg.exposure.max_step_ratio, 1.01, 10.0, "");
+    e.finish();
+  }
+  {
+    YamlSection g = root.section("gpio");
+    g.choice("backend", cfg.gpio.backend, {"sim", "gpiod"});
+    g.text("chip", cfg.gpio.chip);
+    g.integer("laser_line", cfg.gpio.laser_line, 0, 1023, "");
+    g.integer("trigger_line", cfg.gpio.trigger_line, 0, 1023, "");
+    g.integer("part_present_line", cfg.gpio.part_present_line, 0, 1023, "");
+    g.integer("encoder_a_line", cfg.gpio.encoder_a_line, 0, 1023, "");
+    g.integer("encoder_b_line", cfg.gpio.encoder_b_line, 0, 1023, "");
+    g.boolean("part_present_active_low", cfg.gpio.part_present_active_low);
+    g.integer("trigger_pulse_us", cfg.gpio.trigger_pulse_us, 1, 100000, "us");
+    g.integer("debounce_us", cfg.gpio.debounce_us, 0, 1000000, "us");
+    g.finish();
+  }
+  {
+    YamlSection m = root.section("modbus");
+    m.text("bind_address", cfg.modbus.bind_address);
+    m.integer("port", cfg.modbus.port, 1, 65535, "");
+    m.integer("max_clients", cfg.modbus.max_clients, 1, 64, "clients");
+    m.integer("byte_timeout_ms", cfg.modbus.byte_timeout_ms, 1, 10000, "ms");
+    m.integer("plc_heartbeat_timeout_ms", cfg.modbus.plc_heartbeat_timeout_ms, 0, 600000, "ms");
+    m.integer("result_queue_depth", cfg.modbus.result_queue_depth, 1, 256, "results");
+    m.finish();
+  }
+  {
+    YamlSection s = root.section("support");
+    s.number("distance_threshold_mm", cfg.support.distance_threshold_mm, 0.1, 100.0, "mm");
+    s.finish();
+  }
+  {
+    YamlSection s = root.section("svm");
+    s.number("sa_start_temperature", cfg.svm.sa_start_temperature, 1e-6, 1e6, "");
+    s.number("sa_cooling_ratio", cfg.svm.sa_cooling_ratio, 0.5, 0.9999, "");
+    s.integer("sa_iterations", cfg.svm.sa_iterations, 1, 100000, "");
+    s.integer("folds", cfg.svm.folds, 2, 50, "");
+    s.integer("train_per_class", cfg.svm.train_per_class, 1, 100000, "scans");
+    s.integer("seed", cfg.svm.seed, 0, INT64_MAX, "");
+    s.finish();
+  }
+  {
+    YamlSection s = root.section("perfect_match");
+    s.number("lc_m", cfg.pm.lc_m, 1e-4, 10.0, "m");
+    s.number("eta_plus", cfg.pm.eta_plus, 1.0, 5.0, "");
+    s.number("eta_minus", cfg.pm.eta_minus, 0.01, 1.0, "");
+    s.number("step_min_m", cfg.pm.step_min_m, 1e-9, 1.0, "m");
+    s.number("step_max_m", cfg.pm.step_max_m, 1e-9, 1.0, "m");
+    s.number("step_initial_m", cfg.pm.step_initial_m, 1e-9, 1.0, "m");
+    s.integer("max_iterations", cfg.pm.max_iterations, 1, 100000, "");
+    s.finish();
+  }
+  {
+    YamlSection s = root.section("cascade");
+    s.number("accept_p1", cfg.cascade.accept_p1, 0.0, 1.0, "");
+    s.number("accept_p2_max", cfg.cascade.accept_p2_max, 0.0, 1.0, "");
+    s.integer("pm_candidates", cfg.cascade.pm_candidates, 1, 64, "classes");
+    s.finish();
+  }
+  {
+    YamlSection s = root.section("runtime");
+    s.integer("deadline_ms", cfg.runtime.deadline_ms, 10, 60000, "ms");
+    s.boolean("lock_memory", cfg.runtime.lock_memory);
+    s.integer("realtime_priority", cfg.runtime.realtime_priority, 0, 99, "");
+    s.text("models_dir", cfg.runtime.models_dir);
+    s.finish();
+  }
+}
+
+}  // namespace
+
+Config default_config() {
+  Config cfg;
+  cfg.source = "(built-in defaults)";
+  cfg.sim.coatings = sim::default_coatings();
+  return cfg;
+}
+
+Expected<Config> load_config(const std::string& path) {
+  auto doc = load_yaml_file(path);
+  if (!doc) return doc.error();
+  Config cfg = default_config();
+  cfg.source = path;
+  YamlErrors errors(path);
+  YamlSection root(*doc, "", &errors);
+  int version = 1;
+  root.integer("format_version", version, 1, 1, "");
+  root.choice("log_level", cfg.log_level, {"debug", "info", "warn", "error", "off"});
+  read_rig(root.section("rig"), cfg.rig);
+  read_conveyor(root.section("conveyor"), cfg.rig.conveyor);
+  read_carrier(root.section("carrier"), cfg.rig.carrier);
+  read_sim(root.section("sim"), cfg);
+  read_rest(root, cfg);
+  root.finish();
+  if (!errors.empty()) return make_error(errors.joined());
+  const fs::path catalogue(cfg.catalogue_path);
+  if (catalogue.is_relative()) cfg.catalogue_path = (fs::path(path).parent_path() / catalogue).lexically_normal().string();
+  return cfg;
+}
+
+Expected<Config> find_and_load_config(const std::string& explicit_path) {
+  if (!explicit_path.empty()) return load_config(explicit_path);
+  std::vector<std::string> candidates;
+  if (const char* env = std::getenv("CELLSIGHT_CONFIG"); env != nullptr && env[0] != '\0') return load_config(env);
+  candidates.emplace_back("config/cellsight.yaml");
+  std::error_code ec;
+  const fs::path exe = fs::read_symlink("/proc/self/exe", ec);
+  if (!ec) {
+    candidates.push_back((exe.parent_path().parent_path() / "config/cellsight.yaml").string());
+    candidates.push_back((exe.parent_path().parent_path() / "share/cellsight/config/cellsight.yaml").string());
+  }
+  candidates.emplace_back("/etc/cellsight/cellsight.yaml");
+  for (const auto& c : candidates) {
+    if (fs::exists(c, ec)) return load_config(c);
+  }
+  std::string where;
+  for (const auto& c : candidates) where += (where.empty() ? "" : ", ") + c;
+  return make_error("no configuration found (looked at " + where + "); pass --config FILE or set CELLSIGHT_CONFIG");
+}
+
+}  // namespace cellsight::app

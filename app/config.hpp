@@ -1,0 +1,111 @@
+// The cellsight configuration (config/cellsight.yaml): every setting with its built-in default.
+#pragma once
+
+#include <Eigen/Core>
+#include <string>
+
+#include "algo/result.hpp"
+#include "drivers/sim/rig.hpp"
+#include "drivers/sim/sim_cell.hpp"
+
+namespace cellsight::app {
+
+struct GridConfig {
+  Eigen::Vector3d origin_m{0.0, 0.0, 0.0};  // carrier-frame corner of cell (0, 0, 0)
+  int nx = 296, ny = 500, nz = 182;         // thesis 6.3: 0.65 x 1.10 x 0.40 m
+  double resolution_m = 0.0022;
+};
+
+struct CameraConfig {
+  std::string backend = "sim";  // sim | v4l2
+  std::string device = "/dev/video0";
+  int buffers = 4;
+  int timeout_ms = 1000;
+  double exposure_us = 1500.0;  // start value; the exposure loop moves it inside the limits
+  double exposure_min_us = 20.0;
+  double exposure_max_us = 20000.0;
+};
+
+struct ExposureConfig {
+  double width_min_px = 3.0;  // stripe-width band the loop keeps (thesis 6.2)
+  double width_max_px = 6.0;
+  double max_step_ratio = 1.5;
+};
+
+struct GpioConfig {
+  std::string backend = "sim";  // sim | gpiod
+  std::string chip = "gpiochip0";
+  int laser_line = 17, trigger_line = 27, part_present_line = 22, encoder_a_line = 23, encoder_b_line = 24;
+  bool part_present_active_low = false;
+  int trigger_pulse_us = 100;
+  int debounce_us = 2000;
+};
+
+struct ModbusConfig {
+  std::string bind_address = "127.0.0.1";
+  int port = 1502;
+  int max_clients = 4;
+  int byte_timeout_ms = 50;
+  int plc_heartbeat_timeout_ms = 0;  // 0: the PLC heartbeat is not checked
+  int result_queue_depth = 8;
+};
+
+struct SupportConfig {
+  double distance_threshold_mm = 6.0;  // points this close to the fitted carrier plane are carrier
+};
+
+struct SvmConfig {
+  double sa_start_temperature = 200.0;  // thesis 6.4.2
+  double sa_cooling_ratio = 0.95;
+  int sa_iterations = 200;
+  int folds = 5;
+  int train_per_class = 35;  // thesis: 35 train / 15 test of 50
+  std::int64_t seed = 1;
+};
+
+struct PerfectMatchConfig {
+  double lc_m = 0.4;  // thesis eq. 2.55
+  double eta_plus = 1.2, eta_minus = 0.5;
+  double step_min_m = 1e-6, step_max_m = 0.01;
+  double step_initial_m = 0.002;
+  int max_iterations = 100;
+};
+
+struct CascadeConfig {
+  double accept_p1 = 0.70;  // thesis 6.4.4
+  double accept_p2_max = 0.06;
+  int pm_candidates = 2;
+};
+
+struct RuntimeConfig {
+  int deadline_ms = 3000;  // support removal .. registers written, hard
+  bool lock_memory = false;
+  int realtime_priority = 0;  // SCHED_FIFO priority of the acquisition thread; 0 = normal scheduling
+  std::string models_dir = "models";
+};
+
+struct Config {
+  std::string source;  // the file it came from, or "(built-in defaults)"
+  std::string log_level = "info";
+  sim::RigParams rig = sim::default_rig_params();
+  sim::SimParams sim;
+  std::string catalogue_path = "parts.yaml";  // relative paths are relative to the config file's folder
+  GridConfig grid;
+  CameraConfig camera;
+  ExposureConfig exposure;
+  GpioConfig gpio;
+  ModbusConfig modbus;
+  SupportConfig support;
+  SvmConfig svm;
+  PerfectMatchConfig pm;
+  CascadeConfig cascade;
+  RuntimeConfig runtime;
+};
+
+[[nodiscard]] Config default_config();
+// Reads and validates a config file; the Error lists every problem, one line each.
+[[nodiscard]] Expected<Config> load_config(const std::string& path);
+// Finds the config: explicit path, $CELLSIGHT_CONFIG, ./config/cellsight.yaml, <exe>/../config, /etc/cellsight.
+[[nodiscard]] Expected<Config> find_and_load_config(const std::string& explicit_path);
+
+}  // namespace cellsight::app

@@ -1,0 +1,4 @@
+// cellsight executable entry point.
+#include "app/cli.hpp"
+
+int main(int argc, char** argv) { return cellsight::app::run_cli(argc, argv); }

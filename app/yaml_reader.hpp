@@ -1,0 +1,74 @@
+// Validating reader over yaml-cpp: every value range-checked, every unknown key an error, each error one line
+// naming file, line, column, key, value and the expected range with its unit.
+#pragma once
+
+#include <yaml-cpp/yaml.h>
+
+#include <Eigen/Core>
+#include <initializer_list>
+#include <memory>
+#include <set>
+#include <string>
+#include <vector>
+
+#include "algo/result.hpp"
+
+namespace cellsight::app {
+
+class YamlErrors {
+ public:
+  explicit YamlErrors(std::string file) : file_(std::move(file)) {}
+  void add(const YAML::Mark& mark, const std::string& key, const std::string& message);
+  [[nodiscard]] bool empty() const { return lines_.empty(); }
+  [[nodiscard]] const std::vector<std::string>& lines() const { return lines_; }
+  [[nodiscard]] const std::string& file() const { return file_; }
+  // All lines joined with '\n', for an Error.
+  [[nodiscard]] std::string joined() const;
+
+ private:
+  std::string file_;
+  std::vector<std::string> lines_;
+};
+
+// A mapping node and the dotted path that leads to it. Reads leave the target untouched when the key is absent
+// (the built-in default stays), so a maintenance engineer may ship a file with only the keys that differ.
+class YamlSection {
+ public:
+  YamlSection(YAML::Node node, std::string path, YamlErrors* errors);
+
+  [[nodiscard]] bool has(const char* key) const;
+  void number(const char* key, double& value, double min, double max, const char* unit);
+  void integer(const char* key, int& value, int min, int max, const char* unit);
+  void integer(const char* key, std::int64_t& value, std::int64_t min, std::int64_t max, const char* unit);
+  void boolean(const char* key, bool& value);
+  void text(const char* key, std::string& value, bool allow_empty = false);
+  void choice(const char* key, std::string& value, std::initializer_list<const char*> allowed);
+  void vec3(const char* key, Eigen::Vector3d& value, double min, double max, const char* unit);
+  // A list of [x, y] pairs.
+  void points2(const char* key, std::vector<Eigen::Vector2d>& value, double min, double max, const char* unit);
+  // Marks the key as known and returns it as a section (an empty one when absent).
+  [[nodiscard]] YamlSection section(const char* key);
+  // Marks the key as known and returns each element of the list (which must be mappings).
+  [[nodiscard]] std::vector<YamlSection> list(const char* key);
+  // Requires the key to be present (call before reading it).
+  void require(const char* key);
+  // Reports every key that no read asked for: typos must not pass silently.
+  void finish();
+
+  void error(const char* key, const std::string& message);
+  [[nodiscard]] const std::string& path() const { return path_; }
+  [[nodiscard]] YAML::Mark mark() const { return node_.Mark(); }
+
+ private:
+  [[nodiscard]] bool get(const char* key, YAML::Node& out);
+  [[nodiscard]] std::string key_path(const char* key) const;
+  YAML::Node node_;
+  std::string path_;
+  YamlErrors* errors_;
+  std::set<std::string> used_;
+};
+
+// Loads a YAML file; a syntax error becomes one "file:line:col: ..." line.
+[[nodiscard]] Expected<YAML::Node> load_yaml_file(const std::string& path);
+
+}  // namespace cellsight::app

@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# The test command (README): installs what is missing, builds with AddressSanitizer + UndefinedBehaviorSanitizer
+# and warnings as errors, and runs every test with ctest. Usage: scripts/test.sh [ctest -R regex]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+scripts/setup.sh
+BUILD=${CELLSIGHT_TEST_BUILD:-build-test}
+cmake -S . -B "$BUILD" -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCELLSIGHT_SANITIZE=ON -DCELLSIGHT_WERROR=ON >/dev/null
+cmake --build "$BUILD" -j"$(nproc)"
+export ASAN_OPTIONS=${ASAN_OPTIONS:-detect_leaks=1:abort_on_error=1}
+export UBSAN_OPTIONS=${UBSAN_OPTIONS:-print_stacktrace=1:halt_on_error=1}
+if [ $# -gt 0 ]; then
+  ctest --test-dir "$BUILD" --output-on-failure -j"$(nproc)" -R "$1"
+else
+  ctest --test-dir "$BUILD" --output-on-failure -j"$(nproc)"
+fi

@@ -1,0 +1,77 @@
+// Helpers shared by the simulated-cell tests: exact (noise-free) rigs and simple hand-built scenes.
+#pragma once
+
+#include <Eigen/Core>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/core.hpp>
+#include <vector>
+
+#include "drivers/sim/renderer.hpp"
+#include "drivers/sim/rig.hpp"
+
+namespace cellsight::test {
+
+// The default rig with every random or smoothing disturbance switched off, so the stripe is pure geometry.
+inline sim::RigParams exact_rig_params() {
+  sim::RigParams p = sim::default_rig_params();
+  auto& s = p.sensor;
+  s.noise = false;
+  s.ambient_dn = 0.0;
+  s.ambient_gradient_dn = 0.0;
+  s.ambient_light_dn = 0.0;
+  s.halo_fraction = 0.0;
+  s.speckle_contrast = 0.0;
+  s.hot_pixel_fraction = 0.0;
+  return p;
+}
+
+// A rectangular plate facet centred at `centre` with the given in-plane axes (carrier frame).
+inline sim::Facet plate(const Eigen::Vector3d& centre, const Eigen::Vector3d& axis_u, const Eigen::Vector3d& axis_v,
+                        double half_u, double half_v, bool is_part = true) {
+  sim::Facet f;
+  f.origin = centre;
+  f.axis_u = axis_u.normalized();
+  f.axis_v = axis_v.normalized();
+  f.outline = {{-half_u, -half_v}, {half_u, -half_v}, {half_u, half_v}, {-half_u, half_v}};
+  f.is_part = is_part;
+  f.finalise();
+  return f;
+}
+
+// Projects world points with OpenCV (an implementation independent of algo::project).
+inline std::vector<cv::Point2d> opencv_project(const sim::Rig& rig, const std::vector<cv::Point3d>& world) {
+  const auto& k = rig.params.camera.intrinsics;
+  cv::Mat camera = (cv::Mat_<double>(3, 3) << k.fx_px, 0, k.cx_px, 0, k.fy_px, k.cy_px, 0, 0, 1);
+  cv::Mat dist = (cv::Mat_<double>(1, 5) << k.k1, k.k2, k.p1, k.p2, k.k3);
+  cv::Mat r(3, 3, CV_64F), rvec, tvec(3, 1, CV_64F);
+  for (int i = 0; i < 3; ++i) {
+    tvec.at<double>(i) = rig.camera_pose.t_cam_world[i];
+    for (int j = 0; j < 3; ++j) r.at<double>(i, j) = rig.camera_pose.r_cam_world(i, j);
+  }
+  cv::Rodrigues(r, rvec);
+  std::vector<cv::Point2d> out;
+  cv::projectPoints(world, rvec, tvec, camera, dist, out);
+  return out;
+}
+
+// Sub-pixel stripe centre of one row by centre of gravity over the window where the row exceeds `threshold`
+// around its maximum (the estimator a stripe extractor would use); NaN when the row has no stripe.
+inline double row_centre_of_gravity(const cv::Mat& image, int row, int threshold) {
+  const auto* p = image.ptr<std::uint8_t>(row);
+  int best = 0;
+  for (int x = 1; x < image.cols; ++x) {
+    if (p[x] > p[best]) best = x;
+  }
+  if (p[best] < threshold) return std::numeric_limits<double>::quiet_NaN();
+  int lo = best, hi = best;
+  while (lo > 0 && p[lo - 1] > 0) --lo;
+  while (hi + 1 < image.cols && p[hi + 1] > 0) ++hi;
+  double sum = 0, weighted = 0;
+  for (int x = lo; x <= hi; ++x) {
+    sum += p[x];
+    weighted += p[x] * static_cast<double>(x);
+  }
+  return weighted / sum;
+}
+
+}  // namespace cellsight::test

@@ -1,0 +1,186 @@
+// The cellsight executable as a user runs it: `sim` output, determinism, and bad input (exit code 2, one clear
+// line, nothing half-written).
+#include <catch2/catch.hpp>
+
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <array>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <opencv2/imgcodecs.hpp>
+#include <sstream>
+
+#include "app/catalogue.hpp"
+
+namespace fs = std::filesystem;
+
+namespace {
+
+const std::string kExe = CELLSIGHT_BINARY_DIR "/app/cellsight";
+const std::string kConfig = CELLSIGHT_SOURCE_DIR "/config/cellsight.yaml";
+
+struct Run {
+  int exit_code;
+  std::string output;  // stdout and stderr
+};
+
+Run run(const std::string& args) {
+  const std::string command = kExe + " --config " + kConfig + " " + args + " 2>&1";
+  FILE* pipe = ::popen(command.c_str(), "r");
+  REQUIRE(pipe != nullptr);
+  std::string out;
+  std::array<char, 4096> buf{};
+  std::size_t n = 0;
+  while ((n = std::fread(buf.data(), 1, buf.size(), pipe)) > 0) out.append(buf.data(), n);
+  const int status = ::pclose(pipe);
+  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
+}
+
+fs::path fresh_dir(const std::string& name) {
+  const fs::path dir = fs::temp_directory_path() / ("cellsight-test-cli-" + std::to_string(::getpid())) / name;
+  fs::remove_all(dir);
+  fs::create_directories(dir.parent_path());
+  return dir;
+}
+
+std::string read_all(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  std::stringstream s;
+  s << in.rdbuf();
+  return s.str();
+}
+
+// The pose block of truth.yaml.
+std::string pose_of(const fs::path& dir) {
+  const std::string truth = read_all(dir / "truth.yaml");
+  const auto begin = truth.find("pose:");
+  return truth.substr(begin, truth.find("nominal_centre_m") - begin);
+}
+
+}  // namespace
+
+TEST_CASE("Given every catalogue part, when `cellsight sim` runs, then a full pass of mono8 frames and truth.yaml "
+          "is written") {
+  auto parts = cellsight::app::load_catalogue(CELLSIGHT_SOURCE_DIR "/config/parts.yaml");
+  REQUIRE(parts.ok());
+  for (const auto& part : *parts) {
+    const fs::path out = fresh_dir("all-" + part.name);
+    const Run r = run("sim --part " + part.name + " --seed 11 --out " + out.string());
+    INFO(part.name << ": " << r.output);
+    REQUIRE(r.exit_code == 0);
+    std::size_t frames = 0;
+    for (const auto& e : fs::directory_iterator(out / "frames")) frames += e.path().extension() == ".png" ? 1 : 0;
+    CHECK(frames == 296);  // 0.65 m of carrier at one frame per 2.2 mm
+    const cv::Mat mid = cv::imread((out / "frames" / "000148.png").string(), cv::IMREAD_UNCHANGED);
+    REQUIRE(!mid.empty());
+    CHECK(mid.type() == CV_8UC1);
+    CHECK(mid.cols == 1024);
+    CHECK(mid.rows == 768);
+    double max_value = 0;
+    cv::minMaxLoc(mid, nullptr, &max_value);
+    CHECK(max_value > 60);  // the stripe is there
+    const std::string truth = read_all(out / "truth.yaml");
+    CHECK(truth.find("part: " + part.name) != std::string::npos);
+    CHECK(truth.find("index: 295") != std::string::npos);
+    fs::remove_all(out);
+  }
+}
+
+TEST_CASE("Given the same seed twice, when `cellsight sim` runs, then the outputs are byte-identical; another seed "
+          "gives another pose") {
+  const fs::path a = fresh_dir("seed-a"), b = fresh_dir("seed-b"), c = fresh_dir("seed-c");
+  REQUIRE(run("sim --part plate_5h --seed 21 --out " + a.string()).exit_code == 0);
+  REQUIRE(run("sim --part plate_5h --seed 21 --out " + b.string()).exit_code == 0);
+  REQUIRE(run("sim --part plate_5h --seed 22 --out " + c.string()).exit_code == 0);
+  CHECK(read_all(a / "truth.yaml") == read_all(b / "truth.yaml"));
+  int compared = 0;
+  for (const auto& e : fs::directory_iterator(a / "frames")) {
+    const fs::path other = b / "frames" / e.path().filename();
+    REQUIRE(fs::exists(other));
+    if (read_all(e.path()) != read_all(other)) FAIL("frame differs: " << e.path().filename());
+    ++compared;
+  }
+  CHECK(compared == 296);
+  CHECK(pose_of(a) != pose_of(c));
+  for (const auto& d : {a, b, c}) fs::remove_all(d);
+}
+
+TEST_CASE("Given an explicit pose, when `cellsight sim` runs, then truth.yaml records exactly that pose") {
+  const fs::path out = fresh_dir("pose");
+  const Run r = run("sim --part tray --seed 3 --pose 0.012,-0.034,2.5 --out " + out.string());
+  INFO(r.output);
+  REQUIRE(r.exit_code == 0);
+  const std::string pose = pose_of(out);
+  CHECK(pose.find("x_m: 0.012\n") != std::string::npos);
+  CHECK(pose.find("y_m: -0.034\n") != std::string::npos);
+  CHECK(pose.find("theta_deg: 2.5\n") != std::string::npos);
+  CHECK(pose.find("swing_deg: 0\n") != std::string::npos);
+  fs::remove_all(out);
+}
+
+TEST_CASE("Given bad input, when `cellsight sim` runs, then it exits 2 with one line saying what and why, and "
+          "writes nothing") {
+  const fs::path out = fresh_dir("bad");
+  SECTION("unknown part") {
+    const Run r = run("sim --part teapot --out " + out.string());
+    CHECK(r.exit_code == 2);
+    CHECK(r.output.find("unknown part 'teapot' (the catalogue has: plate_4h") != std::string::npos);
+  }
+  SECTION("malformed pose") {
+    const Run r = run("sim --part tray --pose 1,x,3 --out " + out.string());
+    CHECK(r.exit_code == 2);
+    CHECK(r.output.find("--pose '1,x,3': 'x' is not a number") != std::string::npos);
+  }
+  SECTION("unwritable output folder") {
+    const fs::path file = out.parent_path() / "a-file";
+    std::ofstream(file) << "x";
+    const Run r = run("sim --part tray --out " + (file / "out").string());
+    CHECK(r.exit_code == 2);
+    CHECK(r.output.find("does not exist") != std::string::npos);
+  }
+  SECTION("existing output folder is not overwritten") {
+    fs::create_directories(out);
+    std::ofstream(out / "keep.txt") << "precious";
+    const Run r = run("sim --part tray --out " + out.string());
+    CHECK(r.exit_code == 2);
+    CHECK(r.output.find("already exists and is not an empty folder") != std::string::npos);
+    CHECK(read_all(out / "keep.txt") == "precious");
+    CHECK_FALSE(fs::exists(out / "frames"));
+  }
+  SECTION("bad seed") {
+    const Run r = run("sim --part tray --seed -4 --out " + out.string());
+    CHECK(r.exit_code == 2);
+    CHECK(r.output.find("--seed '-4': expected a whole number") != std::string::npos);
+  }
+  SECTION("bad config value") {
+    const fs::path cfg = out.parent_path() / "bad.yaml";
+    std::ofstream(cfg) << "conveyor:\n  speed_m_per_s: fast\n";
+    const std::string command = kExe + " --config " + cfg.string() + " sim --part tray --out " + out.string() + " 2>&1";
+    FILE* pipe = ::popen(command.c_str(), "r");
+    std::array<char, 4096> buf{};
+    std::string text(buf.data(), std::fread(buf.data(), 1, buf.size(), pipe));
+    const int status = ::pclose(pipe);
+    CHECK(WEXITSTATUS(status) == 2);
+    CHECK(text.find("bad.yaml:2:18: conveyor.speed_m_per_s: 'fast' is not valid, expected a number from 0.001 to 1 m/s") !=
+          std::string::npos);
+  }
+  SECTION("unknown option") {
+    const Run r = run("sim --part tray --colour red --out " + out.string());
+    CHECK(r.exit_code == 2);
+  }
+  // Nothing half-written: no output folder and no staging folder left behind.
+  if (!fs::exists(out / "keep.txt")) CHECK_FALSE(fs::exists(out));
+  for (const auto& e : fs::directory_iterator(out.parent_path())) {
+    CHECK(e.path().filename().string().find(".tmp-") == std::string::npos);
+  }
+}
+
+TEST_CASE("Given `cellsight sim --list`, when run, then every catalogue part is listed") {
+  const Run r = run("sim --list");
+  REQUIRE(r.exit_code == 0);
+  auto parts = cellsight::app::load_catalogue(CELLSIGHT_SOURCE_DIR "/config/parts.yaml");
+  REQUIRE(parts.ok());
+  for (const auto& p : *parts) CHECK(r.output.find(p.name) != std::string::npos);
+}
