@@ -100,9 +100,13 @@ void Renderer::render(const Scene& scene, const FrameRequest& request, cv::Mat& 
   pose.camera_centre = rig_.camera_centre_world - shift * Eigen::Vector3d::UnitX();
   pose.cam_t = rig_.camera_pose.t_cam_world + shift * rig_.camera_pose.r_cam_world.col(0);
 
-  cut_scene(scene, pose);
-  shadow_segments(pose);
   run_count_ = 0;
+  segments_.clear();
+  lit_.clear();
+  if (request.laser_on) {
+    cut_scene(scene, pose);
+    shadow_segments(pose);
+  }
   double specular_share = 0.0;
   for (const Segment& seg : lit_) {
     sample_segment(scene, pose, seg, request.exposure_us, truth);

@@ -41,6 +41,7 @@ struct FrameRequest {
   double travel_m = 0.0;
   double exposure_us = 1000.0;
   std::uint64_t seed = 0;  // per-frame disturbance seed (noise, glints, ghosts)
+  bool laser_on = true;    // off: only the cabin light and the sensor's own noise
 };
 
 class Renderer {

@@ -114,8 +114,10 @@ FrameInfo SimCell::frame_info(int index) const {
   return info;
 }
 
-void SimCell::render_frame(int index, double exposure_us, cv::Mat& image, std::vector<TruthPoint>* truth) {
+void SimCell::render_frame(int index, double exposure_us, cv::Mat& image, std::vector<TruthPoint>* truth,
+                           bool laser_on) {
   FrameRequest request;
+  request.laser_on = laser_on;
   request.travel_m = frame_info(index).travel_m;
   request.exposure_us = exposure_us;
   request.seed = mix_seed(pass_.seed, static_cast<std::uint64_t>(index) + 1);

@@ -68,7 +68,8 @@ class SimCell {
 
   [[nodiscard]] int frame_count() const { return rig_.frames_per_pass(); }
   [[nodiscard]] FrameInfo frame_info(int index) const;
-  void render_frame(int index, double exposure_us, cv::Mat& image, std::vector<TruthPoint>* truth = nullptr);
+  void render_frame(int index, double exposure_us, cv::Mat& image, std::vector<TruthPoint>* truth = nullptr,
+                    bool laser_on = true);
 
   [[nodiscard]] const PassSpec& pass() const { return pass_; }
   [[nodiscard]] const Scene& scene() const { return scene_; }
