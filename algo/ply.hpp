@@ -1,0 +1,27 @@
+// PLY scans (DESIGN.md): ASCII or binary little-endian, `element vertex` with float/double x, y, z in metres in
+// the carrier frame; other properties and elements are skipped. Parses from memory: the caller does the file I/O.
+#pragma once
+
+#include <cstddef>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "algo/result.hpp"
+#include "algo/scan.hpp"
+
+namespace cellsight::algo {
+
+struct PlyLimits {
+  std::size_t max_vertices = 20'000'000;  // a scan is ~0.5 M points; anything far larger is not a scan
+};
+
+// Every malformed input (bad magic, unsupported format, missing x/y/z, truncated data, non-finite coordinates,
+// counts that do not fit) is refused with a message that says what is wrong; nothing is half-returned.
+[[nodiscard]] Expected<std::vector<ScanPoint>> parse_ply(std::string_view bytes, const PlyLimits& limits = {});
+
+// Binary little-endian PLY with float x, y, z and ushort frame, row (readers that do not know them skip them).
+[[nodiscard]] std::string write_ply_binary(std::span<const ScanPoint> points);
+[[nodiscard]] std::string write_ply_ascii(std::span<const ScanPoint> points);
+
+}  // namespace cellsight::algo

@@ -1,0 +1,119 @@
+// PLY scans: round trips, the DESIGN.md subset (ASCII, binary LE, float/double, extra properties), and refusals.
+#include <catch2/catch.hpp>
+
+#include <cstring>
+#include <random>
+
+#include "algo/ply.hpp"
+
+using namespace cellsight;
+
+namespace {
+
+std::vector<algo::ScanPoint> sample_points() {
+  std::vector<algo::ScanPoint> pts;
+  for (int i = 0; i < 257; ++i) {
+    pts.push_back({0.001F * i, 1.0F - 0.002F * i, 0.1F + 0.0001F * i, static_cast<std::uint16_t>(i / 10), static_cast<std::uint16_t>(i)});
+  }
+  return pts;
+}
+
+template <class T>
+void append(std::string& s, T v) {
+  char b[sizeof(T)];
+  std::memcpy(b, &v, sizeof(T));
+  s.append(b, sizeof(T));
+}
+
+std::string parse_error(const std::string& text) {
+  auto r = algo::parse_ply(text);
+  REQUIRE_FALSE(r.ok());
+  return r.error().message;
+}
+
+}  // namespace
+
+TEST_CASE("Given points, when written as binary or ASCII PLY and read back, then x, y, z are unchanged") {
+  const auto pts = sample_points();
+  for (const std::string& file : {algo::write_ply_binary(pts), algo::write_ply_ascii(pts)}) {
+    auto back = algo::parse_ply(file);
+    REQUIRE(back.ok());
+    REQUIRE(back->size() == pts.size());
+    for (std::size_t i = 0; i < pts.size(); ++i) {
+      CHECK((*back)[i].x == Approx(pts[i].x).margin(1e-8));
+      CHECK((*back)[i].y == Approx(pts[i].y).margin(1e-8));
+      CHECK((*back)[i].z == Approx(pts[i].z).margin(1e-8));
+    }
+  }
+}
+
+TEST_CASE("Given a binary PLY from another tool (double x y z, colour, normals, a face element first), when read, "
+          "then the vertices come through and the rest is skipped") {
+  std::string f = "ply\nformat binary_little_endian 1.0\ncomment other scanner\nelement face 2\n"
+                  "property list uchar int vertex_indices\nelement vertex 3\nproperty double x\nproperty uchar red\n"
+                  "property double y\nproperty float nx\nproperty double z\nend_header\n";
+  for (int face = 0; face < 2; ++face) {
+    append<std::uint8_t>(f, 3);
+    for (int k = 0; k < 3; ++k) append<std::int32_t>(f, k);
+  }
+  for (int i = 0; i < 3; ++i) {
+    append<double>(f, 0.1 * i);
+    append<std::uint8_t>(f, 200);
+    append<double>(f, 0.5);
+    append<float>(f, 0.0F);
+    append<double>(f, -0.25 * i);
+  }
+  auto pts = algo::parse_ply(f);
+  REQUIRE(pts.ok());
+  REQUIRE(pts->size() == 3);
+  CHECK((*pts)[2].x == Approx(0.2));
+  CHECK((*pts)[2].y == Approx(0.5));
+  CHECK((*pts)[2].z == Approx(-0.5));
+}
+
+TEST_CASE("Given an ASCII PLY with extra columns and CRLF lines, when read, then x, y, z are taken by name") {
+  const std::string f = "ply\r\nformat ascii 1.0\r\nelement vertex 2\r\nproperty float z\r\nproperty float intensity\r\n"
+                        "property float x\r\nproperty float y\r\nend_header\r\n0.3 99 0.1 0.2\r\n-1e-3 5 4 5.5\r\n";
+  auto pts = algo::parse_ply(f);
+  REQUIRE(pts.ok());
+  REQUIRE(pts->size() == 2);
+  CHECK((*pts)[0].x == Approx(0.1F));
+  CHECK((*pts)[0].z == Approx(0.3F));
+  CHECK((*pts)[1].z == Approx(-0.001F));
+}
+
+TEST_CASE("Given malformed PLY files, when read, then each is refused with what is wrong") {
+  const std::string head = "ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n";
+  CHECK(parse_error("PLY\nformat ascii 1.0\n").find("not a PLY file") != std::string::npos);
+  CHECK(parse_error("ply\nformat binary_big_endian 1.0\nelement vertex 0\nend_header\n").find("binary_big_endian' is not supported") != std::string::npos);
+  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n").find("end_header") != std::string::npos);
+  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n1 2\n").find("lacks x, y or z") != std::string::npos);
+  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 1\nproperty int x\nproperty float y\nproperty float z\nend_header\n1 2 3\n").find("must be float or double") != std::string::npos);
+  CHECK(parse_error("ply\nformat ascii 1.0\nelement face 1\nproperty list uchar int i\nend_header\n").find("no 'element vertex'") != std::string::npos);
+  CHECK(parse_error("ply\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n").find("no format line") != std::string::npos);
+  CHECK(parse_error(head + std::string(20, '\0')).find("truncated at vertex 1 of 2") != std::string::npos);
+  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n4 5\n").find("missing number at vertex 1") != std::string::npos);
+  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 nan 3\n").find("vertex 0") != std::string::npos);
+  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 99999999999\nproperty float x\nproperty float y\nproperty float z\nend_header\n").find("more than a scan can have") != std::string::npos);
+  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty quux z\nend_header\n").find("unknown property type 'quux'") != std::string::npos);
+}
+
+TEST_CASE("Given a valid file with random bytes corrupted or cut, when read, then it either parses or is refused, "
+          "never crashes") {
+  const std::string good = algo::write_ply_binary(sample_points());
+  const std::string good_ascii = algo::write_ply_ascii(sample_points());
+  std::mt19937 rng(5);
+  int refused = 0;
+  for (int trial = 0; trial < 3000; ++trial) {
+    std::string f = trial % 2 ? good : good_ascii;
+    const int edits = 1 + static_cast<int>(rng() % 6);
+    for (int e = 0; e < edits; ++e) f[rng() % f.size()] = static_cast<char>(rng() % 256);
+    if (trial % 3 == 0) f.resize(rng() % f.size());
+    auto r = algo::parse_ply(f);
+    if (!r.ok()) {
+      ++refused;
+      CHECK(r.error().message.rfind("PLY: ", 0) == 0);
+    }
+  }
+  CHECK(refused > 100);
+}
