@@ -125,6 +125,9 @@ void read_rest(YamlSection& root, Config& cfg) {
     c.number("exposure_us", cfg.camera.exposure_us, 1.0, 1e6, "us");
     c.number("exposure_min_us", cfg.camera.exposure_min_us, 1.0, 1e6, "us");
     c.number("exposure_max_us", cfg.camera.exposure_max_us, 1.0, 1e6, "us");
+    c.boolean("external_trigger", cfg.camera.external_trigger);
+    c.integer("trigger_control_id", cfg.camera.trigger_control_id, 0, 0xFFFFFFFFLL, "");
+    c.integer("trigger_control_value", cfg.camera.trigger_control_value, -1000000, 1000000, "");
     if (cfg.camera.exposure_min_us > cfg.camera.exposure_max_us)
       c.error("exposure_min_us", "must not exceed camera.exposure_max_us");
     c.finish();
@@ -147,6 +150,9 @@ void read_rest(YamlSection& root, Config& cfg) {
     g.integer("encoder_a_line", cfg.gpio.encoder_a_line, 0, 1023, "");
     g.integer("encoder_b_line", cfg.gpio.encoder_b_line, 0, 1023, "");
     g.boolean("part_present_active_low", cfg.gpio.part_present_active_low);
+    g.boolean("laser_active_low", cfg.gpio.laser_active_low);
+    g.boolean("trigger_active_low", cfg.gpio.trigger_active_low);
+    g.boolean("encoder_reverse", cfg.gpio.encoder_reverse);
     g.integer("trigger_pulse_us", cfg.gpio.trigger_pulse_us, 1, 100000, "us");
     g.integer("debounce_us", cfg.gpio.debounce_us, 0, 1000000, "us");
     g.finish();

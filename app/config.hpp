@@ -24,6 +24,9 @@ struct CameraConfig {
   double exposure_us = 1500.0;  // start value; the exposure loop moves it inside the limits
   double exposure_min_us = 20.0;
   double exposure_max_us = 20000.0;
+  bool external_trigger = false;      // v4l2: the camera waits for the trigger line (driver-private control)
+  std::int64_t trigger_control_id = 0;  // 0: the first control whose name contains "trigger"
+  int trigger_control_value = 1;      // value of that control that selects external trigger
 };
 
 struct ExposureConfig {
@@ -37,6 +40,9 @@ struct GpioConfig {
   std::string chip = "gpiochip0";
   int laser_line = 17, trigger_line = 27, part_present_line = 22, encoder_a_line = 23, encoder_b_line = 24;
   bool part_present_active_low = false;
+  bool laser_active_low = false;
+  bool trigger_active_low = false;
+  bool encoder_reverse = false;  // counts must grow while the conveyor runs forward
   int trigger_pulse_us = 100;
   int debounce_us = 2000;
 };
