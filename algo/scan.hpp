@@ -33,6 +33,10 @@ class ScanBuffer {
     points_[size_++] = p;
     return true;
   }
+  // Drops the points pushed after the buffer held `size` points.
+  void truncate(std::size_t size) {
+    if (size < size_) size_ = size;
+  }
   // Keeps the points for which keep(p) is true, in order; returns how many were removed.
   template <class Keep>
   std::size_t filter(Keep keep) {

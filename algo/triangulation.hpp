@@ -31,6 +31,14 @@ class Triangulator {
     return {a[0] + w * (a[3] - a[0]), a[1] + w * (a[4] - a[1]), a[2] + w * (a[5] - a[2])};
   }
 
+  // Same at a sub-pixel row too (bilinear between rows): for stripe pieces that run along the rows.
+  [[nodiscard]] Eigen::Vector3f cell_point(float u, float v) const {
+    if (!(v >= 0.0F) || v > static_cast<float>(height_ - 1)) return cell_point(u, -1);
+    const int v0 = std::min(static_cast<int>(v), height_ - 2);
+    const float w = v - static_cast<float>(v0);
+    return (1.0F - w) * cell_point(u, v0) + w * cell_point(u, v0 + 1);
+  }
+
   // Carrier-frame point: p_carrier = p_cell - (travel - start_offset) e_x (DESIGN.md, carrier rides the conveyor).
   [[nodiscard]] Eigen::Vector3f carrier_point(float u, int v, double travel_m, double start_offset_m) const {
     Eigen::Vector3f p = cell_point(u, v);

@@ -443,7 +443,7 @@ void Renderer::sample_segment(const Scene& scene, const FramePose& pose, const S
   };
   auto emit = [&](std::vector<Sample>& run, const Eigen::Vector3d& p) {
     run.push_back(shade(scene, pose, p, seg.facet, exposure_us));
-    if (truth != nullptr) truth->push_back({p, run.back().pixel, is_part});
+    if (truth != nullptr) truth->push_back({p, run.back().pixel, is_part, run.back().peak_dn});
   };
   // Locates the visibility change between t_in (visible) and t_out (hidden).
   auto boundary = [&](double t_in, double t_out) {

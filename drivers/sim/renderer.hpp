@@ -35,6 +35,7 @@ struct TruthPoint {
   Eigen::Vector3d p_carrier_m;
   Eigen::Vector2d pixel;
   bool is_part;
+  double peak_dn = 0.0;  // stripe peak there at this frame's exposure, before clipping and noise
 };
 
 struct FrameRequest {

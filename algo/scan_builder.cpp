@@ -1,0 +1,182 @@
+// Scan builder: the per-frame streaming part of reconstruction.
+#include "algo/scan_builder.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+namespace cellsight::algo {
+
+ScanBuilder::ScanBuilder(const ScanBuilderParams& params, const SensorCalibration& calibration)
+    : params_(params),
+      triangulator_(calibration),
+      profile_(calibration.intrinsics.height_px),
+      exposure_(params.exposure, params.exposure.exposure_min_us),
+      scan_(params.max_points),
+      column_v_(static_cast<std::size_t>(calibration.intrinsics.width_px), 0.0F),
+      candidate_(static_cast<std::size_t>(calibration.intrinsics.height_px), 0) {}
+
+void ScanBuilder::begin_pass(std::int64_t start_counts, std::int32_t exposure_us) {
+  scan_.clear();
+  stats_ = PassStats{};
+  start_counts_ = start_counts;
+  exposure_.reset(exposure_us);
+}
+
+FrameOutcome ScanBuilder::add_frame(const std::uint8_t* pixels, int width, int height, int stride,
+                                    std::int32_t frame_exposure_us, std::int64_t encoder_counts) {
+  FrameOutcome out;
+  ++stats_.frames;
+  out.stripe = extract_stripe(pixels, width, height, stride, params_.stripe, profile_);
+  if (out.stripe != StripeResult::kOk) {
+    out.exposure = {exposure_.exposure_us(), ExposureAction::kHold};
+    return out;
+  }
+  const StripeSummary& summary = profile_.summary();
+  out.exposure = exposure_.update(summary, frame_exposure_us);
+  out.median_width_px = summary.median_width_px;
+  if (summary.valid_rows >= params_.exposure.min_valid_rows) {
+    ++stats_.frames_with_stripe;
+    out.width_in_band = summary.median_width_px >= params_.exposure.width_min_px &&
+                        summary.median_width_px <= params_.exposure.width_max_px;
+    stats_.frames_in_band += out.width_in_band ? 1 : 0;
+  }
+  const double travel_m = triangulator_.travel_m(encoder_counts - start_counts_);
+  // Group usable rows into runs of continuous centres; only runs long enough become points.
+  auto usable = [&](int v) {
+    const StripeStatus s = profile_.row(v).status;
+    return s == StripeStatus::kValid || s == StripeStatus::kSaturated;
+  };
+  int run_start = -1;
+  for (int v = 0; v <= profile_.rows(); ++v) {
+    const bool continues = v < profile_.rows() && usable(v) && run_start >= 0 &&
+                           std::abs(profile_.row(v).centre_px - profile_.row(v - 1).centre_px) <= params_.run_continuity_px;
+    if (continues) continue;
+    if (run_start >= 0) emit_run(run_start, v - 1, travel_m, out);
+    run_start = v < profile_.rows() && usable(v) ? v : -1;
+  }
+  column_pass(pixels, width, height, stride, travel_m, out);
+  stats_.points = scan_.size();
+  stats_.dropped_points = scan_.dropped();
+  return out;
+}
+
+void ScanBuilder::emit_run(int first, int last, double travel_m, FrameOutcome& out) {
+  const int length = last - first + 1;
+  if (length < params_.min_run_rows) {
+    stats_.short_run_rows += static_cast<std::size_t>(length);
+    for (int v = first; v <= last; ++v) candidate_[static_cast<std::size_t>(v)] = 1;  // the column pass looks again
+    return;
+  }
+  double peak_sum = 0.0;
+  for (int v = first; v <= last; ++v) peak_sum += profile_.row(v).peak;
+  const double taper_dn = params_.end_taper_ratio * peak_sum / length;
+  while (first < last && profile_.row(first).peak < taper_dn) {
+    ++first;
+    ++stats_.tapered_rows;
+  }
+  while (last > first && profile_.row(last).peak < taper_dn) {
+    --last;
+    ++stats_.tapered_rows;
+  }
+  const auto frame_index = static_cast<std::uint16_t>(std::min(stats_.frames - 1, 65535));
+  for (int v = first; v <= last; ++v) {
+    const Eigen::Vector3f p =
+        triangulator_.carrier_point(profile_.row(v).centre_px, v, travel_m, params_.carrier_start_offset_m);
+    if (!std::isfinite(p.x())) continue;
+    if (scan_.push({p.x(), p.y(), p.z(), frame_index, static_cast<std::uint16_t>(v)})) ++out.points_added;
+  }
+}
+
+void ScanBuilder::column_pass(const std::uint8_t* pixels, int width, int height, int stride, double travel_m,
+                              FrameOutcome& out) {
+  if (width != static_cast<int>(column_v_.size()) || height != static_cast<int>(candidate_.size())) return;
+  // Rows the row pass could not measure well: a stripe wider than a row profile should be, rows that only held
+  // short broken runs (a line slanting more than ~60 deg from vertical changes column by > 2 px per row), and
+  // bright rows with no accepted stripe (a line along the row, rejected as too wide).
+  double peak_sum = 0.0;
+  int peak_rows = 0;
+  for (int v = 0; v < profile_.rows(); ++v) {
+    const StripeRow& row = profile_.row(v);
+    const bool usable = row.status == StripeStatus::kValid || row.status == StripeStatus::kSaturated;
+    if (usable) {
+      peak_sum += row.peak;
+      ++peak_rows;
+    }
+    if ((usable && row.width_px > params_.wide_row_px) || (row.status == StripeStatus::kNoStripe && row.peak > 0)) {
+      candidate_[static_cast<std::size_t>(v)] = 1;
+    }
+  }
+  const double typical_peak = peak_rows > 0 ? peak_sum / peak_rows : 0.0;
+  constexpr double kMinColumnPeakShare = 0.15;  // as the row extractor's min_relative_strength
+  constexpr int kColumnWindowRows = 8;
+  constexpr float kColumnContinuityPx = 1.5F;
+  const double min_peak = std::max<double>(params_.stripe.threshold_dn, kMinColumnPeakShare * typical_peak);
+  const auto frame_index = static_cast<std::uint16_t>(std::min(stats_.frames - 1, 65535));
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+
+  // Each band: candidate rows +-window. In every column of a band, a narrow peak well above the column's own
+  // background is a crossing of the line; its vertical centre of gravity is the sub-pixel row.
+  int v = 0;
+  while (v < height) {
+    if (candidate_[static_cast<std::size_t>(v)] == 0) {
+      ++v;
+      continue;
+    }
+    int band_last = v;
+    while (band_last + 1 < height && (candidate_[static_cast<std::size_t>(band_last + 1)] != 0 ||
+                                      (band_last + 1 < height - 1 && candidate_[static_cast<std::size_t>(band_last + 2)] != 0))) {
+      ++band_last;
+    }
+    const int top = std::max(0, v - kColumnWindowRows), bottom = std::min(height - 1, band_last + kColumnWindowRows);
+    for (int c = 0; c < width; ++c) {
+      column_v_[static_cast<std::size_t>(c)] = nan;
+      int best = top;
+      for (int r = top; r <= bottom; ++r) {
+        if (pixels[static_cast<std::size_t>(r) * stride + c] > pixels[static_cast<std::size_t>(best) * stride + c]) best = r;
+      }
+      if (best < v - 2 || best > band_last + 2) continue;  // the peak belongs to rows the row pass measured
+      const double local_bg = std::min(pixels[static_cast<std::size_t>(top) * stride + c],
+                                       pixels[static_cast<std::size_t>(bottom) * stride + c]);
+      const double peak = pixels[static_cast<std::size_t>(best) * stride + c];
+      if (peak - local_bg < min_peak) continue;
+      const double half = local_bg + 0.5 * (peak - local_bg);
+      int lo = best, hi = best;
+      while (lo > top && pixels[static_cast<std::size_t>(lo - 1) * stride + c] >= half) --lo;
+      while (hi < bottom && pixels[static_cast<std::size_t>(hi + 1) * stride + c] >= half) ++hi;
+      if (lo == top || hi == bottom || hi - lo + 1 > params_.max_column_extent_rows) continue;  // a blob, or cut off
+      double sum = 0.0, weighted = 0.0;
+      for (int r = std::max(top, lo - 2); r <= std::min(bottom, hi + 2); ++r) {
+        const double value = std::max(0.0, pixels[static_cast<std::size_t>(r) * stride + c] - local_bg);
+        sum += value;
+        weighted += value * r;
+      }
+      if (sum > 0.0) column_v_[static_cast<std::size_t>(c)] = static_cast<float>(weighted / sum);
+    }
+    // Runs of columns whose rows continue smoothly become points; isolated columns (glints) do not.
+    int run_start = -1;
+    for (int c = 0; c <= width; ++c) {
+      const float here = c < width ? column_v_[static_cast<std::size_t>(c)] : nan;
+      const bool continues = run_start >= 0 && !std::isnan(here) &&
+                             std::abs(here - column_v_[static_cast<std::size_t>(c - 1)]) <= kColumnContinuityPx;
+      if (continues) continue;
+      if (run_start >= 0 && c - run_start >= params_.min_column_run) {
+        for (int k = run_start; k < c; ++k) {
+          const float vk = column_v_[static_cast<std::size_t>(k)];
+          Eigen::Vector3f p = triangulator_.cell_point(static_cast<float>(k), vk);
+          p.x() -= static_cast<float>(travel_m - params_.carrier_start_offset_m);
+          if (!std::isfinite(p.x())) continue;
+          if (scan_.push({p.x(), p.y(), p.z(), frame_index, static_cast<std::uint16_t>(std::lround(vk))})) {
+            ++out.points_added;
+            ++stats_.column_points;
+          }
+        }
+      }
+      run_start = std::isnan(here) ? -1 : c;
+    }
+    v = band_last + 1;
+  }
+  std::fill(candidate_.begin(), candidate_.end(), 0);
+}
+
+}  // namespace cellsight::algo
