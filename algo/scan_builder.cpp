@@ -14,7 +14,9 @@ ScanBuilder::ScanBuilder(const ScanBuilderParams& params, const SensorCalibratio
       exposure_(params.exposure, params.exposure.exposure_min_us),
       scan_(params.max_points),
       column_v_(static_cast<std::size_t>(calibration.intrinsics.width_px), 0.0F),
-      candidate_(static_cast<std::size_t>(calibration.intrinsics.height_px), 0) {}
+      candidate_(static_cast<std::size_t>(calibration.intrinsics.height_px), 0),
+      row_lo_(candidate_.size(), 0),
+      row_hi_(candidate_.size(), -1) {}
 
 void ScanBuilder::begin_pass(std::int64_t start_counts, std::int32_t exposure_us) {
   scan_.clear();
@@ -98,20 +100,41 @@ void ScanBuilder::column_pass(const std::uint8_t* pixels, int width, int height,
   int peak_rows = 0;
   for (int v = 0; v < profile_.rows(); ++v) {
     const StripeRow& row = profile_.row(v);
-    const bool usable = row.status == StripeStatus::kValid || row.status == StripeStatus::kSaturated;
-    if (usable) {
+    if (row.status == StripeStatus::kValid || row.status == StripeStatus::kSaturated) {
       peak_sum += row.peak;
       ++peak_rows;
-    }
-    if ((usable && row.width_px > params_.wide_row_px) || (row.status == StripeStatus::kNoStripe && row.peak > 0)) {
-      candidate_[static_cast<std::size_t>(v)] = 1;
     }
   }
   const double typical_peak = peak_rows > 0 ? peak_sum / peak_rows : 0.0;
   constexpr double kMinColumnPeakShare = 0.15;  // as the row extractor's min_relative_strength
   constexpr int kColumnWindowRows = 8;
   constexpr float kColumnContinuityPx = 1.5F;
+  constexpr int kColumnMarginPx = 48;  // around a row's stripe centre, where its slanted piece can run
   const double min_peak = std::max<double>(params_.stripe.threshold_dn, kMinColumnPeakShare * typical_peak);
+  // Columns to re-read per row (candidate_ rows set by emit_run keep their range from the row centre).
+  for (int v = 0; v < profile_.rows(); ++v) {
+    const StripeRow& row = profile_.row(v);
+    const bool usable = row.status == StripeStatus::kValid || row.status == StripeStatus::kSaturated;
+    int lo = width, hi = -1;
+    if ((usable && row.width_px > params_.wide_row_px) || candidate_[static_cast<std::size_t>(v)] != 0) {
+      lo = static_cast<int>(row.centre_px) - kColumnMarginPx;
+      hi = static_cast<int>(row.centre_px) + kColumnMarginPx;
+    } else if (row.status == StripeStatus::kNoStripe && row.peak >= 2.0 * min_peak) {
+      // Bright but rejected (a line along the row is "too wide"): where is the light?
+      const std::uint8_t* line = pixels + static_cast<std::size_t>(v) * static_cast<std::size_t>(stride);
+      const double half = 0.5 * row.peak;
+      for (int c = 0; c < width; ++c) {
+        if (line[c] >= half) {
+          lo = std::min(lo, c);
+          hi = c;
+        }
+      }
+      if (hi - lo < params_.min_column_run) hi = -1;  // a spike or a hot pixel: nothing to re-read
+    }
+    row_lo_[static_cast<std::size_t>(v)] = static_cast<std::int16_t>(std::clamp(lo, 0, width));
+    row_hi_[static_cast<std::size_t>(v)] = static_cast<std::int16_t>(std::clamp(hi, -1, width - 1));
+    candidate_[static_cast<std::size_t>(v)] = hi >= lo ? 1 : 0;
+  }
   const auto frame_index = static_cast<std::uint16_t>(std::min(stats_.frames - 1, 65535));
   const float nan = std::numeric_limits<float>::quiet_NaN();
 
@@ -129,8 +152,14 @@ void ScanBuilder::column_pass(const std::uint8_t* pixels, int width, int height,
       ++band_last;
     }
     const int top = std::max(0, v - kColumnWindowRows), bottom = std::min(height - 1, band_last + kColumnWindowRows);
-    for (int c = 0; c < width; ++c) {
-      column_v_[static_cast<std::size_t>(c)] = nan;
+    int c_lo = width, c_hi = -1;
+    for (int r = v; r <= band_last; ++r) {
+      if (candidate_[static_cast<std::size_t>(r)] == 0) continue;
+      c_lo = std::min<int>(c_lo, row_lo_[static_cast<std::size_t>(r)]);
+      c_hi = std::max<int>(c_hi, row_hi_[static_cast<std::size_t>(r)]);
+    }
+    for (int c = std::max(0, c_lo); c <= std::min(width - 1, c_hi + 1); ++c) column_v_[static_cast<std::size_t>(c)] = nan;
+    for (int c = c_lo; c <= c_hi; ++c) {
       int best = top;
       for (int r = top; r <= bottom; ++r) {
         if (pixels[static_cast<std::size_t>(r) * stride + c] > pixels[static_cast<std::size_t>(best) * stride + c]) best = r;
@@ -155,7 +184,7 @@ void ScanBuilder::column_pass(const std::uint8_t* pixels, int width, int height,
     }
     // Runs of columns whose rows continue smoothly become points; isolated columns (glints) do not.
     int run_start = -1;
-    for (int c = 0; c <= width; ++c) {
+    for (int c = std::max(0, c_lo); c <= std::min(width, c_hi + 1); ++c) {
       const float here = c < width ? column_v_[static_cast<std::size_t>(c)] : nan;
       const bool continues = run_start >= 0 && !std::isnan(here) &&
                              std::abs(here - column_v_[static_cast<std::size_t>(c - 1)]) <= kColumnContinuityPx;

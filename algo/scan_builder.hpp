@@ -84,6 +84,7 @@ class ScanBuilder {
   std::int64_t start_counts_ = 0;
   std::vector<float> column_v_;         // column pass: sub-pixel row per column (NaN: none)
   std::vector<std::uint8_t> candidate_;  // rows the column pass re-reads
+  std::vector<std::int16_t> row_lo_, row_hi_;  // and the columns it re-reads there
 };
 
 }  // namespace cellsight::algo

@@ -6,6 +6,7 @@
 #include <opencv2/core.hpp>
 #include <vector>
 
+#include "algo/sensor_model.hpp"
 #include "drivers/sim/renderer.hpp"
 #include "drivers/sim/rig.hpp"
 
@@ -23,6 +24,18 @@ inline sim::RigParams exact_rig_params() {
   s.speckle_contrast = 0.0;
   s.hot_pixel_fraction = 0.0;
   return p;
+}
+
+// The simulator's true sensor, as a perfect calibration would report it (for tests of later stages only; the
+// calibration tests recover it from board images instead).
+inline algo::SensorCalibration true_calibration(const sim::Rig& rig) {
+  algo::SensorCalibration c;
+  c.intrinsics = rig.params.camera.intrinsics;
+  c.camera_pose = rig.camera_pose;
+  c.laser_normal = rig.laser_normal_world;
+  c.laser_offset_m = rig.laser_offset_m;
+  c.mm_per_count = 1.0 / rig.params.conveyor.counts_per_mm;
+  return c;
 }
 
 // A rectangular plate facet centred at `centre` with the given in-plane axes (carrier frame).

@@ -10,20 +10,12 @@
 #include "app/scan_mode.hpp"
 #include "app/sim_mode.hpp"
 #include "drivers/sim/sim_devices.hpp"
+#include "sim_test_util.hpp"
 
 using namespace cellsight;
 
 namespace {
 
-algo::SensorCalibration true_calibration(const sim::Rig& rig) {
-  algo::SensorCalibration c;
-  c.intrinsics = rig.params.camera.intrinsics;
-  c.camera_pose = rig.camera_pose;
-  c.laser_normal = rig.laser_normal_world;
-  c.laser_offset_m = rig.laser_offset_m;
-  c.mm_per_count = 1.0 / rig.params.conveyor.counts_per_mm;
-  return c;
-}
 
 // Euclidean distance from p to the nearest point of any facet of the scene (plane distance combined with how far
 // the foot point lies outside the facet's area, searched on rings of 0.25 mm up to 5 mm).
@@ -96,7 +88,7 @@ Scanned scan_pass(const app::Config& cfg, sim::SimCell& cell, const sim::PassSpe
   REQUIRE(io.open().ok());
   REQUIRE(encoder.open().ok());
   REQUIRE(io.set(drivers::Output::kLaserEnable, true) == drivers::DeviceStatus::kOk);
-  algo::ScanBuilder builder(app::scan_builder_params(cfg), true_calibration(cell.rig()));
+  algo::ScanBuilder builder(app::scan_builder_params(cfg), test::true_calibration(cell.rig()));
   line.enqueue(pass);
   app::AcquireParams params;
   params.start_exposure_us = static_cast<std::int32_t>(cfg.camera.exposure_us);
@@ -117,7 +109,7 @@ PassResult scan_and_measure(const app::Config& cfg, const sim::PassSpec& pass) {
   REQUIRE(io.open().ok());
   REQUIRE(encoder.open().ok());
   REQUIRE(io.set(drivers::Output::kLaserEnable, true) == drivers::DeviceStatus::kOk);
-  algo::ScanBuilder builder(app::scan_builder_params(cfg), true_calibration(cell->rig()));
+  algo::ScanBuilder builder(app::scan_builder_params(cfg), test::true_calibration(cell->rig()));
   line.enqueue(pass);
   app::AcquireParams params;
   params.start_exposure_us = static_cast<std::int32_t>(cfg.camera.exposure_us);

@@ -12,16 +12,6 @@ using namespace cellsight;
 
 namespace {
 
-// The simulator's true sensor, as a perfect calibration would report it.
-algo::SensorCalibration true_calibration(const sim::Rig& rig) {
-  algo::SensorCalibration c;
-  c.intrinsics = rig.params.camera.intrinsics;
-  c.camera_pose = rig.camera_pose;
-  c.laser_normal = rig.laser_normal_world;
-  c.laser_offset_m = rig.laser_offset_m;
-  c.mm_per_count = 1.0 / rig.params.conveyor.counts_per_mm;
-  return c;
-}
 
 }  // namespace
 
@@ -46,7 +36,7 @@ TEST_CASE("Given camera points, when projected, then algo::project equals cv::pr
 TEST_CASE("Given a point on the laser plane projected by OpenCV, when its pixel is triangulated, then the point is "
           "recovered") {
   const sim::Rig rig = sim::make_rig(sim::default_rig_params());
-  const algo::SensorCalibration calibration = true_calibration(rig);
+  const algo::SensorCalibration calibration = test::true_calibration(rig);
   const algo::Triangulator table(calibration);
   std::vector<cv::Point3d> world;
   for (double y = 0.05; y <= 1.05; y += 0.05) {
@@ -74,7 +64,7 @@ TEST_CASE("Given a simulated pass, when the ground-truth stripe pixels are trian
   REQUIRE(cfg.ok());
   auto cell = app::make_sim_cell(*cfg);
   REQUIRE(cell.ok());
-  const algo::Triangulator table(true_calibration(cell->rig()));
+  const algo::Triangulator table(test::true_calibration(cell->rig()));
   auto pass = cell->random_pass("ribbed_v4", 9);
   REQUIRE(pass.ok());
   REQUIRE(cell->begin_pass(*pass).ok());
@@ -87,7 +77,7 @@ TEST_CASE("Given a simulated pass, when the ground-truth stripe pixels are trian
     const double travel = table.travel_m(cell->frame_info(frame).encoder_counts);
     for (const auto& t : truth) {
       // Compare at the exact truth pixel (the row is not an integer here, so use the exact intersection).
-      Eigen::Vector3d cell_point = algo::intersect_laser(true_calibration(cell->rig()), t.pixel);
+      Eigen::Vector3d cell_point = algo::intersect_laser(test::true_calibration(cell->rig()), t.pixel);
       cell_point.x() -= travel - cfg->rig.carrier.start_offset_m;
       worst = std::max(worst, (cell_point - t.p_carrier_m).norm());
       ++n;
