@@ -10,6 +10,8 @@
 #include <vector>
 
 #include "app/config.hpp"
+#include "app/calibrate_mode.hpp"
+#include "app/scan_mode.hpp"
 #include "app/sim_mode.hpp"
 #include "drivers/log.hpp"
 
@@ -24,6 +26,10 @@ constexpr const char* kUsage =
     "        render one simulated pass: DIR/frames/NNNNNN.png (mono8) and DIR/truth.yaml\n"
     "  sim --list\n"
     "        list the simulated cell's part catalogue\n"
+    "  scan [--sim --part NAME [--seed S] [--pose x,y,theta] | --sim --empty] --out SCAN.ply [--ascii]\n"
+    "       [--calibration FILE]\n"
+    "        one acquisition with the calibrated sensor -> point cloud (carrier frame, metres, carrier included)\n"
+    "  calibrate camera|laser|conveyor|support ...   technician calibration (see scripts/calibrate.sh)\n"
     "  help  this text\n"
     "\n"
     "global options:\n"
@@ -33,7 +39,8 @@ constexpr const char* kUsage =
     "exit codes: 0 done, 1 failed while running, 2 bad input (arguments, configuration, data)\n";
 
 // Options that take a value; everything else starting with "--" is a flag.
-const std::set<std::string> kValueOptions = {"--config", "--log-level", "--part", "--seed", "--pose", "--out"};
+const std::set<std::string> kValueOptions = {"--config", "--log-level", "--part", "--seed", "--pose", "--out",
+                                             "--calibration"};
 
 struct Args {
   std::string mode;
@@ -129,11 +136,84 @@ int run_sim(const Args& args, const Config& config) {
   return kExitOk;
 }
 
+bool parse_seed(const std::string& text, std::uint64_t& out) {
+  char* end = nullptr;
+  errno = 0;
+  const unsigned long long v = std::strtoull(text.c_str(), &end, 10);
+  if (text.empty() || *end != '\0' || errno != 0 || text[0] == '-') return false;
+  out = v;
+  return true;
+}
+
+int run_scan_mode(const Args& args, const Config& config) {
+  std::string error;
+  if (!check_known(args, {"--part", "--seed", "--pose", "--out", "--calibration"}, {"--sim", "--empty", "--ascii"}, error)) {
+    return usage_error(error);
+  }
+  ScanOptions options;
+  options.sim = args.flags.count("--sim") != 0;
+  options.empty_carrier = args.flags.count("--empty") != 0;
+  options.ascii = args.flags.count("--ascii") != 0;
+  const auto out = args.values.find("--out");
+  if (out == args.values.end()) return usage_error("scan needs --out SCAN.ply");
+  options.out_path = out->second;
+  if (const auto c = args.values.find("--calibration"); c != args.values.end()) options.calibration_path = c->second;
+  if (options.sim && !options.empty_carrier) {
+    const auto part = args.values.find("--part");
+    if (part == args.values.end()) return usage_error("scan --sim needs --part NAME or --empty (see 'cellsight sim --list')");
+    options.part = part->second;
+  }
+  if (!options.sim && (args.values.count("--part") != 0 || options.empty_carrier)) {
+    return usage_error("--part and --empty choose what the simulated cell scans; add --sim");
+  }
+  if (const auto seed = args.values.find("--seed"); seed != args.values.end() && !parse_seed(seed->second, options.seed)) {
+    return usage_error("--seed '" + seed->second + "': expected a whole number >= 0");
+  }
+  if (const auto pose = args.values.find("--pose"); pose != args.values.end()) {
+    auto parsed = parse_pose(pose->second);
+    if (!parsed) return usage_error(parsed.error().message);
+    options.pose = *parsed;
+  }
+  auto summary = run_scan(config, options);
+  if (!summary) {
+    std::fprintf(stderr, "cellsight: %s\n", summary.error().message.c_str());
+    return kExitUsage;
+  }
+  std::printf("%zu points, %d frames, stripe width in band in %d of %d frames, final exposure %d us -> %s\n",
+              summary->points, summary->frames, summary->frames_in_band, summary->frames_with_stripe,
+              summary->final_exposure_us, options.out_path.c_str());
+  return kExitOk;
+}
+
 }  // namespace
 
 int run_cli(int argc, char** argv) {
   Args args;
   std::string error;
+  // `calibrate` has options of its own (--images DIR, ...): it gets every word after the mode.
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "--config" || a == "--log-level") {
+      ++i;
+      continue;
+    }
+    if (a.rfind("--", 0) == 0) break;
+    if (a != "calibrate") break;
+    Args globals;
+    if (!parse_args(i, argv, globals, error)) return usage_error(error);
+    const auto config_arg = globals.values.find("--config");
+    auto config = find_and_load_config(config_arg == globals.values.end() ? "" : config_arg->second);
+    if (!config) {
+      std::fprintf(stderr, "cellsight: bad configuration:\n%s\n", config.error().message.c_str());
+      return kExitUsage;
+    }
+    if (const auto level = globals.values.find("--log-level"); level != globals.values.end()) {
+      log::Level parsed{};
+      if (!log::parse_level(level->second.c_str(), parsed)) return usage_error("--log-level '" + level->second + "': expected debug|info|warn|error|off");
+      log::set_level(parsed);
+    }
+    return run_calibrate(std::vector<std::string>(argv + i + 1, argv + argc), *config);
+  }
   if (!parse_args(argc, argv, args, error)) return usage_error(error);
   if (args.mode.empty() || args.mode == "help" || args.flags.count("--help") != 0) {
     std::fputs(kUsage, args.mode.empty() ? stderr : stdout);
@@ -153,6 +233,8 @@ int run_cli(int argc, char** argv) {
   CS_LOG_DEBUG("config", "using %s", config->source.c_str());
 
   if (args.mode == "sim") return run_sim(args, *config);
+  if (args.mode == "scan") return run_scan_mode(args, *config);
+
   return usage_error("unknown mode '" + args.mode + "'");
 }
 

@@ -3,6 +3,9 @@
 
 #include <string>
 #include <vector>
+#include <optional>
+
+#include "drivers/sim/sim_cell.hpp"
 
 #include "algo/result.hpp"
 #include "algo/scan_builder.hpp"
@@ -12,5 +15,26 @@ namespace cellsight::app {
 
 // The reconstruction parameters that come from the configuration.
 [[nodiscard]] algo::ScanBuilderParams scan_builder_params(const Config& config);
+
+struct ScanOptions {
+  bool sim = false;
+  std::string part;                   // --sim: which catalogue part passes
+  std::uint64_t seed = 1;
+  std::optional<sim::PartPose> pose;  // --sim: overrides the seeded pose
+  bool empty_carrier = false;         // --sim --empty: the carrier alone (support calibration)
+  std::string out_path;               // SCAN.ply
+  std::string calibration_path;       // default: calibration.yaml beside the config
+  bool ascii = false;
+};
+
+struct ScanSummary {
+  std::size_t points = 0;
+  int frames = 0, frames_with_stripe = 0, frames_in_band = 0;
+  std::int32_t final_exposure_us = 0;
+};
+
+// One acquisition with the calibrated sensor -> PLY written atomically. Never uses the simulator's true rig for
+// reconstruction: the calibration file is required.
+[[nodiscard]] Expected<ScanSummary> run_scan(const Config& config, const ScanOptions& options);
 
 }  // namespace cellsight::app

@@ -1,11 +1,16 @@
 // Reconstruction of simulated passes through the device interfaces, measured against the simulator's truth.
 #include <catch2/catch.hpp>
 
+#include <unistd.h>
+
 #include <algorithm>
+#include <filesystem>
 
 #include "algo/grid.hpp"
 #include "algo/support.hpp"
 #include "app/acquire.hpp"
+#include "app/calibrate_mode.hpp"
+#include "app/calibration_file.hpp"
 #include "app/config.hpp"
 #include "app/scan_mode.hpp"
 #include "app/sim_mode.hpp"
@@ -73,6 +78,28 @@ struct PassResult {
   std::size_t points = 0;
 };
 
+// The sensor as a technician calibrates it: board pictures rendered by the simulated cell, then the calibrate
+// steps (never the simulator's true rig). Done once per test run.
+const algo::SensorCalibration& calibrated_sensor(const app::Config& cfg) {
+  static const algo::SensorCalibration sensor = [&] {
+    namespace fs = std::filesystem;
+    const fs::path dir = fs::temp_directory_path() / ("cellsight-test-scan-calib-" + std::to_string(::getpid()));
+    fs::remove_all(dir);
+    fs::create_directories(dir);
+    const std::string file = (dir / "calibration.yaml").string();
+    for (const char* step : {"camera", "laser", "conveyor"}) {
+      const int rc = app::run_calibrate({step, "--sim", "--out", (dir / step).string(), "--calibration", file}, cfg,
+                                        stdout, stderr);
+      REQUIRE(rc == 0);
+    }
+    auto loaded = app::load_sensor_calibration(file);
+    REQUIRE(loaded.ok());
+    fs::remove_all(dir);
+    return *loaded;
+  }();
+  return sensor;
+}
+
 struct Scanned {
   std::vector<algo::ScanPoint> points;
   algo::PassStats stats;
@@ -88,7 +115,7 @@ Scanned scan_pass(const app::Config& cfg, sim::SimCell& cell, const sim::PassSpe
   REQUIRE(io.open().ok());
   REQUIRE(encoder.open().ok());
   REQUIRE(io.set(drivers::Output::kLaserEnable, true) == drivers::DeviceStatus::kOk);
-  algo::ScanBuilder builder(app::scan_builder_params(cfg), test::true_calibration(cell.rig()));
+  algo::ScanBuilder builder(app::scan_builder_params(cfg), calibrated_sensor(cfg));
   line.enqueue(pass);
   app::AcquireParams params;
   params.start_exposure_us = static_cast<std::int32_t>(cfg.camera.exposure_us);
@@ -109,7 +136,7 @@ PassResult scan_and_measure(const app::Config& cfg, const sim::PassSpec& pass) {
   REQUIRE(io.open().ok());
   REQUIRE(encoder.open().ok());
   REQUIRE(io.set(drivers::Output::kLaserEnable, true) == drivers::DeviceStatus::kOk);
-  algo::ScanBuilder builder(app::scan_builder_params(cfg), test::true_calibration(cell->rig()));
+  algo::ScanBuilder builder(app::scan_builder_params(cfg), calibrated_sensor(cfg));
   line.enqueue(pass);
   app::AcquireParams params;
   params.start_exposure_us = static_cast<std::int32_t>(cfg.camera.exposure_us);

@@ -6,7 +6,7 @@
 
 // Addresses are 0-based PDU addresses (Modicon 4xxxx reference = address + 1). 32-bit and 64-bit values occupy
 // consecutive registers, most significant word first. Change anything here only together with kMapVersion and
-// drivers/modbus/REGISTERS.md: PLC programs are written against these numbers.
+// README.md "PLC interface": PLC programs are written against these numbers.
 namespace cellsight::drivers::modbus_map {
 
 // Bumped on any incompatible change of this file; the PLC can read it at kMapVersionRegister.

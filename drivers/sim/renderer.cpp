@@ -209,7 +209,7 @@ void Renderer::apply_speckle(std::uint64_t seed) {
 void Renderer::add_halo() {
   const double fraction = rig_.params.sensor.halo_fraction;
   if (fraction <= 0.0) return;
-  constexpr std::size_t kEvery = 5;  // samples are ~0.7 px apart; a low-resolution pixel is 4 px
+  constexpr std::size_t kEvery = 5;  // samples are ~0.7 px apart; a low-resolution pixel is 8 px
   constexpr double kMaxScatterDn = 1500.0;
   const int low_w = ambient_low_.cols, low_h = ambient_low_.rows;
   for (std::size_t r = 0; r < run_count_; ++r) {
@@ -219,7 +219,8 @@ void Renderer::add_halo() {
       const double fy = (s.pixel.y() - 0.5 * (kAmbientScale - 1)) / kAmbientScale;
       const int x0 = static_cast<int>(std::floor(fx)), y0 = static_cast<int>(std::floor(fy));
       const double wx = fx - x0, wy = fy - y0;
-      const auto amount = static_cast<float>(fraction * std::min(s.peak_dn, kMaxScatterDn));
+      // Tuned at 4 px per low-resolution pixel; a coarser map gathers proportionally more samples per pixel.
+      const auto amount = static_cast<float>(fraction * std::min(s.peak_dn, kMaxScatterDn) * 4.0 / kAmbientScale);
       for (int dy = 0; dy < 2; ++dy) {
         for (int dx = 0; dx < 2; ++dx) {
           const int x = x0 + dx, y = y0 + dy;
@@ -571,7 +572,10 @@ void Renderer::compose(cv::Mat& image, std::uint64_t seed) {
       }
     }
     const std::uint8_t* ambient = ambient_full_.ptr<std::uint8_t>(y);
-    for (int x = 0; x < width_; ++x) dst[x] = static_cast<std::uint8_t>(std::min(255, dst[x] + ambient[x]));
+    for (int x = 0; x < width_; ++x) {  // saturating add, written so the compiler vectorises it
+      const unsigned sum = static_cast<unsigned>(dst[x]) + ambient[x];
+      dst[x] = static_cast<std::uint8_t>(sum > 255U ? 255U : sum);
+    }
     if (dirty_max_[y] < 0) continue;
     float* row = signal_.data() + static_cast<std::size_t>(y) * width_;
     for (int x = dirty_min_[y]; x <= dirty_max_[y]; ++x) {

@@ -111,7 +111,7 @@ class Renderer {
   std::vector<std::vector<Sample>> runs_;
   std::size_t run_count_ = 0;
   // Cabin light: map of the frontmost surface per (x, y) cell of the carrier, and a low-resolution frame of it.
-  static constexpr int kAmbientScale = 4;  // frame pixels per low-resolution pixel
+  static constexpr int kAmbientScale = 8;  // frame pixels per low-resolution pixel (cabin light is smooth)
   double map_cell_m_ = 0.002;
   int map_nx_ = 0, map_ny_ = 0;
   std::vector<float> map_z_m_, map_shade_;  // shade: DN at the reference exposure; z NaN where empty
