@@ -118,6 +118,7 @@ Eigen::Vector2d refine_dot(const cv::Mat& image, Eigen::Vector2d centre, const E
     const int x1 = std::min(image.cols - 1, static_cast<int>(std::ceil(centre.x() + reach_x)));
     const int y0 = std::max(0, static_cast<int>(std::floor(centre.y() - reach_y)));
     const int y1 = std::min(image.rows - 1, static_cast<int>(std::ceil(centre.y() + reach_y)));
+    if (x0 == 0 || y0 == 0 || x1 == image.cols - 1 || y1 == image.rows - 1) return centre;  // cut by the border
     auto radii = [&](int x, int y) { return (to_board * Eigen::Vector2d(x - centre.x(), y - centre.y())).norm() / radius_mm; };
     // Plate level: least-squares plane I = a + b dx + c dy over the ring, then again without the pixels
     // further than 3 sigma from the first plane (hot pixels, a stray neighbour edge).

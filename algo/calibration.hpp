@@ -38,8 +38,10 @@ struct BoardSpec {
 [[nodiscard]] std::string validate_board(const BoardSpec& board);
 
 // --- Detection ----------------------------------------------------------------------------------------------
-// Finds the board in a mono8 image and returns the dot centres (pixels) in board index order, each refined to
-// sub-pixel by the centroid of its darkness. Fails with a message saying what was seen and what to check.
+// Finds the board in a mono8 image (cv::findCirclesGrid) and returns the centre of each dot's image (pixels) in
+// board index order, refined to sub-pixel by the centroid of its relative darkness. These are image centres, not
+// images of the dots' centres: the calibration functions below correct the perspective difference. Fails with a
+// message saying what was seen and what to check.
 [[nodiscard]] Expected<std::vector<Eigen::Vector2d>> detect_board(const cv::Mat& image, const BoardSpec& board);
 
 // --- Camera intrinsics (Zhang's method, as cv::calibrateCamera) ----------------------------------------------

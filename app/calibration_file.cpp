@@ -146,6 +146,21 @@ void read_conveyor(YamlSection s, CalibrationRecord& r) {
   s.finish();
 }
 
+void read_support(YamlSection s, CalibrationRecord& r) {
+  for (const char* key : {"calibrated_at", "normal", "offset_m", "rms_mm", "points"}) s.require(key);
+  s.text("calibrated_at", r.support_date);
+  Eigen::Vector3d n = Eigen::Vector3d::Zero();
+  s.vec3("normal", n, -1.0, 1.0, "");
+  if (std::abs(n.norm() - 1.0) > kUnitTolerance) s.error("normal", "must be a unit vector");
+  r.support.normal = n;
+  s.number("offset_m", r.support.offset_m, -5.0, 5.0, "m");
+  s.number("rms_mm", r.support_rms_mm, 0.0, 100.0, "mm");
+  std::int64_t points = 0;
+  s.integer("points", points, 3, 1000000000, "points");
+  r.support_points = static_cast<std::size_t>(points);
+  s.finish();
+}
+
 }  // namespace
 
 std::string calibration_yaml(const CalibrationRecord& r) {
@@ -198,6 +213,14 @@ std::string calibration_yaml(const CalibrationRecord& r) {
     t += "  mm_per_count: " + number(r.sensor.mm_per_count) + "\n";
     t += "  angle_to_x_deg: " + number(r.conveyor_angle_deg) + "\n";
   }
+  if (r.has_support) {
+    t += "support:                   # carrier plane: normal . p = offset_m (carrier frame)\n";
+    t += "  calibrated_at: " + quoted(r.support_date) + "\n";
+    t += "  normal: " + vec(r.support.normal) + "\n";
+    t += "  offset_m: " + number(r.support.offset_m) + "\n";
+    t += "  rms_mm: " + number(r.support_rms_mm) + "\n";
+    t += "  points: " + std::to_string(r.support_points) + "\n";
+  }
   char line[64];
   std::snprintf(line, sizeof line, "%s: \"%016" PRIx64 "\"\n", kChecksumKey, fnv1a64(t));
   return t + line;
@@ -236,10 +259,12 @@ Expected<CalibrationRecord> load_calibration(const std::string& path) {
   record.has_camera = root.has("camera");
   record.has_laser = root.has("laser");
   record.has_conveyor = root.has("conveyor");
+  record.has_support = root.has("support");
+  if (record.has_support) read_support(root.section("support"), record);
   if (record.has_camera) read_camera(root.section("camera"), record);
   if (record.has_laser) read_laser(root.section("laser"), record);
   if (record.has_conveyor) read_conveyor(root.section("conveyor"), record);
-  for (const char* key : {"camera", "laser", "conveyor"}) (void)root.section(key);  // known keys, even when empty
+  for (const char* key : {"camera", "laser", "conveyor", "support"}) (void)root.section(key);  // known keys, even when empty
   root.finish();
 
   char expected[20];

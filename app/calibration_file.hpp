@@ -21,6 +21,12 @@ struct CalibrationRecord {
   double reference_rms_px = 0.0;
   int laser_points = 0;
   double conveyor_angle_deg = 0.0;  // travel direction away from the cell x axis
+  // The carrier's support plane (thesis 6.4.1.1), carrier frame, from an empty-carrier scan (calibrate support).
+  bool has_support = false;
+  algo::Plane support{};
+  double support_rms_mm = 0.0;
+  std::string support_date;
+  std::size_t support_points = 0;
 };
 
 constexpr int kCalibrationFormatVersion = 1;

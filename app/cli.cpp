@@ -29,7 +29,9 @@ constexpr const char* kUsage =
     "  scan [--sim --part NAME [--seed S] [--pose x,y,theta] | --sim --empty] --out SCAN.ply [--ascii]\n"
     "       [--calibration FILE]\n"
     "        one acquisition with the calibrated sensor -> point cloud (carrier frame, metres, carrier included)\n"
-    "  calibrate camera|laser|conveyor|support ...   technician calibration (see scripts/calibrate.sh)\n"
+    "  calibrate camera|laser|conveyor ...   technician calibration (see scripts/calibrate.sh)\n"
+    "  calibrate support (--scan EMPTY.ply | --sim [--seed S]) [--calibration FILE]\n"
+    "        fit the carrier (support) plane on an empty-carrier scan; stored in calibration.yaml\n"
     "  help  this text\n"
     "\n"
     "global options:\n"
@@ -212,7 +214,9 @@ int run_cli(int argc, char** argv) {
       if (!log::parse_level(level->second.c_str(), parsed)) return usage_error("--log-level '" + level->second + "': expected debug|info|warn|error|off");
       log::set_level(parsed);
     }
-    return run_calibrate(std::vector<std::string>(argv + i + 1, argv + argc), *config);
+    const std::vector<std::string> rest(argv + i + 1, argv + argc);
+    if (!rest.empty() && rest.front() == "support") return run_calibrate_support({rest.begin() + 1, rest.end()}, *config);
+    return run_calibrate(rest, *config);
   }
   if (!parse_args(argc, argv, args, error)) return usage_error(error);
   if (args.mode.empty() || args.mode == "help" || args.flags.count("--help") != 0) {

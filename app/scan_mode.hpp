@@ -8,6 +8,7 @@
 #include "drivers/sim/sim_cell.hpp"
 
 #include "algo/result.hpp"
+#include "algo/scan.hpp"
 #include "algo/scan_builder.hpp"
 #include "app/config.hpp"
 
@@ -32,6 +33,14 @@ struct ScanSummary {
   int frames = 0, frames_with_stripe = 0, frames_in_band = 0;
   std::int32_t final_exposure_us = 0;
 };
+
+// One acquisition with the calibrated sensor, kept in memory.
+[[nodiscard]] Expected<std::vector<algo::ScanPoint>> acquire_scan(const Config& config, const ScanOptions& options,
+                                                                  ScanSummary& summary);
+
+// `cellsight calibrate support (--scan EMPTY.ply | --sim [--seed S]) [--calibration FILE]`: fits the carrier plane
+// on an empty-carrier scan and stores it in calibration.yaml (after a dated backup; other sections kept).
+[[nodiscard]] int run_calibrate_support(const std::vector<std::string>& args, const Config& config);
 
 // One acquisition with the calibrated sensor -> PLY written atomically. Never uses the simulator's true rig for
 // reconstruction: the calibration file is required.

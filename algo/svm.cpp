@@ -1,0 +1,559 @@
+// Probability SVM: libsvm training, dense allocation-free prediction (a port of libsvm 3.24's), serialization.
+#include "algo/svm.hpp"
+
+#include <libsvm/svm.h>
+
+#include <algorithm>
+#include <bit>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <memory>
+#include <mutex>
+#include <type_traits>
+
+namespace cellsight::algo {
+
+static_assert(std::endian::native == std::endian::little, "the model byte format is written in host order");
+
+namespace {
+
+constexpr std::array<char, 8> kMagic = {'C', 'S', 'S', 'V', 'M', '\x1a', '\r', '\n'};
+constexpr double kMinProbability = 1e-7;  // libsvm's clamp of the pairwise probabilities
+constexpr int kMaxDegree = 10;
+constexpr int kMaxClasses = 4096;
+
+void discard_libsvm_output(const char* /*text*/) {}
+
+// ---- CRC-32 (IEEE 802.3, reflected), for the blob trailer ----
+constexpr std::array<std::uint32_t, 256> make_crc_table() {
+  std::array<std::uint32_t, 256> table{};
+  for (std::uint32_t i = 0; i < 256; ++i) {
+    std::uint32_t c = i;
+    for (int k = 0; k < 8; ++k) c = (c & 1U) != 0 ? 0xEDB88320U ^ (c >> 1) : c >> 1;
+    table[i] = c;
+  }
+  return table;
+}
+constexpr std::array<std::uint32_t, 256> kCrcTable = make_crc_table();
+
+std::uint32_t crc32(std::string_view bytes) {
+  std::uint32_t c = 0xFFFFFFFFU;
+  for (char ch : bytes) c = kCrcTable[(c ^ static_cast<std::uint8_t>(ch)) & 0xFFU] ^ (c >> 8);
+  return c ^ 0xFFFFFFFFU;
+}
+
+class ByteWriter {
+ public:
+  template <class T>
+  void put(T value) {
+    static_assert(std::is_trivially_copyable_v<T>);
+    char raw[sizeof(T)];
+    std::memcpy(raw, &value, sizeof(T));
+    out_.append(raw, sizeof(T));
+  }
+  void put_string(std::string_view s) {
+    put(static_cast<std::uint16_t>(s.size()));
+    out_.append(s);
+  }
+  void put_doubles(const std::vector<double>& v) {
+    for (double d : v) put(d);
+  }
+  std::string& bytes() { return out_; }
+
+ private:
+  std::string out_;
+};
+
+// Bounds-checked reader: every get fails (and stays failed) instead of reading past the end.
+class ByteReader {
+ public:
+  explicit ByteReader(std::string_view bytes) : bytes_(bytes) {}
+  template <class T>
+  bool get(T& value) {
+    if (!ok_ || bytes_.size() - pos_ < sizeof(T)) return ok_ = false;
+    std::memcpy(&value, bytes_.data() + pos_, sizeof(T));
+    pos_ += sizeof(T);
+    return true;
+  }
+  bool get_string(std::string& s) {
+    std::uint16_t n = 0;
+    if (!get(n) || bytes_.size() - pos_ < n) return ok_ = false;
+    s.assign(bytes_.data() + pos_, n);
+    pos_ += n;
+    return true;
+  }
+  // Reads count finite doubles; refuses a count the remaining bytes cannot hold before allocating.
+  bool get_doubles(std::size_t count, std::vector<double>& v) {
+    if (!ok_ || (bytes_.size() - pos_) / sizeof(double) < count) return ok_ = false;
+    v.resize(count);
+    for (double& d : v) {
+      get(d);
+      if (!std::isfinite(d)) return ok_ = false;
+    }
+    return ok_;
+  }
+  [[nodiscard]] std::size_t remaining() const { return bytes_.size() - pos_; }
+
+ private:
+  std::string_view bytes_;
+  std::size_t pos_ = 0;
+  bool ok_ = true;
+};
+
+// libsvm's powi: the same multiplication order, so the port matches libsvm to the last bit.
+double powi(double base, int times) {
+  double tmp = base, ret = 1.0;
+  for (int t = times; t > 0; t /= 2) {
+    if (t % 2 == 1) ret *= tmp;
+    tmp = tmp * tmp;
+  }
+  return ret;
+}
+
+double sigmoid_predict(double decision_value, double a, double b) {
+  const double f = decision_value * a + b;
+  return f >= 0 ? std::exp(-f) / (1.0 + std::exp(-f)) : 1.0 / (1.0 + std::exp(f));
+}
+
+// libsvm's multiclass_probability (Wu, Lin and Weng 2004, method 2) on caller-owned k x k / k buffers.
+void multiclass_probability(int k, const double* r, double* q, double* qp, double* p) {
+  const int max_iter = std::max(100, k);
+  const double eps = 0.005 / k;
+  for (int t = 0; t < k; ++t) {
+    p[t] = 1.0 / k;
+    q[t * k + t] = 0;
+    for (int j = 0; j < t; ++j) {
+      q[t * k + t] += r[j * k + t] * r[j * k + t];
+      q[t * k + j] = q[j * k + t];
+    }
+    for (int j = t + 1; j < k; ++j) {
+      q[t * k + t] += r[j * k + t] * r[j * k + t];
+      q[t * k + j] = -r[j * k + t] * r[t * k + j];
+    }
+  }
+  for (int iter = 0; iter < max_iter; ++iter) {
+    double pqp = 0;
+    for (int t = 0; t < k; ++t) {
+      qp[t] = 0;
+      for (int j = 0; j < k; ++j) qp[t] += q[t * k + j] * p[j];
+      pqp += p[t] * qp[t];
+    }
+    double max_error = 0;
+    for (int t = 0; t < k; ++t) max_error = std::max(max_error, std::fabs(qp[t] - pqp));
+    if (max_error < eps) break;
+    for (int t = 0; t < k; ++t) {
+      const double diff = (-qp[t] + pqp) / q[t * k + t];
+      p[t] += diff;
+      pqp = (pqp + diff * (diff * q[t * k + t] + 2 * qp[t])) / (1 + diff) / (1 + diff);
+      for (int j = 0; j < k; ++j) {
+        qp[j] = (qp[j] + diff * q[t * k + j]) / (1 + diff);
+        p[j] /= (1 + diff);
+      }
+    }
+  }
+}
+
+struct LibsvmModelDeleter {
+  void operator()(svm_model* m) const { svm_free_and_destroy_model(&m); }
+};
+
+}  // namespace
+
+void silence_libsvm() {
+  static std::once_flag once;
+  std::call_once(once, [] { svm_set_print_string_function(&discard_libsvm_output); });
+}
+
+std::string_view to_string(KernelType kernel) {
+  switch (kernel) {
+    case KernelType::kRbf:
+      return "rbf";
+    case KernelType::kPoly:
+      return "poly";
+  }
+  return "unknown";
+}
+
+std::string SvmHyper::describe(int active_features) const {
+  char text[160];
+  if (kernel == KernelType::kRbf) {
+    std::snprintf(text, sizeof text, "rbf C=%g gamma=%.4g (i=%g / %d features)", c, gamma(active_features),
+                  gamma_factor, active_features);
+  } else {
+    std::snprintf(text, sizeof text, "poly degree=%d C=%g gamma=%.4g (i=%g / %d features) coef0=%g", degree, c,
+                  gamma(active_features), gamma_factor, active_features, coef0);
+  }
+  return text;
+}
+
+// ---- Scaler -------------------------------------------------------------------------------------------------------
+
+Scaler Scaler::fit(std::span<const FeatureVector> samples) {
+  Scaler s;
+  if (samples.empty()) return s;
+  std::vector<double> values(samples.size());
+  for (int f = 0; f < kFeatureCount; ++f) {
+    const auto fi = static_cast<std::size_t>(f);
+    Range& r = s.ranges_[fi];
+    for (std::size_t i = 0; i < samples.size(); ++i) values[i] = samples[i][fi];
+    if (kFeatureTable[fi].heavy_tailed) {
+      std::vector<double> magnitude(values.size());
+      std::transform(values.begin(), values.end(), magnitude.begin(), [](double v) { return std::fabs(v); });
+      auto mid = magnitude.begin() + static_cast<std::ptrdiff_t>(magnitude.size() / 2);
+      std::nth_element(magnitude.begin(), mid, magnitude.end());
+      double scale = *mid;
+      if (!(scale > 0.0)) scale = *std::max_element(magnitude.begin(), magnitude.end());
+      r.compress = scale > 0.0 ? scale : 0.0;
+    }
+    r.lo = r.hi = 0.0;
+    bool first = true;
+    for (double v : values) {
+      const double t = r.compress > 0.0 ? std::asinh(v / r.compress) : v;
+      if (!std::isfinite(t)) continue;
+      r.lo = first ? t : std::min(r.lo, t);
+      r.hi = first ? t : std::max(r.hi, t);
+      first = false;
+    }
+  }
+  return s;
+}
+
+Scaler Scaler::from_ranges(const std::array<Range, kFeatureCount>& ranges) {
+  Scaler s;
+  s.ranges_ = ranges;
+  return s;
+}
+
+double Scaler::scale(int feature, double value) const {
+  const Range& r = ranges_[static_cast<std::size_t>(feature)];
+  const double t = r.compress > 0.0 ? std::asinh(value / r.compress) : value;
+  if (!(r.hi > r.lo)) return 0.0;  // constant in training: carries no information
+  const double y = 2.0 * (t - r.lo) / (r.hi - r.lo) - 1.0;
+  if (!std::isfinite(y)) return 0.0;
+  return std::clamp(y, -kClip, kClip);
+}
+
+void Scaler::apply(const FeatureVector& features, const FeatureMask& mask, std::span<double> out) const {
+  std::size_t k = 0;
+  for (int f = 0; f < kFeatureCount && k < out.size(); ++f) {
+    if (mask.test(static_cast<std::size_t>(f))) out[k++] = scale(f, features[static_cast<std::size_t>(f)]);
+  }
+}
+
+// ---- training -----------------------------------------------------------------------------------------------------
+
+Expected<SvmModel> SvmModel::train(std::span<const FeatureVector> features, std::span<const int> labels,
+                                   std::vector<ClassInfo> classes, const FeatureMask& mask, const Scaler& scaler,
+                                   const SvmHyper& hyper, std::uint64_t seed) {
+  const int k = static_cast<int>(classes.size());
+  const int dims = static_cast<int>(mask.count());
+  if (features.size() != labels.size()) return make_error("SVM training: features and labels differ in count");
+  if (k < 2 || k > kMaxClasses) return make_error("SVM training needs at least two classes");
+  if (dims == 0) return make_error("SVM training: the feature mask selects no feature");
+  if (!(hyper.c > 0.0) || !(hyper.gamma_factor > 0.0) ||
+      (hyper.kernel == KernelType::kPoly && (hyper.degree < 1 || hyper.degree > kMaxDegree))) {
+    return make_error("SVM training: C and gamma must be > 0 and the polynomial degree in 1.." +
+                      std::to_string(kMaxDegree));
+  }
+  std::vector<int> per_class(static_cast<std::size_t>(k), 0);
+  for (int y : labels) {
+    if (y < 0 || y >= k) return make_error("SVM training: label " + std::to_string(y) + " is not a class index");
+    ++per_class[static_cast<std::size_t>(y)];
+  }
+  for (int c = 0; c < k; ++c) {
+    if (per_class[static_cast<std::size_t>(c)] < 2) {
+      return make_error("SVM training: class '" + classes[static_cast<std::size_t>(c)].name + "' has " +
+                        std::to_string(per_class[static_cast<std::size_t>(c)]) +
+                        " training sample(s); at least 2 are needed for the probability model");
+    }
+  }
+
+  // Dense rows as libsvm nodes (zeros kept, so libsvm's sums run in the same order as our prediction's).
+  const std::size_t n = features.size(), stride = static_cast<std::size_t>(dims) + 1;
+  std::vector<svm_node> nodes(n * stride);
+  std::vector<svm_node*> rows(n);
+  std::vector<double> y(n), scaled(static_cast<std::size_t>(dims));
+  for (std::size_t i = 0; i < n; ++i) {
+    scaler.apply(features[i], mask, scaled);
+    svm_node* row = &nodes[i * stride];
+    for (int j = 0; j < dims; ++j) row[j] = {j + 1, scaled[static_cast<std::size_t>(j)]};
+    row[dims] = {-1, 0.0};
+    rows[i] = row;
+    y[i] = labels[i];
+  }
+  svm_problem problem{static_cast<int>(n), y.data(), rows.data()};
+  svm_parameter param{};
+  param.svm_type = C_SVC;
+  param.kernel_type = hyper.kernel == KernelType::kRbf ? RBF : POLY;
+  param.degree = hyper.degree;
+  param.gamma = hyper.gamma(dims);
+  param.coef0 = hyper.coef0;
+  param.cache_size = 100;
+  param.eps = 1e-3;
+  param.C = hyper.c;
+  param.shrinking = 1;
+  param.probability = 1;
+  if (const char* why = svm_check_parameter(&problem, &param)) {
+    return make_error(std::string("SVM training: libsvm refused the parameters: ") + why);
+  }
+  silence_libsvm();
+  std::srand(static_cast<unsigned>(seed));  // libsvm's Platt cross-validation shuffles with rand()
+  std::unique_ptr<svm_model, LibsvmModelDeleter> lib(svm_train(&problem, &param));
+  if (!lib || lib->nr_class != k || lib->probA == nullptr || lib->probB == nullptr) {
+    return make_error("SVM training: libsvm did not return a probability model for every class");
+  }
+
+  SvmModel m;
+  m.classes_ = std::move(classes);
+  m.mask_ = mask;
+  m.scaler_ = scaler;
+  m.hyper_ = hyper;
+  m.dims_ = dims;
+  m.sv_count_ = lib->l;
+  const auto l = static_cast<std::size_t>(lib->l);
+  const auto pairs = static_cast<std::size_t>(k * (k - 1) / 2);
+  for (int s = 0; s < k; ++s) {
+    m.slot_class_.push_back(lib->label[s]);
+    m.slot_sv_count_.push_back(lib->nSV[s]);
+  }
+  m.sv_.assign(l * static_cast<std::size_t>(dims), 0.0);
+  for (std::size_t i = 0; i < l; ++i) {
+    for (const svm_node* p = lib->SV[i]; p->index != -1; ++p) {
+      if (p->index >= 1 && p->index <= dims)
+        m.sv_[i * (stride - 1) + static_cast<std::size_t>(p->index - 1)] = p->value;
+    }
+  }
+  m.coef_.resize(static_cast<std::size_t>(k - 1) * l);
+  for (int c = 0; c < k - 1; ++c) {
+    std::copy_n(lib->sv_coef[c], l, m.coef_.begin() + static_cast<std::ptrdiff_t>(static_cast<std::size_t>(c) * l));
+  }
+  m.rho_.assign(lib->rho, lib->rho + pairs);
+  m.prob_a_.assign(lib->probA, lib->probA + pairs);
+  m.prob_b_.assign(lib->probB, lib->probB + pairs);
+  m.allocate_scratch();
+  return m;
+}
+
+void SvmModel::allocate_scratch() {
+  const auto k = classes_.size();
+  x_.assign(static_cast<std::size_t>(dims_), 0.0);
+  kvalue_.assign(static_cast<std::size_t>(sv_count_), 0.0);
+  decision_.assign(k * (k - 1) / 2, 0.0);
+  pairwise_.assign(k * k, 0.0);
+  q_.assign(k * k, 0.0);
+  qp_.assign(k, 0.0);
+  p_.assign(k, 0.0);
+  start_.assign(k, 0);
+  out_.assign(k, {});
+}
+
+// ---- prediction ---------------------------------------------------------------------------------------------------
+
+double SvmModel::kernel(const double* a, const double* b) const {
+  const double gamma = hyper_.gamma(dims_);  // the same expression libsvm was trained with
+  double sum = 0.0;
+  if (hyper_.kernel == KernelType::kRbf) {
+    for (int i = 0; i < dims_; ++i) {
+      const double d = a[i] - b[i];
+      sum += d * d;
+    }
+    return std::exp(-gamma * sum);
+  }
+  for (int i = 0; i < dims_; ++i) sum += a[i] * b[i];
+  return powi(gamma * sum + hyper_.coef0, hyper_.degree);
+}
+
+std::span<const ClassProbability> SvmModel::predict(const FeatureVector& features) {
+  if (empty()) return {};
+  const int k = static_cast<int>(classes_.size());
+  const auto dims = static_cast<std::size_t>(dims_);
+  scaler_.apply(features, mask_, x_);
+  for (std::size_t i = 0; i < kvalue_.size(); ++i) kvalue_[i] = kernel(x_.data(), &sv_[i * dims]);
+
+  // Decision values of the k(k-1)/2 one-against-one classifiers (libsvm's svm_predict_values, eq. 2.45).
+  const auto l = static_cast<std::size_t>(sv_count_);
+  const auto kk = static_cast<std::size_t>(k);
+  start_[0] = 0;
+  for (std::size_t s = 1; s < kk; ++s) start_[s] = start_[s - 1] + slot_sv_count_[s - 1];
+  std::size_t p = 0;
+  for (std::size_t i = 0; i < kk; ++i) {
+    for (std::size_t j = i + 1; j < kk; ++j, ++p) {
+      const auto si = static_cast<std::size_t>(start_[i]), sj = static_cast<std::size_t>(start_[j]);
+      const auto ci = static_cast<std::size_t>(slot_sv_count_[i]), cj = static_cast<std::size_t>(slot_sv_count_[j]);
+      const double* coef1 = &coef_[(j - 1) * l];
+      const double* coef2 = &coef_[i * l];
+      double sum = 0;
+      for (std::size_t m = 0; m < ci; ++m) sum += coef1[si + m] * kvalue_[si + m];
+      for (std::size_t m = 0; m < cj; ++m) sum += coef2[sj + m] * kvalue_[sj + m];
+      decision_[p] = sum - rho_[p];
+    }
+  }
+  // Pairwise Platt probabilities, coupled into one distribution (libsvm's svm_predict_probability).
+  p = 0;
+  for (std::size_t i = 0; i < kk; ++i) {
+    for (std::size_t j = i + 1; j < kk; ++j, ++p) {
+      const double r = std::min(std::max(sigmoid_predict(decision_[p], prob_a_[p], prob_b_[p]), kMinProbability),
+                                1.0 - kMinProbability);
+      pairwise_[i * kk + j] = r;
+      pairwise_[j * kk + i] = 1.0 - r;
+    }
+  }
+  if (k == 2) {  // libsvm >= 3.24 takes the pairwise probability itself for two classes
+    p_[0] = pairwise_[1];
+    p_[1] = pairwise_[2];
+  } else {
+    multiclass_probability(k, pairwise_.data(), q_.data(), qp_.data(), p_.data());
+  }
+  for (std::size_t s = 0; s < kk; ++s) out_[s] = {slot_class_[s], p_[s]};
+  std::sort(out_.begin(), out_.end(), [](const ClassProbability& a, const ClassProbability& b) {
+    return a.probability != b.probability ? a.probability > b.probability : a.class_index < b.class_index;
+  });
+  return out_;
+}
+
+// ---- serialization ------------------------------------------------------------------------------------------------
+
+std::string SvmModel::serialize() const {
+  ByteWriter w;
+  w.bytes().append(kMagic.data(), kMagic.size());
+  w.put(kFormatVersion);
+  w.put(kFeatureVersion);
+  w.put(static_cast<std::uint32_t>(kFeatureCount));
+  for (const FeatureInfo& f : kFeatureTable) w.put_string(f.name);
+  for (int f = 0; f < kFeatureCount; ++f)
+    w.put(static_cast<std::uint8_t>(mask_.test(static_cast<std::size_t>(f)) ? 1 : 0));
+  for (const Scaler::Range& r : scaler_.ranges()) {
+    w.put(r.compress);
+    w.put(r.lo);
+    w.put(r.hi);
+  }
+  w.put(static_cast<std::uint32_t>(classes_.size()));
+  for (const ClassInfo& c : classes_) {
+    w.put(static_cast<std::int32_t>(c.id));
+    w.put_string(c.name);
+  }
+  w.put(static_cast<std::uint8_t>(hyper_.kernel));
+  w.put(hyper_.c);
+  w.put(hyper_.gamma_factor);
+  w.put(static_cast<std::int32_t>(hyper_.degree));
+  w.put(hyper_.coef0);
+  w.put(static_cast<std::uint32_t>(dims_));
+  w.put(static_cast<std::uint32_t>(sv_count_));
+  for (int c : slot_class_) w.put(static_cast<std::uint32_t>(c));
+  for (int c : slot_sv_count_) w.put(static_cast<std::uint32_t>(c));
+  w.put_doubles(sv_);
+  w.put_doubles(coef_);
+  w.put_doubles(rho_);
+  w.put_doubles(prob_a_);
+  w.put_doubles(prob_b_);
+  const std::uint32_t crc = crc32(w.bytes());
+  w.put(crc);
+  return std::move(w.bytes());
+}
+
+Expected<SvmModel> SvmModel::deserialize(std::string_view blob) {
+  const std::string refuse = "SVM model refused: ";
+  if (blob.size() < kMagic.size() + 4 || std::memcmp(blob.data(), kMagic.data(), kMagic.size()) != 0) {
+    return make_error(refuse + "not a cellsight SVM model (bad magic or too short)");
+  }
+  std::uint32_t stored_crc = 0;
+  std::memcpy(&stored_crc, blob.data() + blob.size() - 4, 4);
+  const std::string_view body = blob.substr(0, blob.size() - 4);
+  if (crc32(body) != stored_crc) return make_error(refuse + "checksum mismatch (the file is corrupt or truncated)");
+
+  ByteReader r(body.substr(kMagic.size()));
+  const auto truncated = [&] { return make_error(refuse + "truncated or malformed content"); };
+  std::uint32_t format = 0, feature_version = 0, feature_count = 0;
+  if (!r.get(format) || !r.get(feature_version) || !r.get(feature_count)) return truncated();
+  if (format != kFormatVersion) {
+    return make_error(refuse + "format version " + std::to_string(format) + ", this build reads version " +
+                      std::to_string(kFormatVersion));
+  }
+  if (feature_version != kFeatureVersion || feature_count != kFeatureCount) {
+    return make_error(refuse + "trained on feature version " + std::to_string(feature_version) + " (" +
+                      std::to_string(feature_count) + " features); this build computes version " +
+                      std::to_string(kFeatureVersion) + " (" + std::to_string(kFeatureCount) +
+                      " features): retrain the model");
+  }
+  for (const FeatureInfo& f : kFeatureTable) {
+    std::string name;
+    if (!r.get_string(name)) return truncated();
+    if (name != f.name) {
+      return make_error(refuse + "feature '" + name + "' where this build has '" + std::string(f.name) +
+                        "': the model was trained on other features; retrain it");
+    }
+  }
+  SvmModel m;
+  for (int f = 0; f < kFeatureCount; ++f) {
+    std::uint8_t bit = 0;
+    if (!r.get(bit) || bit > 1) return truncated();
+    m.mask_.set(static_cast<std::size_t>(f), bit == 1);
+  }
+  std::array<Scaler::Range, kFeatureCount> ranges{};
+  for (Scaler::Range& range : ranges) {
+    if (!r.get(range.compress) || !r.get(range.lo) || !r.get(range.hi)) return truncated();
+    if (!std::isfinite(range.compress) || !std::isfinite(range.lo) || !std::isfinite(range.hi) ||
+        range.compress < 0.0 || range.hi < range.lo) {
+      return make_error(refuse + "invalid scaler range");
+    }
+  }
+  m.scaler_ = Scaler::from_ranges(ranges);
+  std::uint32_t k = 0;
+  if (!r.get(k)) return truncated();
+  if (k < 2 || k > kMaxClasses) return make_error(refuse + "class count " + std::to_string(k) + " out of range");
+  for (std::uint32_t c = 0; c < k; ++c) {
+    std::int32_t id = 0;
+    ClassInfo info;
+    if (!r.get(id) || !r.get_string(info.name)) return truncated();
+    info.id = id;
+    m.classes_.push_back(std::move(info));
+  }
+  std::uint8_t kernel = 0;
+  std::int32_t degree = 0;
+  if (!r.get(kernel) || !r.get(m.hyper_.c) || !r.get(m.hyper_.gamma_factor) || !r.get(degree) ||
+      !r.get(m.hyper_.coef0)) {
+    return truncated();
+  }
+  if (kernel > static_cast<std::uint8_t>(KernelType::kPoly) || !(m.hyper_.c > 0.0) || !(m.hyper_.gamma_factor > 0.0) ||
+      !std::isfinite(m.hyper_.c) || !std::isfinite(m.hyper_.gamma_factor) || !std::isfinite(m.hyper_.coef0) ||
+      degree < 1 || degree > kMaxDegree) {
+    return make_error(refuse + "invalid kernel parameters");
+  }
+  m.hyper_.kernel = static_cast<KernelType>(kernel);
+  m.hyper_.degree = degree;
+  std::uint32_t dims = 0, l = 0;
+  if (!r.get(dims) || !r.get(l)) return truncated();
+  if (dims != m.mask_.count() || dims == 0) return make_error(refuse + "support vector size does not match the mask");
+  if (l == 0 || l > r.remaining() / sizeof(double)) return make_error(refuse + "support vector count out of range");
+  m.dims_ = static_cast<int>(dims);
+  m.sv_count_ = static_cast<int>(l);
+  std::vector<bool> seen(k, false);
+  std::uint64_t total = 0;
+  for (std::uint32_t s = 0; s < k; ++s) {
+    std::uint32_t c = 0;
+    if (!r.get(c)) return truncated();
+    if (c >= k || seen[c]) return make_error(refuse + "class slots are not a permutation of the classes");
+    seen[c] = true;
+    m.slot_class_.push_back(static_cast<int>(c));
+  }
+  for (std::uint32_t s = 0; s < k; ++s) {
+    std::uint32_t c = 0;
+    if (!r.get(c)) return truncated();
+    total += c;
+    m.slot_sv_count_.push_back(static_cast<int>(c));
+  }
+  if (total != l) return make_error(refuse + "per-class support vector counts do not add up");
+  const std::size_t pairs = static_cast<std::size_t>(k) * (k - 1) / 2;
+  if (!r.get_doubles(static_cast<std::size_t>(l) * dims, m.sv_) ||
+      !r.get_doubles(static_cast<std::size_t>(k - 1) * l, m.coef_) || !r.get_doubles(pairs, m.rho_) ||
+      !r.get_doubles(pairs, m.prob_a_) || !r.get_doubles(pairs, m.prob_b_)) {
+    return truncated();
+  }
+  if (r.remaining() != 0) return make_error(refuse + "unexpected bytes after the model");
+  m.allocate_scratch();
+  return m;
+}
+
+}  // namespace cellsight::algo

@@ -1,0 +1,175 @@
+// Offline training of the recogniser (thesis 2.6.1, Fig. 2.15): simulated-annealing feature selection, each
+// candidate scored by stratified k-fold cross-validation over the classifier's parameter grid, then the final
+// probability SVM on the whole training split, measured on the held-back test split. kNN and a small MLP run in
+// the same frame for comparison (thesis 4.2).
+//
+// This is a tool path, not the production loop: it allocates, and it is the one algo stage that runs threads of
+// its own (the cross-validation tasks, joined before every return).
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <functional>
+#include <optional>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "algo/features.hpp"
+#include "algo/result.hpp"
+#include "algo/svm.hpp"
+
+namespace cellsight::algo {
+
+struct Dataset {
+  std::vector<ClassInfo> classes;
+  std::vector<FeatureVector> features;
+  std::vector<int> labels;  // index into classes, one per feature vector
+  [[nodiscard]] std::size_t size() const { return labels.size(); }
+};
+// Labels in range, one per sample, every feature finite, at least two classes.
+[[nodiscard]] Status validate_dataset(const Dataset& data);
+
+struct DatasetSplit {
+  Dataset train, test;
+};
+// Thesis 6.4.2: per class, train_per_class random samples for training (35 of 50 there), the rest held back for
+// the generalisation test. A class with no sample left for testing is refused.
+[[nodiscard]] Expected<DatasetSplit> split_per_class(const Dataset& all, int train_per_class, std::uint64_t seed);
+
+// Stratified k-fold assignment (thesis 2.5): the fold of every sample, each class spread evenly over the folds.
+// Refuses a class with fewer samples than folds, which would leave a fold without it.
+[[nodiscard]] Expected<std::vector<int>> stratified_folds(const Dataset& data, int folds, std::uint64_t seed);
+
+enum class Classifier : std::uint8_t { kSvm, kKnn, kMlp };
+[[nodiscard]] std::string_view to_string(Classifier classifier);
+
+struct AnnealingParams {
+  // Thesis 4.2 / 6.4.2: T0 = 200, T <- 0.95 T per iteration. The cost is the CV error in percentage points
+  // (plus the feature penalty), the unit in which those temperatures make sense: early on a candidate 1 point
+  // worse is accepted with p = exp(-1/200) ~ 1, after 100 iterations (T ~ 1.2) with p ~ 0.43, at the end never.
+  double start_temperature = 200.0;
+  double cooling_ratio = 0.95;
+  int iterations = 200;
+  int initial_active = 15;     // thesis 6.4.2: the first solution has 15 active features
+  FeatureMask initial_mask{};  // used when not empty; otherwise the initial_active best by Fisher score
+  int min_active = 1;
+  // Ties in accuracy go to the smaller feature set (thesis: "the best minimum number subset of features"):
+  // each active feature costs this many percentage points.
+  double feature_penalty_pct = 0.01;
+};
+
+struct MlpParams {
+  std::vector<int> hidden = {32};  // neurons per hidden layer (one or two layers, thesis 4.2.2)
+  int epochs = 150;
+  int batch = 32;
+  double learning_rate = 0.01;  // Adam
+  double weight_decay = 1e-4;   // L2, keeps the extra weights small (thesis 2.4.2.3)
+  std::uint64_t seed = 1;
+};
+
+struct TrainParams {
+  AnnealingParams annealing;
+  int folds = 5;
+  std::uint64_t seed = 1;
+  int threads = 0;  // cross-validation threads; 0 = std::thread::hardware_concurrency()
+  // SVM grid searched for every candidate mask (thesis 6.4.2): C x gamma factor i (gamma = i / active
+  // features) [x degree for the polynomial kernel]. Measured on this 2-core machine, 15 classes x 35 scans,
+  // 200 iterations: RBF 2.8 min (5.2 min while the machine was loaded), polynomial with 4 degrees ~3.7 min.
+  KernelType kernel = KernelType::kRbf;
+  std::vector<double> c_grid = {0.25, 1.0, 4.0, 16.0, 64.0, 256.0, 1024.0};
+  std::vector<double> gamma_factors = {1.0, 10.0, 100.0, 1000.0};
+  std::vector<int> poly_degrees = {2, 3, 4, 5};
+  double poly_coef0 = 0.0;  // thesis eq. 6.4 has none
+  // --compare: kNN (k from CV) and an MLP (hidden layout from CV), each with its own annealing run.
+  bool compare = false;
+  std::vector<int> knn_k = {1, 3, 5, 7, 9};
+  int knn_iterations = -1;  // -1: annealing.iterations
+  std::vector<std::vector<int>> mlp_layouts = {{16}, {32}, {32, 16}};
+  MlpParams mlp;            // hidden is taken from mlp_layouts
+  int mlp_iterations = 25;  // an MLP fold costs ~50x an SVM fold
+};
+
+struct TrainingProgress {
+  Classifier classifier = Classifier::kSvm;
+  int stage = 0, stages = 1;          // annealing runs: SVM [, kNN, MLP]
+  int iteration = 0, iterations = 0;  // annealing steps done / planned in this stage
+  double candidate_accuracy = 0.0;    // CV accuracy of the last candidate
+  double best_accuracy = 0.0;
+  int best_active = 0;
+  double elapsed_s = 0.0;  // since train_recogniser started
+  double eta_s = 0.0;      // until this stage ends, from its mean step time
+};
+using ProgressCallback = std::function<void(const TrainingProgress&)>;
+
+struct AnnealingStep {
+  int iteration = 0;
+  double temperature = 0.0;
+  double candidate_accuracy = 0.0, current_accuracy = 0.0, best_accuracy = 0.0;
+  int candidate_active = 0;
+  bool accepted = false;
+};
+
+struct ClassifierReport {
+  Classifier classifier = Classifier::kSvm;
+  std::string parameters;      // the chosen hyper-parameters, readable
+  double cv_accuracy = 0.0;    // k-fold accuracy of the chosen mask and parameters on the training split
+  double test_accuracy = 0.0;  // on the held-back test split (NaN when it is empty)
+  FeatureMask mask{};
+  std::vector<std::string> features;        // names of the active features
+  std::vector<std::vector<int>> confusion;  // [true class][predicted class] on the test split
+  std::vector<AnnealingStep> curve;         // accuracy per annealing step (step 0 = the initial mask)
+  int evaluations = 0;                      // masks scored by cross-validation
+  int cache_hits = 0;                       // candidates already scored earlier
+  double seconds = 0.0;
+  bool stopped = false;  // the stop flag ended its annealing early
+};
+
+struct TrainingReport {
+  std::vector<std::string> class_names;
+  int train_samples = 0, test_samples = 0, folds = 0, threads = 0;
+  ClassifierReport svm;
+  SvmHyper svm_hyper{};
+  std::optional<ClassifierReport> knn, mlp;
+  bool stopped = false;
+  double seconds = 0.0;
+};
+
+struct TrainingResult {
+  SvmModel model;
+  TrainingReport report;
+};
+
+// The whole training of Fig. 2.15. Deterministic for params.seed (thread count and timing do not change the
+// result). `progress` is called from this thread after every annealing step; `stop` (e.g. set by a SIGINT
+// handler) ends the annealing at the next step and the model is trained on the best mask found so far.
+[[nodiscard]] Expected<TrainingResult> train_recogniser(const DatasetSplit& split, const TrainParams& params,
+                                                        const ProgressCallback& progress = {},
+                                                        const std::atomic<bool>* stop = nullptr);
+
+// ---- the comparison classifiers, usable on their own -------------------------------------------------------------
+
+// k nearest neighbours by Euclidean distance (thesis 2.4.1), majority vote; a tie goes to the tied class with the
+// nearest member. rows: n x dims, row-major.
+[[nodiscard]] int knn_classify(std::span<const double> rows, std::span<const int> labels, int dims, int classes, int k,
+                               std::span<const double> x);
+
+// Feed-forward network (thesis 2.4.2, eq. 2.18-2.21): tanh hidden layers (eq. 2.17), softmax output,
+// cross-entropy, mini-batch Adam. Deterministic for params.seed.
+class Mlp {
+ public:
+  void train(std::span<const double> rows, std::span<const int> labels, int dims, int classes, const MlpParams& params);
+  // Class probabilities (softmax); out.size() must be the class count.
+  void probabilities(std::span<const double> x, std::span<double> out) const;
+  [[nodiscard]] int predict(std::span<const double> x) const;
+  [[nodiscard]] int classes() const { return layers_.empty() ? 0 : layers_.back().out; }
+
+ private:
+  struct Layer {
+    int in = 0, out = 0;
+    std::vector<double> w, b;  // w: out x in
+  };
+  std::vector<Layer> layers_;
+};
+
+}  // namespace cellsight::algo
