@@ -132,7 +132,7 @@ say "  pictures:      $WORK"
 say ""
 
 # --- 1. camera ------------------------------------------------------------------------------------------------
-say "== 1/3 camera =="
+say "== 1/4 camera =="
 if [ $SIM = 0 ]; then
   template camera
   say "   1. Switch the laser OFF and the calibration lamp ON. Use the calibration board (dark dots on a light plate)."
@@ -156,7 +156,7 @@ fi
 
 # --- 2. laser plane -------------------------------------------------------------------------------------------
 say ""
-say "== 2/3 laser plane =="
+say "== 2/4 laser plane =="
 if [ $SIM = 0 ]; then
   template laser
   say "   1. Hold the board so that the laser line crosses its middle, facing between the camera and the laser."
@@ -173,7 +173,7 @@ fi
 
 # --- 3. conveyor scale ----------------------------------------------------------------------------------------
 say ""
-say "== 3/3 conveyor scale =="
+say "== 3/4 conveyor scale =="
 if [ $SIM = 0 ]; then
   template conveyor
   say "   1. Clamp the board rigidly to a carrier, face toward the camera, lamp ON, laser OFF."
@@ -188,9 +188,36 @@ if run_step conveyor; then
     "the board moved on the carrier or the counts were noted wrongly; clamp it firmly and repeat"
 fi
 
+# --- 4. support (carrier) plane --------------------------------------------------------------------------------
+# Needs the three steps above: the empty carrier is scanned with the calibrated sensor.
+say ""
+say "== 4/4 carrier (support) plane =="
+if [ $FAILED = 0 ]; then
+  if [ $SIM = 1 ]; then
+    support_source=(--sim)
+  else
+    say "   1. Hang NOTHING on the carrier; lamp off, laser on; let the empty carrier pass the sensor."
+    say "   2. Scan it:  $BIN --config $CONFIG scan --out $WORK/empty_carrier.ply --calibration $CALIBRATION"
+    wait_for_technician "$WORK"
+    support_source=(--scan "$WORK/empty_carrier.ply")
+  fi
+  OUTPUT=$("$BIN" --config "$CONFIG" calibrate support "${support_source[@]}" --calibration "$CALIBRATION" 2>&1)
+  code=$?
+  printf '%s\n' "$OUTPUT" | sed 's/^/   | /'
+  if [ $code -ne 0 ]; then
+    say "   FAIL  calibrate support was refused (exit $code); the previous calibration stays in force."
+    say "         Make sure the carrier was empty and flat, then run this script again."
+    FAILED=1
+  else
+    check rms_mm "$(figure rms_mm "$OUTPUT")" 1.0 le "the carrier is not flat: straighten or replace it"
+  fi
+else
+  say "   skipped: the steps above must pass first"
+fi
+
 say ""
 if [ $FAILED = 0 ]; then
-  say "PASS: camera, laser plane and conveyor calibrated; $CALIBRATION is in force."
+  say "PASS: camera, laser plane, conveyor and carrier plane calibrated; $CALIBRATION is in force."
   exit 0
 fi
 say "FAIL: repeat the failed step(s) as advised above; $CALIBRATION holds the last accepted result of each step."
