@@ -103,31 +103,12 @@ const algo::SensorCalibration& calibrated_sensor(const app::Config& cfg) {
 struct Scanned {
   std::vector<algo::ScanPoint> points;
   algo::PassStats stats;
+  std::vector<std::int32_t> exposures_us;  // per frame, as the camera took it
 };
 
-// One pass through the simulated devices; the points and the builder's statistics.
+// One pass through the simulated devices; the points, the builder's statistics and each frame's exposure.
 Scanned scan_pass(const app::Config& cfg, sim::SimCell& cell, const sim::PassSpec& pass) {
   sim::SimLine line(cell);
-  sim::SimCamera camera(line, 4, static_cast<std::int32_t>(cfg.camera.exposure_us));
-  sim::SimDigitalIo io(line);
-  sim::SimEncoder encoder(line);
-  REQUIRE(camera.start().ok());
-  REQUIRE(io.open().ok());
-  REQUIRE(encoder.open().ok());
-  REQUIRE(io.set(drivers::Output::kLaserEnable, true) == drivers::DeviceStatus::kOk);
-  algo::ScanBuilder builder(app::scan_builder_params(cfg), calibrated_sensor(cfg));
-  line.enqueue(pass);
-  app::AcquireParams params;
-  params.start_exposure_us = static_cast<std::int32_t>(cfg.camera.exposure_us);
-  app::AcquireReport report;
-  REQUIRE(app::acquire_pass(camera, io, encoder, builder, params, report) == app::AcquireResult::kOk);
-  return {{builder.scan().points().begin(), builder.scan().points().end()}, builder.stats()};
-}
-
-PassResult scan_and_measure(const app::Config& cfg, const sim::PassSpec& pass) {
-  auto cell = app::make_sim_cell(cfg);
-  REQUIRE(cell.ok());
-  sim::SimLine line(*cell);
   sim::SimCamera sim_camera(line, 4, static_cast<std::int32_t>(cfg.camera.exposure_us));
   RecordingCamera camera(sim_camera);
   sim::SimDigitalIo io(line);
@@ -142,14 +123,21 @@ PassResult scan_and_measure(const app::Config& cfg, const sim::PassSpec& pass) {
   params.start_exposure_us = static_cast<std::int32_t>(cfg.camera.exposure_us);
   app::AcquireReport report;
   REQUIRE(app::acquire_pass(camera, io, encoder, builder, params, report) == app::AcquireResult::kOk);
+  return {{builder.scan().points().begin(), builder.scan().points().end()}, builder.stats(), camera.exposures};
+}
+
+PassResult scan_and_measure(const app::Config& cfg, const sim::PassSpec& pass) {
+  auto cell = app::make_sim_cell(cfg);
+  REQUIRE(cell.ok());
+  const Scanned scanned = scan_pass(cfg, *cell, pass);
 
   PassResult r;
-  r.frames = builder.stats().frames;
-  r.frames_with_stripe = builder.stats().frames_with_stripe;
-  r.frames_in_band = builder.stats().frames_in_band;
-  r.points = builder.scan().size();
+  r.frames = scanned.stats.frames;
+  r.frames_with_stripe = scanned.stats.frames_with_stripe;
+  r.frames_in_band = scanned.stats.frames_in_band;
+  r.points = scanned.points.size();
   std::vector<double> errors;
-  for (const auto& p : builder.scan().points()) {
+  for (const auto& p : scanned.points) {
     bool on_part = false;
     errors.push_back(distance_to_scene(cell->scene(), {p.x, p.y, p.z}, on_part));
   }
@@ -161,15 +149,15 @@ PassResult scan_and_measure(const app::Config& cfg, const sim::PassSpec& pass) {
   // Coverage: the part points the camera sees (truth: in view, lit, not occluded), each with a scan point within
   // 2 mm. "Sees" also needs light: a point whose stripe peak at that frame's exposure is below twice the
   // extractor's detection level (grazing light on a bright part's flange) is reported separately.
-  algo::OccupancyGrid occupied({Eigen::Vector3d::Zero(), 325, 550, 200, 0.002}, builder.scan().size());
-  occupied.accumulate(builder.scan().points());
+  algo::OccupancyGrid occupied({Eigen::Vector3d::Zero(), 325, 550, 200, 0.002}, scanned.points.size());
+  occupied.accumulate(scanned.points);
   std::size_t seen = 0, covered = 0, seen_geometric = 0, covered_geometric = 0;
   cv::Mat image;
   const double detectable_dn = 2.0 * app::scan_builder_params(cfg).stripe.threshold_dn;
-  REQUIRE(camera.exposures.size() == static_cast<std::size_t>(cell->frame_count()));
+  REQUIRE(scanned.exposures_us.size() == static_cast<std::size_t>(cell->frame_count()));
   for (int f = 0; f < cell->frame_count(); f += 3) {
     std::vector<sim::TruthPoint> truth;
-    cell->render_frame(f, camera.exposures[static_cast<std::size_t>(f)], image, &truth);
+    cell->render_frame(f, scanned.exposures_us[static_cast<std::size_t>(f)], image, &truth);
     for (const auto& t : truth) {
       if (!t.is_part) continue;
       ++seen_geometric;
