@@ -11,6 +11,10 @@
 
 #include "app/config.hpp"
 #include "app/calibrate_mode.hpp"
+#include "app/classify_mode.hpp"
+#include "app/run_mode.hpp"
+#include "app/teach_mode.hpp"
+#include "app/train_mode.hpp"
 #include "app/scan_mode.hpp"
 #include "app/sim_mode.hpp"
 #include "drivers/log.hpp"
@@ -32,17 +36,29 @@ constexpr const char* kUsage =
     "  calibrate camera|laser|conveyor ...   technician calibration (see scripts/calibrate.sh)\n"
     "  calibrate support (--scan EMPTY.ply | --sim [--seed S]) [--calibration FILE]\n"
     "        fit the carrier (support) plane on an empty-carrier scan; stored in calibration.yaml\n"
-    "  help  this text\n"
+    "  teach --part NAME [--id N] (--sim --count K [--seed S] | SCAN.ply ...) [--calibration FILE]\n"
+    "        store scans of a part type in the model database; the first becomes its Perfect Match template\n"
+    "  train [--report DIR] [--compare] [--iterations N] [--seed S]\n"
+    "        features of every taught scan, simulated-annealing feature selection + k-fold CV, the SVM,\n"
+    "        acceptance thresholds per template; --compare also trains kNN and an MLP (thesis ch. 4)\n"
+    "  classify [--json] [--svm-only|--pm-only] SCAN.ply ...   one decision per scan\n"
+    "  eval --scans DIR [--json]   DIR/<part>/*.ply [+ DIR/truth.csv: file,x_m,y_m,theta_deg] -> accuracy,\n"
+    "        confusion, pose errors, timing (folders of parts that are not taught must come out unknown)\n"
+    "  parts list | show NAME | delete NAME\n"
+    "  help  this text\n";
+
+constexpr const char* kUsageGlobals =
     "\n"
     "global options:\n"
     "  --config FILE     configuration (default: $CELLSIGHT_CONFIG, ./config/cellsight.yaml, <install>/config)\n"
     "  --log-level L     debug | info | warn | error | off (overrides log_level in the config)\n"
+    "  --models DIR      model database (default: runtime.models_dir of the config, 'models')\n"
     "\n"
     "exit codes: 0 done, 1 failed while running, 2 bad input (arguments, configuration, data)\n";
 
 // Options that take a value; everything else starting with "--" is a flag.
-const std::set<std::string> kValueOptions = {"--config", "--log-level", "--part", "--seed", "--pose", "--out",
-                                             "--calibration"};
+const std::set<std::string> kValueOptions = {"--config", "--log-level", "--models", "--part", "--seed", "--pose",
+                                             "--out", "--calibration"};
 
 struct Args {
   std::string mode;
@@ -81,7 +97,7 @@ bool parse_args(int argc, char** argv, Args& args, std::string& error) {
 bool check_known(const Args& args, const std::set<std::string>& values, const std::set<std::string>& flags,
                  std::string& error) {
   for (const auto& [key, value] : args.values) {
-    if (key != "--config" && key != "--log-level" && values.count(key) == 0) {
+    if (key != "--config" && key != "--log-level" && key != "--models" && values.count(key) == 0) {
       error = "option " + key + " does not apply to '" + args.mode + "'";
       return false;
     }
@@ -189,13 +205,66 @@ int run_scan_mode(const Args& args, const Config& config) {
 
 }  // namespace
 
+// Modes with files and positional words (DESIGN.md "Command line"): globals --config, --log-level and --models may
+// stand anywhere; the rest goes to the mode.
+int run_file_mode(const std::string& mode, int argc, char** argv) {
+  std::string config_path, level_text, models_dir;
+  std::vector<std::string> rest;
+  bool seen_mode = false;
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "--config" || a == "--log-level" || a == "--models") {
+      if (i + 1 >= argc) return usage_error(a + " needs a value");
+      (a == "--config" ? config_path : a == "--log-level" ? level_text : models_dir) = argv[++i];
+      continue;
+    }
+    if (!seen_mode && a == mode) {
+      seen_mode = true;
+      continue;
+    }
+    rest.push_back(a);
+  }
+  auto config = find_and_load_config(config_path);
+  if (!config) {
+    std::fprintf(stderr, "cellsight: bad configuration:\n%s\n", config.error().message.c_str());
+    return kExitUsage;
+  }
+  if (level_text.empty()) level_text = config->log_level;
+  log::Level level{};
+  if (!log::parse_level(level_text.c_str(), level)) {
+    return usage_error("--log-level '" + level_text + "': expected debug|info|warn|error|off");
+  }
+  log::set_level(level);
+  if (!models_dir.empty()) config->runtime.models_dir = models_dir;
+  const std::string& models = config->runtime.models_dir;
+  if (mode == "teach") return run_teach(rest, *config, models);
+  if (mode == "train") return run_train(rest, *config, models);
+  if (mode == "parts") return run_parts(rest, *config, models);
+  if (mode == "classify") return run_classify(rest, *config, models);
+  if (mode == "eval") return run_eval(rest, *config, models);
+  if (mode == "run") return run_run(rest, *config);
+  return usage_error("unknown mode '" + mode + "'");
+}
+
 int run_cli(int argc, char** argv) {
   Args args;
   std::string error;
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "--config" || a == "--log-level" || a == "--models") {
+      ++i;
+      continue;
+    }
+    if (a.rfind("--", 0) == 0) break;
+    if (a == "teach" || a == "train" || a == "parts" || a == "classify" || a == "eval" || a == "run") {
+      return run_file_mode(a, argc, argv);
+    }
+    break;
+  }
   // `calibrate` has options of its own (--images DIR, ...): it gets every word after the mode.
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
-    if (a == "--config" || a == "--log-level") {
+    if (a == "--config" || a == "--log-level" || a == "--models") {
       ++i;
       continue;
     }
@@ -220,7 +289,10 @@ int run_cli(int argc, char** argv) {
   }
   if (!parse_args(argc, argv, args, error)) return usage_error(error);
   if (args.mode.empty() || args.mode == "help" || args.flags.count("--help") != 0) {
-    std::fputs(kUsage, args.mode.empty() ? stderr : stdout);
+    std::FILE* out = args.mode.empty() ? stderr : stdout;
+    std::fputs(kUsage, out);
+    std::fputs(kRunUsage, out);
+    std::fputs(kUsageGlobals, out);
     return args.mode.empty() ? kExitUsage : kExitOk;
   }
   const auto config_arg = args.values.find("--config");

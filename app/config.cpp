@@ -178,7 +178,9 @@ void read_rest(YamlSection& root, Config& cfg) {
     s.number("sa_cooling_ratio", cfg.svm.sa_cooling_ratio, 0.5, 0.9999, "");
     s.integer("sa_iterations", cfg.svm.sa_iterations, 1, 100000, "");
     s.integer("folds", cfg.svm.folds, 2, 50, "");
-    s.integer("train_per_class", cfg.svm.train_per_class, 1, 100000, "scans");
+    s.number("train_fraction", cfg.svm.train_fraction, 0.1, 0.95, "");
+    s.choice("kernel", cfg.svm.kernel, {"rbf", "poly"});
+    s.integer("threads", cfg.svm.threads, 0, 256, "threads");
     s.integer("seed", cfg.svm.seed, 0, INT64_MAX, "");
     s.finish();
   }

@@ -65,7 +65,9 @@ struct SvmConfig {
   double sa_cooling_ratio = 0.95;
   int sa_iterations = 200;
   int folds = 5;
-  int train_per_class = 35;  // thesis: 35 train / 15 test of 50
+  double train_fraction = 0.7;  // of each part's scans; the rest is the held-back test (thesis: 35 / 15 of 50)
+  std::string kernel = "rbf";   // rbf | poly (thesis eq. 6.2 / 6.4)
+  int threads = 0;              // cross-validation threads; 0 = all cores
   std::int64_t seed = 1;
 };
 

@@ -1,18 +1,47 @@
 #!/usr/bin/env bash
-# The main command (README): installs what is missing, builds cellsight (Release) and runs it on the simulated
-# cell — no hardware needed. Today: one simulated pass of a catalogue part rendered to out/demo/.
+# The main command (README): installs what is missing, builds cellsight (Release) and runs the whole cell on the
+# simulated hardware — no hardware needed:
+#   1. calibrates the simulated sensor (camera, laser, conveyor, carrier plane) as a technician would,
+#   2. teaches the catalogue (COUNT simulated passes per part) into a model database,
+#   3. trains the recogniser (features, simulated annealing + k-fold CV, SVM, template thresholds),
+#   4. runs the production loop for PARTS parts with the Modbus server up (127.0.0.1:1502), one log line per part.
+# A database that is already taught and trained is reused (delete out/demo to start over).
+#
+# usage: scripts/demo.sh [PARTS] [COUNT]      (defaults: 20 parts, 12 teach passes per part type)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+
+PARTS=${1:-20}
+COUNT=${2:-12}
+OUT=out/demo
+MODELS=$OUT/models
+CAL=$OUT/calibration/calibration.yaml
 
 scripts/setup.sh
 cmake -S . -B build -DCMAKE_BUILD_TYPE=Release >/dev/null
 cmake --build build -j"$(nproc)" --target cellsight
+BIN=./build/app/cellsight
+mkdir -p "$OUT"
 
-PART=${1:-ribbed_v4}
-SEED=${2:-1}
-OUT=out/demo-$PART-$SEED
-rm -rf "$OUT"
-mkdir -p out
-./build/app/cellsight sim --list
-./build/app/cellsight sim --part "$PART" --seed "$SEED" --out "$OUT"
-echo "demo: $(ls "$OUT/frames" | wc -l) frames in $OUT/frames, ground truth in $OUT/truth.yaml"
+if [ ! -f "$CAL" ]; then
+  echo "== 1. calibrating the simulated sensor"
+  scripts/calibrate.sh --sim --work "$OUT/calibration" --calibration "$CAL" | grep -E "PASS|FAIL|result" || true
+  [ -f "$CAL" ] || { echo "demo: calibration failed" >&2; exit 1; }
+fi
+
+if ! "$BIN" --models "$MODELS" parts list >/dev/null 2>&1 || "$BIN" --models "$MODELS" parts list | grep -q stale; then
+  echo "== 2. teaching the catalogue ($COUNT passes per part type)"
+  id=1
+  for part in $("$BIN" sim --list | awk 'NR > 1 {print $1}'); do
+    if ! "$BIN" --models "$MODELS" parts show "$part" >/dev/null 2>&1; then
+      "$BIN" --models "$MODELS" teach --part "$part" --id "$id" --sim --count "$COUNT" --calibration "$CAL"
+    fi
+    id=$((id + 1))
+  done
+  echo "== 3. training"
+  "$BIN" --models "$MODELS" train --calibration "$CAL" --report "$OUT/report"
+fi
+"$BIN" --models "$MODELS" parts list
+
+echo "== 4. running the cell for $PARTS parts (Modbus TCP on 127.0.0.1:1502; try: mbpoll -m tcp -p 1502 -a 1 -r 201 -c 27 -1 127.0.0.1)"
+"$BIN" --models "$MODELS" run --sim --parts "$PARTS" --calibration "$CAL"

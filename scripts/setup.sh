@@ -6,7 +6,7 @@ set -euo pipefail
 PACKAGES=(
   build-essential cmake pkg-config git
   libeigen3-dev libopencv-dev libyaml-cpp-dev libsvm-dev
-  libgpiod-dev libmodbus-dev libsystemd-dev
+  libgpiod-dev libmodbus-dev libsystemd-dev zlib1g-dev
   catch2
   mbpoll python3 python3-pymodbus python3-serial-asyncio   # real Modbus clients for the PLC tests
 )

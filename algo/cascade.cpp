@@ -1,0 +1,797 @@
+// Decision stage (thesis 5.3, 6.4.4) and the two-way template check; see cascade.hpp.
+#include "algo/cascade.hpp"
+
+#include <Eigen/Cholesky>
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <numbers>
+
+namespace cellsight::algo {
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+constexpr float kEmptyLo = std::numeric_limits<float>::infinity();
+constexpr float kEmptyHi = -std::numeric_limits<float>::infinity();
+constexpr std::uint8_t kMissing = 1;
+constexpr std::uint8_t kExtra = 2;
+// Scan points leave the grid's x-y box when the pose turns and shifts them back into the template frame; the thesis'
+// pose range is +-50 mm and +-5 deg (6.5), so 0.1 m of margin keeps every plausible point on the raster.
+constexpr double kRasterMarginM = 0.1;
+// Depth levelling: clip radii of the successive robust plane fits, in units of depth_tolerance_m (the first fit
+// takes every cell), and the fewest cells a fit needs.
+constexpr double kLevelClips[] = {std::numeric_limits<double>::infinity(), 4.0, 2.0};
+constexpr int kMinLevelCells = 50;
+constexpr int kLevelStride = 2;
+constexpr double kMinLevelRcond = 1e-9;
+// Outline refinement: the template outline's distance transform covers its box plus this margin (beyond it a scan
+// outline point is farther than any cutoff); the fewest inlying outline points a Gauss-Newton step needs; the
+// largest step per iteration; Levenberg damping relative to the diagonal.
+constexpr int kOutlineMarginCells = 12;
+constexpr int kMinOutlinePoints = 30;
+constexpr double kMaxStepM = 0.003;
+constexpr double kMaxStepRad = 0.5 * std::numbers::pi / 180.0;
+constexpr double kDamping = 1e-3;
+// The check runs a second time, at the outline pose, when that differs from Perfect Match's by more than this.
+constexpr double kRecheckShiftM = 0.0005;
+constexpr double kRecheckTurnRad = 0.05 * std::numbers::pi / 180.0;
+
+[[nodiscard]] int raster_margin_cells(const GridSpec& grid) {
+  return static_cast<int>(std::ceil(kRasterMarginM / grid.resolution_m));
+}
+
+// Bilinear view of the template outline's distance transform (cells) over a box of the raster.
+struct OutlineField {
+  const float* d = nullptr;
+  int w = 0, h = 0;
+  double x0 = 0.0, y0 = 0.0;  // raster coordinates (cells) of the box's first cell centre
+  double inv_res = 0.0, res = 0.0;
+  double ox = 0.0, oy = 0.0;  // raster origin, metres
+
+  // Distance (m) to the outline at a template-frame point and its gradient; false outside the box.
+  bool sample(double x_m, double y_m, double& d_m, double& gx, double& gy) const {
+    const double fx = (x_m - ox) * inv_res - 0.5 - x0;
+    const double fy = (y_m - oy) * inv_res - 0.5 - y0;
+    if (!(fx >= 0.0 && fy >= 0.0 && fx <= w - 1 && fy <= h - 1)) return false;
+    const int ix = std::min(static_cast<int>(fx), w - 2);
+    const int iy = std::min(static_cast<int>(fy), h - 2);
+    const double tx = fx - ix;
+    const double ty = fy - iy;
+    const std::size_t i = static_cast<std::size_t>(iy) * static_cast<std::size_t>(w) + static_cast<std::size_t>(ix);
+    const double d00 = d[i], d10 = d[i + 1], d01 = d[i + static_cast<std::size_t>(w)],
+                 d11 = d[i + static_cast<std::size_t>(w) + 1];
+    d_m = res * ((1 - ty) * ((1 - tx) * d00 + tx * d10) + ty * ((1 - tx) * d01 + tx * d11));
+    gx = (1 - ty) * (d10 - d00) + ty * (d11 - d01);  // cells per cell = metres per metre
+    gy = (1 - tx) * (d01 - d00) + tx * (d11 - d10);
+    return true;
+  }
+};
+
+[[nodiscard]] double ms_since(Clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+}
+
+[[nodiscard]] bool finite_point(const ScanPoint& p) {
+  return std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z);
+}
+
+}  // namespace
+
+TemplateThresholds learn_thresholds(std::span<const MatchReport> own_class, const CascadeParams& params) {
+  double max_error = 0.0;
+  double max_missing = 0.0;
+  double max_extra = 0.0;
+  for (const MatchReport& r : own_class) {
+    max_error = std::max(max_error, r.pm.error);
+    max_missing = std::max(max_missing, r.missing_area_m2);
+    max_extra = std::max(max_extra, r.extra_area_m2);
+  }
+  TemplateThresholds t;
+  t.max_error = max_error * params.error_factor + params.error_floor;
+  t.max_missing_area_m2 = max_missing * params.area_factor + params.area_floor_m2;
+  t.max_extra_area_m2 = max_extra * params.area_factor + params.area_floor_m2;
+  return t;
+}
+
+void surface_points_from_map(const DistanceMapView& map, std::vector<Eigen::Vector3f>& out) {
+  out.clear();
+  const GridDims& d = map.dims();
+  if (map.cells() == nullptr) return;
+  for (int z = 0; z < d.nz; ++z) {
+    for (int y = 0; y < d.ny; ++y) {
+      for (int x = 0; x < d.nx; ++x) {
+        if (map.cell(x, y, z).distance != 0) continue;
+        const Eigen::Vector3d c = map.origin_m() + d.resolution_m * Eigen::Vector3d(x + 0.5, y + 0.5, z + 0.5);
+        out.emplace_back(c.cast<float>());
+      }
+    }
+  }
+}
+
+Cascade::Cascade(const CascadeParams& params, const PerfectMatchParams& pm_params, const GridSpec& grid)
+    : params_(params),
+      matcher_(pm_params),
+      resolution_m_(grid.resolution_m),
+      edt_scratch_(GridDims{grid.nx + 2 * raster_margin_cells(grid), grid.ny + 2 * raster_margin_cells(grid), 1,
+                            grid.resolution_m}) {
+  params_.pm_candidates = std::max(params_.pm_candidates, 1);
+  margin_cells_ = raster_margin_cells(grid);
+  width_ = grid.nx + 2 * margin_cells_;
+  height_ = grid.ny + 2 * margin_cells_;
+  raster_origin_m_ = grid.origin_m.head<2>() - Eigen::Vector2d::Constant(margin_cells_ * resolution_m_);
+  window_cells_ = std::max(1, static_cast<int>(std::lround(params_.blob_window_m / resolution_m_)));
+  const auto cells = static_cast<std::size_t>(width_) * static_cast<std::size_t>(height_);
+  t_lo_.assign(cells, kEmptyLo);
+  t_hi_.assign(cells, kEmptyHi);
+  s_lo_.assign(cells, kEmptyLo);
+  s_hi_.assign(cells, kEmptyHi);
+  w_lo_.assign(cells, kEmptyLo);
+  w_hi_.assign(cells, kEmptyHi);
+  tmp_lo_.assign(cells, kEmptyLo);
+  tmp_hi_.assign(cells, kEmptyHi);
+  flags_.assign(cells, 0);
+  stack_.assign(cells, 0);
+  mask_a_.assign(cells, 0);
+  mask_b_.assign(cells, 0);
+  edt_in_.assign(cells, 0);
+  edt_out_.assign(cells, 0.0F);
+  outline_.assign(cells, Eigen::Vector2d::Zero());
+  candidates_.resize(static_cast<std::size_t>(params_.pm_candidates));
+}
+
+// --- decision ------------------------------------------------------------------------------------------------------
+
+Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
+                         std::span<const TemplateModel> templates_by_class,
+                         std::span<const ScanPoint> scan_without_carrier, Clock::time_point deadline) {
+  const Clock::time_point start = Clock::now();
+  Decision d;
+  d.source = DecisionSource::kUnknown;
+  auto finish = [&]() -> Decision {
+    d.total_ms = ms_since(start);
+    return d;
+  };
+  if (svm_best_first.empty()) return finish();
+  d.probability = svm_best_first[0].probability;
+
+  const std::size_t k = std::min(candidates_.size(), svm_best_first.size());
+  for (std::size_t i = 0; i < k; ++i) {
+    candidates_[i] = Candidate{};
+    candidates_[i].class_index = svm_best_first[i].class_index;
+  }
+  auto svm_probability = [&](int class_index) {
+    for (const ClassProbability& p : svm_best_first) {
+      if (p.class_index == class_index) return p.probability;
+    }
+    return 0.0;
+  };
+  auto accept = [&](const Candidate& c, DecisionSource source) {
+    const TemplateModel& t = templates_by_class[static_cast<std::size_t>(c.class_index)];
+    d.source = source;
+    d.class_index = c.class_index;
+    d.part_id = t.part_id;
+    d.probability = svm_probability(c.class_index);
+    d.pm_error = c.report.pm.error;
+    d.pose_valid = true;
+    d.pose = params_.decision_pose_from_outline ? c.report.check_pose : c.report.pm.pose;
+    d.template_coverage = c.report.coverage;
+    d.scan_outliers = c.report.scan_outliers;
+  };
+  auto timeout = [&]() -> Decision {
+    d.source = DecisionSource::kTimeout;
+    d.class_index = -1;
+    d.part_id = 0;
+    d.pose_valid = false;
+    return finish();
+  };
+
+  if (Clock::now() >= deadline) return timeout();
+  matcher_.set_scan(scan_without_carrier);
+  outline_valid_ = false;  // taken from this scan when a check first needs it
+
+  // Thesis 6.4.4: a sure SVM decides the class; Perfect Match only measures the pose (and verifies).
+  const double p1 = svm_best_first[0].probability;
+  const double p2 = svm_best_first.size() > 1 ? svm_best_first[1].probability : 0.0;
+  if (p1 >= params_.accept_p1 && p2 <= params_.accept_p2_max) {
+    if (!evaluate_candidate(templates_by_class, scan_without_carrier, deadline, candidates_[0])) return timeout();
+    d.pm_ms = candidates_[0].ms;
+    if (candidates_[0].passed) {
+      accept(candidates_[0], DecisionSource::kSvm);
+      d.second_class_index = svm_best_first.size() > 1 ? svm_best_first[1].class_index : -1;
+      return finish();
+    }
+  }
+
+  // Unsure, or the sure class failed verification: Perfect Match over the k most probable classes.
+  for (std::size_t i = 0; i < k; ++i) {
+    if (candidates_[i].evaluated) continue;
+    if (!evaluate_candidate(templates_by_class, scan_without_carrier, deadline, candidates_[i])) return timeout();
+  }
+  d.pm_ms = 0.0;
+  for (std::size_t i = 0; i < k; ++i) d.pm_ms += candidates_[i].ms;
+
+  // Lowest error first; the first that passes its template's thresholds wins.
+  const Candidate* best_passed = nullptr;
+  const Candidate* best_any = nullptr;
+  for (std::size_t i = 0; i < k; ++i) {
+    const Candidate& c = candidates_[i];
+    if (best_any == nullptr || c.report.pm.error < best_any->report.pm.error) best_any = &c;
+    if (c.passed && (best_passed == nullptr || c.report.pm.error < best_passed->report.pm.error)) best_passed = &c;
+  }
+  const Candidate* chosen = best_passed != nullptr ? best_passed : best_any;
+  const Candidate* runner_up = nullptr;
+  for (std::size_t i = 0; i < k; ++i) {
+    const Candidate& c = candidates_[i];
+    if (&c == chosen) continue;
+    if (runner_up == nullptr || c.report.pm.error < runner_up->report.pm.error) runner_up = &c;
+  }
+  if (best_passed != nullptr) {
+    accept(*best_passed, DecisionSource::kPm);
+    d.second_class_index = runner_up != nullptr ? runner_up->class_index : -1;
+  } else if (best_any != nullptr) {
+    // Unknown: the closest candidate's figures stay for the log, but no class, id or pose.
+    d.pm_error = best_any->report.pm.error;
+    d.template_coverage = best_any->report.coverage;
+    d.scan_outliers = best_any->report.scan_outliers;
+    d.second_class_index = best_any->class_index;
+  }
+  return finish();
+}
+
+bool Cascade::evaluate_candidate(std::span<const TemplateModel> templates, std::span<const ScanPoint> scan,
+                                 Clock::time_point deadline, Candidate& out) {
+  const Clock::time_point start = Clock::now();
+  if (start >= deadline) return false;
+  out.evaluated = true;
+  out.passed = false;
+  out.report = MatchReport{};
+  const int ci = out.class_index;
+  if (ci < 0 || static_cast<std::size_t>(ci) >= templates.size() ||
+      templates[static_cast<std::size_t>(ci)].class_index != ci ||
+      templates[static_cast<std::size_t>(ci)].map.cells() == nullptr) {
+    out.report.pm.error = std::numeric_limits<double>::infinity();  // no usable template: never chosen
+    out.ms = ms_since(start);
+    return true;
+  }
+  const TemplateModel& model = templates[static_cast<std::size_t>(ci)];
+  const PerfectMatchResult pm = matcher_.match(model.map, model.centroid_m, matcher_.centroid_start(model.centroid_m));
+  if (pm.error <= model.thresholds.max_error) {
+    out.report = check_prepared(model, scan, pm.pose, &model.thresholds);
+  } else {
+    // Fails on its error alone: the check could not save it, so it is not run (its figures stay NaN).
+    constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+    out.report.missing_area_m2 = out.report.extra_area_m2 = out.report.coverage = out.report.scan_outliers = kNaN;
+    out.report.check_pose = pm.pose;
+  }
+  out.report.pm = pm;
+  out.passed = out.report.passes(model.thresholds);
+  out.ms = ms_since(start);
+  return true;
+}
+
+MatchReport Cascade::evaluate(const TemplateModel& model, std::span<const ScanPoint> scan) {
+  matcher_.set_scan(scan);
+  outline_valid_ = false;
+  const PerfectMatchResult pm = matcher_.match(model.map, model.centroid_m, matcher_.centroid_start(model.centroid_m));
+  MatchReport report = check_prepared(model, scan, pm.pose, nullptr);
+  report.pm = pm;
+  return report;
+}
+
+// --- two-way check ---------------------------------------------------------------------------------------------------
+
+MatchReport Cascade::two_way_check(const TemplateModel& model, std::span<const ScanPoint> scan,
+                                   const PlanarPose& pose) {
+  outline_valid_ = false;
+  return check_prepared(model, scan, pose, nullptr);
+}
+
+MatchReport Cascade::check_prepared(const TemplateModel& model, std::span<const ScanPoint> scan,
+                                    const PlanarPose& pose, const TemplateThresholds* thresholds) {
+  const Roi rt = rasterise_template(model);
+  MatchReport best = check_at(model.centroid_m, scan, pose, rt);
+  // Passing at Perfect Match's pose already answers "is there an alignment at which they agree".
+  const bool settled = thresholds != nullptr && best.missing_area_m2 <= thresholds->max_missing_area_m2 &&
+                       best.extra_area_m2 <= thresholds->max_extra_area_m2;
+  if (!settled && params_.refine_iterations > 0 && !outline_valid_) {
+    prepare_scan_outline(scan);
+    outline_valid_ = true;
+  }
+  if (!settled && params_.refine_iterations > 0 && !rt.empty() && outline_count_ > 0 &&
+      prepare_template_outline(rt)) {
+    double rms_m = 0.0;
+    const PlanarPose refined = refine_on_outline(model.centroid_m, pose, rms_m);
+    best.outline_rms_m = rms_m;
+    // The surfaces agree when SOME plausible alignment makes them agree: Perfect Match's pose and the outline
+    // pose are both estimates (the outline is only known to a profile spacing along x, Perfect Match can be a few
+    // millimetres off on a flat sheet). A real difference (a hole, a rib) stays at either pose.
+    const double shift_m = std::hypot(refined.x_m - pose.x_m, refined.y_m - pose.y_m);
+    if (shift_m > kRecheckShiftM || std::abs(refined.theta_rad - pose.theta_rad) > kRecheckTurnRad) {
+      MatchReport other = check_at(model.centroid_m, scan, refined, rt);
+      other.outline_rms_m = rms_m;
+      if (other.missing_area_m2 + other.extra_area_m2 < best.missing_area_m2 + best.extra_area_m2) best = other;
+    }
+  }
+  reset_template(rt);
+  return best;
+}
+
+MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const ScanPoint> scan,
+                              const PlanarPose& pose, const Roi& rt) {
+  MatchReport r;
+  r.check_pose = pose;
+  int outside = 0;
+  const Roi rs = rasterise_scan(scan, centre_m, pose, outside);
+  const int w = window_cells_;
+  Roi roi{std::max(std::min(rt.x0, rs.x0) - w, 0), std::max(std::min(rt.y0, rs.y0) - w, 0),
+          std::min(std::max(rt.x1, rs.x1) + w, width_), std::min(std::max(rt.y1, rs.y1) + w, height_)};
+  if (rt.empty() && rs.empty()) roi = {0, 0, 0, 0};
+
+  int template_cells = 0, scan_cells = 0, missing_cells = 0, extra_cells = 0;
+  if (!roi.empty()) {
+    if (params_.level_depth) level_scan_depth(roi, centre_m, r);
+    const auto tol = static_cast<float>(params_.depth_tolerance_m);
+
+    // Missing: template cells with no compatible scan depth within the window.
+    window_range(s_lo_, s_hi_, roi);
+    for (int y = roi.y0; y < roi.y1; ++y) {
+      const std::size_t row = static_cast<std::size_t>(y) * static_cast<std::size_t>(width_);
+      for (int x = roi.x0; x < roi.x1; ++x) {
+        const std::size_t i = row + static_cast<std::size_t>(x);
+        std::uint8_t f = 0;
+        if (t_lo_[i] <= t_hi_[i]) {
+          ++template_cells;
+          if (!(t_hi_[i] >= w_lo_[i] - tol && t_lo_[i] <= w_hi_[i] + tol)) {
+            f = kMissing;
+            ++missing_cells;
+          }
+        }
+        flags_[i] = f;
+      }
+    }
+    // Extra: scan cells with no compatible template depth within the window.
+    window_range(t_lo_, t_hi_, roi);
+    for (int y = roi.y0; y < roi.y1; ++y) {
+      const std::size_t row = static_cast<std::size_t>(y) * static_cast<std::size_t>(width_);
+      for (int x = roi.x0; x < roi.x1; ++x) {
+        const std::size_t i = row + static_cast<std::size_t>(x);
+        if (s_lo_[i] <= s_hi_[i]) {
+          ++scan_cells;
+          if (!(s_hi_[i] >= w_lo_[i] - tol && s_lo_[i] <= w_hi_[i] + tol)) {
+            flags_[i] |= kExtra;
+            ++extra_cells;
+          }
+        }
+      }
+    }
+    const double cell_area_m2 = resolution_m_ * resolution_m_;
+    r.missing_area_m2 = largest_blob(roi, kMissing) * cell_area_m2;
+    r.extra_area_m2 = largest_blob(roi, kExtra) * cell_area_m2;
+    reset_scan(roi);
+  }
+  r.template_cells = template_cells;
+  r.scan_cells = scan_cells;
+  r.coverage = template_cells > 0 ? static_cast<double>(template_cells - missing_cells) / template_cells : 0.0;
+  const int scan_total = scan_cells + outside;
+  r.scan_outliers = scan_total > 0 ? static_cast<double>(extra_cells + outside) / scan_total : 0.0;
+  if (outside > 0) {
+    // Points beyond the raster have no template anywhere near; they count as one more extra blob.
+    r.extra_area_m2 = std::max(r.extra_area_m2, outside * resolution_m_ * resolution_m_);
+  }
+  return r;
+}
+
+// --- outline refinement ----------------------------------------------------------------------------------------------
+
+Cascade::Roi Cascade::grow(const Roi& roi, int cells) const {
+  return {std::max(roi.x0 - cells, 0), std::max(roi.y0 - cells, 0), std::min(roi.x1 + cells, width_),
+          std::min(roi.y1 + cells, height_)};
+}
+
+void Cascade::outline_mask(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi) {
+  // mask_a_ = the closing (3 x 3 dilation, then erosion) of the occupied cells: fills the single empty cells a scan's
+  // one-profile-per-cell sampling leaves without moving the outline. mask_b_ = its outline cells (a 4-neighbour
+  // outside the closed mask, or the box's edge). Both 3 x 3 filters are separable (rows, then columns); cells beyond
+  // the box count as empty.
+  const auto w = static_cast<std::size_t>(width_);
+  const int n = roi.x1 - roi.x0;
+  auto row_of = [&](std::vector<std::uint8_t>& m, int y) { return m.data() + static_cast<std::size_t>(y) * w + roi.x0; };
+  // rows: src -> tmp (dilate: any of 3, erode: all of 3), then columns: tmp -> dst. tmp lives in flags_ (free here:
+  // the flags are all clear between checks and rewritten before use).
+  auto filter3 = [&](std::vector<std::uint8_t>& src, std::vector<std::uint8_t>& dst, bool dilate) {
+    for (int y = roi.y0; y < roi.y1; ++y) {
+      const std::uint8_t* s = row_of(src, y);
+      std::uint8_t* t = row_of(flags_, y);
+      for (int x = 0; x < n; ++x) {
+        const std::uint8_t l = x > 0 ? s[x - 1] : 0;
+        const std::uint8_t r = x + 1 < n ? s[x + 1] : 0;
+        t[x] = dilate ? static_cast<std::uint8_t>(l | s[x] | r) : static_cast<std::uint8_t>(l & s[x] & r);
+      }
+    }
+    for (int y = roi.y0; y < roi.y1; ++y) {
+      const std::uint8_t* up = y > roi.y0 ? row_of(flags_, y - 1) : nullptr;
+      const std::uint8_t* mid = row_of(flags_, y);
+      const std::uint8_t* down = y + 1 < roi.y1 ? row_of(flags_, y + 1) : nullptr;
+      std::uint8_t* d = row_of(dst, y);
+      for (int x = 0; x < n; ++x) {
+        const std::uint8_t u = up != nullptr ? up[x] : 0;
+        const std::uint8_t v = down != nullptr ? down[x] : 0;
+        d[x] = dilate ? static_cast<std::uint8_t>(u | mid[x] | v) : static_cast<std::uint8_t>(u & mid[x] & v);
+      }
+    }
+  };
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    const std::size_t row = static_cast<std::size_t>(y) * w;
+    std::uint8_t* a = row_of(mask_a_, y);
+    for (int x = 0; x < n; ++x) {
+      const std::size_t i = row + static_cast<std::size_t>(roi.x0 + x);
+      a[x] = lo[i] <= hi[i] ? 1 : 0;
+    }
+  }
+  filter3(mask_a_, mask_b_, true);
+  filter3(mask_b_, mask_a_, false);
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    const std::uint8_t* up = y > roi.y0 ? row_of(mask_a_, y - 1) : nullptr;
+    const std::uint8_t* mid = row_of(mask_a_, y);
+    const std::uint8_t* down = y + 1 < roi.y1 ? row_of(mask_a_, y + 1) : nullptr;
+    std::uint8_t* d = row_of(mask_b_, y);
+    for (int x = 0; x < n; ++x) {
+      const bool inner = x > 0 && x + 1 < n && up != nullptr && down != nullptr && mid[x - 1] != 0 &&
+                         mid[x + 1] != 0 && up[x] != 0 && down[x] != 0;
+      d[x] = mid[x] != 0 && !inner ? 1 : 0;
+    }
+  }
+  for (int y = roi.y0; y < roi.y1; ++y) std::fill(row_of(flags_, y), row_of(flags_, y) + n, std::uint8_t{0});
+}
+
+void Cascade::prepare_scan_outline(std::span<const ScanPoint> scan) {
+  // The scan's outline as its own points (not cell centres): a cell-centre outline would put each edge up to half a
+  // cell off by the raster's phase, differently on either side of the part, and bias the translation by as much.
+  outline_count_ = 0;
+  int outside = 0;
+  const Roi r = rasterise_scan(scan, Eigen::Vector2d::Zero(), PlanarPose{}, outside);  // scan frame
+  if (r.empty()) return;
+  const Roi g = grow(r, 2);
+  outline_mask(s_lo_, s_hi_, g);
+  const double inv = 1.0 / resolution_m_;
+  for (const ScanPoint& p : scan) {
+    if (outline_count_ == outline_.size()) break;  // more outline points than raster cells: keep the first ones
+    if (!finite_point(p)) continue;
+    const double fx = (static_cast<double>(p.x) - raster_origin_m_.x()) * inv;
+    const double fy = (static_cast<double>(p.y) - raster_origin_m_.y()) * inv;
+    if (!(fx >= 0.0 && fy >= 0.0 && fx < width_ && fy < height_)) continue;
+    const std::size_t i = static_cast<std::size_t>(fy) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(fx);
+    if (mask_b_[i] != 0) outline_[outline_count_++] = Eigen::Vector2d(p.x, p.y);
+  }
+  reset_scan(g);
+}
+
+bool Cascade::prepare_template_outline(const Roi& template_box) {
+  const Roi g = grow(template_box, kOutlineMarginCells);
+  outline_mask(t_lo_, t_hi_, g);
+  const int bw = g.x1 - g.x0;
+  const int bh = g.y1 - g.y0;
+  if (bw < 2 || bh < 2) return false;
+  int count = 0;
+  std::size_t k = 0;
+  for (int y = g.y0; y < g.y1; ++y) {
+    for (int x = g.x0; x < g.x1; ++x, ++k) {
+      const std::uint8_t edge = mask_b_[static_cast<std::size_t>(y) * static_cast<std::size_t>(width_) +
+                                        static_cast<std::size_t>(x)];
+      edt_in_[k] = edge;
+      count += edge;
+    }
+  }
+  if (count == 0) return false;
+  if (!edt_squared(edt_in_.data(), GridDims{bw, bh, 1, resolution_m_}, edt_scratch_, edt_out_.data())) return false;
+  const std::size_t cells = static_cast<std::size_t>(bw) * static_cast<std::size_t>(bh);
+  for (std::size_t i = 0; i < cells; ++i) edt_out_[i] = std::sqrt(edt_out_[i]);
+  edt_box_ = g;
+  return true;
+}
+
+double Cascade::outline_cost(const Eigen::Vector2d& centre_m, const PlanarPose& pose, double cutoff_m,
+                             int* inliers) const {
+  const OutlineField field{edt_out_.data(), edt_box_.x1 - edt_box_.x0, edt_box_.y1 - edt_box_.y0,
+                           static_cast<double>(edt_box_.x0), static_cast<double>(edt_box_.y0), 1.0 / resolution_m_,
+                           resolution_m_, raster_origin_m_.x(), raster_origin_m_.y()};
+  const double cos_t = std::cos(pose.theta_rad);
+  const double sin_t = std::sin(pose.theta_rad);
+  const Eigen::Vector2d o = centre_m + Eigen::Vector2d(pose.x_m, pose.y_m);
+  double sum = 0.0;
+  int n = 0;
+  for (std::size_t i = 0; i < outline_count_; ++i) {
+    const Eigen::Vector2d q = outline_[i] - o;
+    const double tx = centre_m.x() + cos_t * q.x() + sin_t * q.y();
+    const double ty = centre_m.y() - sin_t * q.x() + cos_t * q.y();
+    double d = 0.0, gx = 0.0, gy = 0.0;
+    if (field.sample(tx, ty, d, gx, gy) && d <= cutoff_m) {
+      sum += d * d;
+      ++n;
+    } else {
+      sum += cutoff_m * cutoff_m;
+    }
+  }
+  if (inliers != nullptr) *inliers = n;
+  return outline_count_ > 0 ? sum / static_cast<double>(outline_count_) : 0.0;
+}
+
+PlanarPose Cascade::refine_on_outline(const Eigen::Vector2d& centre_m, const PlanarPose& start, double& rms_m) {
+  // Truncated least squares of the scan outline's distances to the template outline over (x, y, theta), the same
+  // pose and point mapping as Perfect Match (p_t = c + R(-theta)(p - c - t)): Gauss-Newton with a cutoff that
+  // shrinks from refine_cutoff_m to refine_final_cutoff_m over the first half of the iterations.
+  const OutlineField field{edt_out_.data(), edt_box_.x1 - edt_box_.x0, edt_box_.y1 - edt_box_.y0,
+                           static_cast<double>(edt_box_.x0), static_cast<double>(edt_box_.y0), 1.0 / resolution_m_,
+                           resolution_m_, raster_origin_m_.x(), raster_origin_m_.y()};
+  const int iterations = params_.refine_iterations;
+  const double first = std::max(params_.refine_cutoff_m, params_.refine_final_cutoff_m);
+  const double last = params_.refine_final_cutoff_m;
+  const double half = std::max(1.0, 0.5 * iterations);
+  double pose[3] = {start.x_m, start.y_m, start.theta_rad};
+  for (int it = 0; it < iterations; ++it) {
+    const double cutoff = std::max(last, first * std::pow(last / first, std::min(1.0, it / half)));
+    const double cos_t = std::cos(pose[2]);
+    const double sin_t = std::sin(pose[2]);
+    const Eigen::Vector2d o = centre_m + Eigen::Vector2d(pose[0], pose[1]);
+    double h00 = 0, h01 = 0, h02 = 0, h11 = 0, h12 = 0, h22 = 0, g0 = 0, g1 = 0, g2 = 0;
+    int n = 0;
+    for (std::size_t i = 0; i < outline_count_; ++i) {
+      const Eigen::Vector2d q = outline_[i] - o;
+      const double rx = cos_t * q.x() + sin_t * q.y();
+      const double ry = -sin_t * q.x() + cos_t * q.y();
+      double d = 0.0, gx = 0.0, gy = 0.0;
+      if (!field.sample(centre_m.x() + rx, centre_m.y() + ry, d, gx, gy) || d > cutoff) continue;
+      // dd/dt = -R(theta) grad, dd/dtheta = grad . (r_y, -r_x) (as in Perfect Match's gradient, eq. 2.63-2.65).
+      const double j0 = -(cos_t * gx - sin_t * gy);
+      const double j1 = -(sin_t * gx + cos_t * gy);
+      const double j2 = gx * ry - gy * rx;
+      h00 += j0 * j0;
+      h01 += j0 * j1;
+      h02 += j0 * j2;
+      h11 += j1 * j1;
+      h12 += j1 * j2;
+      h22 += j2 * j2;
+      g0 += d * j0;
+      g1 += d * j1;
+      g2 += d * j2;
+      ++n;
+    }
+    if (n < kMinOutlinePoints) break;
+    Eigen::Matrix3d h;
+    h << h00 * (1.0 + kDamping), h01, h02, h01, h11 * (1.0 + kDamping), h12, h02, h12, h22 * (1.0 + kDamping);
+    const Eigen::Vector3d g(g0, g1, g2);
+    const Eigen::LDLT<Eigen::Matrix3d> ldlt(h);
+    if (ldlt.info() != Eigen::Success || !(ldlt.rcond() > kMinLevelRcond)) break;
+    const Eigen::Vector3d step = -ldlt.solve(g);
+    if (!step.allFinite()) break;
+    pose[0] += std::clamp(step[0], -kMaxStepM, kMaxStepM);
+    pose[1] += std::clamp(step[1], -kMaxStepM, kMaxStepM);
+    pose[2] += std::clamp(step[2], -kMaxStepRad, kMaxStepRad);
+  }
+  PlanarPose refined{pose[0], pose[1], pose[2]};
+  int inliers_refined = 0, inliers_start = 0;
+  const double cost_refined = outline_cost(centre_m, refined, last, &inliers_refined);
+  const double cost_start = outline_cost(centre_m, start, last, &inliers_start);
+  if (!(cost_refined <= cost_start)) {
+    refined = start;
+    inliers_refined = inliers_start;
+  }
+  // rms of the inliers: the truncated mean minus the outliers' cutoff^2 share.
+  const double cost = std::min(cost_refined, cost_start);
+  const double outliers = static_cast<double>(outline_count_) - inliers_refined;
+  rms_m = inliers_refined > 0
+              ? std::sqrt(std::max(0.0, (cost * static_cast<double>(outline_count_) - outliers * last * last) /
+                                            inliers_refined))
+              : 0.0;
+  return refined;
+}
+
+Cascade::Roi Cascade::rasterise_template(const TemplateModel& model) {
+  Roi b{width_, height_, 0, 0};
+  const double inv = 1.0 / resolution_m_;
+  for (const Eigen::Vector3f& p : model.surface_points) {
+    const double fx = (static_cast<double>(p.x()) - raster_origin_m_.x()) * inv;
+    const double fy = (static_cast<double>(p.y()) - raster_origin_m_.y()) * inv;
+    if (!(fx >= 0.0 && fy >= 0.0 && fx < width_ && fy < height_) || !std::isfinite(p.z())) continue;
+    const int x = static_cast<int>(fx);
+    const int y = static_cast<int>(fy);
+    const std::size_t i = static_cast<std::size_t>(y) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(x);
+    t_lo_[i] = std::min(t_lo_[i], p.z());
+    t_hi_[i] = std::max(t_hi_[i], p.z());
+    b = {std::min(b.x0, x), std::min(b.y0, y), std::max(b.x1, x + 1), std::max(b.y1, y + 1)};
+  }
+  return b;
+}
+
+Cascade::Roi Cascade::rasterise_scan(std::span<const ScanPoint> scan, const Eigen::Vector2d& centre_m,
+                                     const PlanarPose& pose, int& outside_points) {
+  // Scan -> template frame: p_t = c + R(-theta)(p - c - t), the inverse of DESIGN.md's pose, folded with the raster
+  // scale into one affine map to continuous cell coordinates: f = a p + b.
+  const double inv = 1.0 / resolution_m_;
+  const double cos_t = std::cos(pose.theta_rad);
+  const double sin_t = std::sin(pose.theta_rad);
+  const double ox = centre_m.x() + pose.x_m;
+  const double oy = centre_m.y() + pose.y_m;
+  const double axx = cos_t * inv, axy = sin_t * inv, ayx = -sin_t * inv, ayy = cos_t * inv;
+  const double bx = (centre_m.x() - raster_origin_m_.x()) * inv - axx * ox - axy * oy;
+  const double by = (centre_m.y() - raster_origin_m_.y()) * inv - ayx * ox - ayy * oy;
+  const double wd = width_, hd = height_;
+  const auto w = static_cast<std::size_t>(width_);
+  int x0 = width_, y0 = height_, x1 = -1, y1 = -1;
+  int outside = 0;
+  float* lo = s_lo_.data();
+  float* hi = s_hi_.data();
+  for (const ScanPoint& p : scan) {
+    const double fx = axx * p.x + axy * p.y + bx;
+    const double fy = ayx * p.x + ayy * p.y + by;
+    if (!(fx >= 0.0 && fy >= 0.0 && fx < wd && fy < hd)) {
+      outside += std::isnan(fx) || std::isnan(fy) ? 0 : 1;  // a non-finite point is no point (a NaN depth marks none)
+      continue;
+    }
+    const int x = static_cast<int>(fx);
+    const int y = static_cast<int>(fy);
+    const std::size_t i = static_cast<std::size_t>(y) * w + static_cast<std::size_t>(x);
+    lo[i] = std::min(lo[i], p.z);
+    hi[i] = std::max(hi[i], p.z);
+    x0 = std::min(x0, x);
+    x1 = std::max(x1, x);
+    y0 = std::min(y0, y);
+    y1 = std::max(y1, y);
+  }
+  outside_points += outside;
+  return {x0, y0, x1 + 1, y1 + 1};
+}
+
+void Cascade::level_scan_depth(const Roi& roi, const Eigen::Vector2d& centre_m, MatchReport& report) {
+  // Least squares of z_scan - z_template = a + b X + c Y over the cells both surfaces occupy (cell mid-depths,
+  // X, Y from the template centroid), refitted on the cells within a shrinking band around the last plane.
+  Eigen::Vector3d plane = Eigen::Vector3d::Zero();
+  bool have_plane = false;
+  const double x_offset = raster_origin_m_.x() + 0.5 * resolution_m_ - centre_m.x();
+  const double y_offset = raster_origin_m_.y() + 0.5 * resolution_m_ - centre_m.y();
+  for (const double clip_units : kLevelClips) {
+    const double clip = clip_units * params_.depth_tolerance_m;
+    double sx = 0, sy = 0, sxx = 0, sxy = 0, syy = 0, se = 0, sxe = 0, sye = 0;
+    int n = 0;
+    // Every other cell along both axes: three parameters need far fewer than the ~10^4 cells a part covers.
+    for (int y = roi.y0; y < roi.y1; y += kLevelStride) {
+      const std::size_t row = static_cast<std::size_t>(y) * static_cast<std::size_t>(width_);
+      const double cy = y_offset + y * resolution_m_;
+      for (int x = roi.x0; x < roi.x1; x += kLevelStride) {
+        const std::size_t i = row + static_cast<std::size_t>(x);
+        if (!(s_lo_[i] <= s_hi_[i] && t_lo_[i] <= t_hi_[i])) continue;
+        const double cx = x_offset + x * resolution_m_;
+        const double e = 0.5 * (static_cast<double>(s_lo_[i]) + s_hi_[i] - t_lo_[i] - t_hi_[i]);
+        if (have_plane && !(std::abs(e - (plane[0] + plane[1] * cx + plane[2] * cy)) <= clip)) continue;
+        sx += cx;
+        sy += cy;
+        sxx += cx * cx;
+        sxy += cx * cy;
+        syy += cy * cy;
+        se += e;
+        sxe += cx * e;
+        sye += cy * e;
+        ++n;
+      }
+    }
+    if (n < kMinLevelCells) break;
+    Eigen::Matrix3d a;
+    a << n, sx, sy, sx, sxx, sxy, sy, sxy, syy;
+    const Eigen::Vector3d b(se, sxe, sye);
+    const Eigen::LDLT<Eigen::Matrix3d> ldlt(a);
+    if (ldlt.info() != Eigen::Success || !(ldlt.rcond() > kMinLevelRcond)) break;
+    plane = ldlt.solve(b);
+    have_plane = true;
+  }
+  if (!have_plane) return;
+  report.depth_offset_m = plane[0];
+  report.depth_slope_x = plane[1];
+  report.depth_slope_y = plane[2];
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    const std::size_t row = static_cast<std::size_t>(y) * static_cast<std::size_t>(width_);
+    const double cy = y_offset + y * resolution_m_;
+    for (int x = roi.x0; x < roi.x1; ++x) {
+      const std::size_t i = row + static_cast<std::size_t>(x);
+      if (!(s_lo_[i] <= s_hi_[i])) continue;
+      const auto dz = static_cast<float>(plane[0] + plane[1] * (x_offset + x * resolution_m_) + plane[2] * cy);
+      s_lo_[i] -= dz;
+      s_hi_[i] -= dz;
+    }
+  }
+}
+
+void Cascade::window_range(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi) {
+  // Separable square window (2r+1 cells): min of lo and max of hi along x into tmp, then along y into w.
+  const int r = window_cells_;
+  const auto w = static_cast<std::size_t>(width_);
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    const std::size_t row = static_cast<std::size_t>(y) * w;
+    const float* src_lo = lo.data() + row;
+    const float* src_hi = hi.data() + row;
+    float* dst_lo = tmp_lo_.data() + row;
+    float* dst_hi = tmp_hi_.data() + row;
+    std::copy(src_lo + roi.x0, src_lo + roi.x1, dst_lo + roi.x0);
+    std::copy(src_hi + roi.x0, src_hi + roi.x1, dst_hi + roi.x0);
+    for (int d = 1; d <= r; ++d) {
+      for (int x = roi.x0; x + d < roi.x1; ++x) {
+        dst_lo[x] = std::min(dst_lo[x], src_lo[x + d]);
+        dst_hi[x] = std::max(dst_hi[x], src_hi[x + d]);
+      }
+      for (int x = roi.x0 + d; x < roi.x1; ++x) {
+        dst_lo[x] = std::min(dst_lo[x], src_lo[x - d]);
+        dst_hi[x] = std::max(dst_hi[x], src_hi[x - d]);
+      }
+    }
+  }
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    const std::size_t row = static_cast<std::size_t>(y) * w;
+    float* dst_lo = w_lo_.data() + row;
+    float* dst_hi = w_hi_.data() + row;
+    std::copy(tmp_lo_.data() + row + roi.x0, tmp_lo_.data() + row + roi.x1, dst_lo + roi.x0);
+    std::copy(tmp_hi_.data() + row + roi.x0, tmp_hi_.data() + row + roi.x1, dst_hi + roi.x0);
+    for (int dy = -r; dy <= r; ++dy) {
+      const int yy = y + dy;
+      if (dy == 0 || yy < roi.y0 || yy >= roi.y1) continue;
+      const float* src_lo = tmp_lo_.data() + static_cast<std::size_t>(yy) * w;
+      const float* src_hi = tmp_hi_.data() + static_cast<std::size_t>(yy) * w;
+      for (int x = roi.x0; x < roi.x1; ++x) {
+        dst_lo[x] = std::min(dst_lo[x], src_lo[x]);
+        dst_hi[x] = std::max(dst_hi[x], src_hi[x]);
+      }
+    }
+  }
+}
+
+int Cascade::largest_blob(const Roi& roi, std::uint8_t bit) {
+  // 4-connected flood fill; a cell's bit is cleared when it is pushed, so the stack never holds a cell twice and
+  // the flags are all clear again afterwards.
+  const int w = width_;
+  int largest = 0;
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    for (int x = roi.x0; x < roi.x1; ++x) {
+      const std::int32_t seed = y * w + x;
+      if ((flags_[static_cast<std::size_t>(seed)] & bit) == 0) continue;
+      flags_[static_cast<std::size_t>(seed)] &= static_cast<std::uint8_t>(~bit);
+      std::size_t top = 0;
+      stack_[top++] = seed;
+      int area = 0;
+      while (top > 0) {
+        const std::int32_t c = stack_[--top];
+        ++area;
+        const int cx = c % w;
+        const int cy = c / w;
+        const std::int32_t neighbours[4] = {c - 1, c + 1, c - w, c + w};
+        const bool inside[4] = {cx > roi.x0, cx + 1 < roi.x1, cy > roi.y0, cy + 1 < roi.y1};
+        for (int k = 0; k < 4; ++k) {
+          if (!inside[k]) continue;
+          std::uint8_t& f = flags_[static_cast<std::size_t>(neighbours[k])];
+          if ((f & bit) == 0) continue;
+          f &= static_cast<std::uint8_t>(~bit);
+          stack_[top++] = neighbours[k];
+        }
+      }
+      largest = std::max(largest, area);
+    }
+  }
+  return largest;
+}
+
+void Cascade::reset_scan(const Roi& roi) {
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    const auto row = static_cast<std::ptrdiff_t>(static_cast<std::size_t>(y) * static_cast<std::size_t>(width_));
+    std::fill(s_lo_.begin() + row + roi.x0, s_lo_.begin() + row + roi.x1, kEmptyLo);
+    std::fill(s_hi_.begin() + row + roi.x0, s_hi_.begin() + row + roi.x1, kEmptyHi);
+  }
+}
+
+void Cascade::reset_template(const Roi& roi) {
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    const auto row = static_cast<std::ptrdiff_t>(static_cast<std::size_t>(y) * static_cast<std::size_t>(width_));
+    std::fill(t_lo_.begin() + row + roi.x0, t_lo_.begin() + row + roi.x1, kEmptyLo);
+    std::fill(t_hi_.begin() + row + roi.x0, t_hi_.begin() + row + roi.x1, kEmptyHi);
+  }
+}
+
+}  // namespace cellsight::algo

@@ -1,0 +1,213 @@
+// Decision stage (thesis 5.3, 6.4.4): SVM probabilities + Perfect Match over the k best classes, every accepted class
+// verified against its template by a two-way surface check that also sees material the scan LACKS.
+#pragma once
+
+#include <Eigen/Core>
+#include <chrono>
+#include <cstdint>
+#include <span>
+#include <vector>
+
+#include "algo/decision.hpp"
+#include "algo/distance_map.hpp"
+#include "algo/grid.hpp"
+#include "algo/perfect_match.hpp"
+#include "algo/scan.hpp"
+#include "algo/svm.hpp"
+
+namespace cellsight::algo {
+
+struct CascadeParams {
+  // Thesis 6.4.4: the SVM alone decides the class when p1 >= accept_p1 and p2 <= accept_p2_max; otherwise Perfect
+  // Match chooses among the pm_candidates most probable classes (k = 2 in the thesis).
+  double accept_p1 = 0.70;
+  double accept_p2_max = 0.06;
+  int pm_candidates = 2;
+
+  // Two-way check (see Cascade). A template cell counts as seen when the scan has a surface within blob_window_m
+  // (x-y, rounded to whole cells, at least one) whose depth is within depth_tolerance_m of the template's; the same
+  // the other way round for scan cells. The window absorbs the Perfect Match pose error (thesis table 6.12-6.13:
+  // <= 3 mm) and the scan's sampling (one profile per cell along x, so a rotated scan leaves single empty cells).
+  double blob_window_m = 0.0044;
+  double depth_tolerance_m = 0.005;
+  // Perfect Match's pose can be millimetres off on a flat sheet (its cost there is mostly depth, sampled sparsely),
+  // so the check also aligns the x-y outlines (the scan's outline points to the distance transform of the template's
+  // outline, truncated least squares, Gauss-Newton from Perfect Match's pose) and keeps whichever of the two poses
+  // leaves the smaller blobs: the surfaces agree when some plausible alignment makes them agree, and a real
+  // difference (a hole, a rib) shows at either. The outline pose is only as good as the outline sampling (one
+  // profile per 2.2 mm along x: up to ~2 mm in x), so Decision::pose stays Perfect Match's unless
+  // decision_pose_from_outline. refine_iterations = 0 checks at Perfect Match's pose only.
+  int refine_iterations = 12;
+  double refine_cutoff_m = 0.010;        // outline points farther than this are ignored in the first iterations ...
+  double refine_final_cutoff_m = 0.0035;  // ... and farther than this in the last ones
+  bool decision_pose_from_outline = false;
+  // Before the depth comparison the scan's depth is levelled onto the template's by a robust plane fit
+  // (z offset + slopes in x and y): the swing about the hook's vertical axis (+-2 deg, up to 16 mm of depth at the
+  // edge of a 450 mm part between two passes) is not part of the planar pose; a local difference (a rib) is.
+  bool level_depth = true;
+
+  // learn_thresholds(): threshold = own-class maximum * factor + floor. The factor covers what N training scans
+  // did not show (the maximum of 35 samples is about their 97th percentile); the floor keeps a template usable
+  // when its training scans happened to be alike.
+  // Error floor: the planar pose does not model the swing about the hook (+-2 deg in the simulated cell), so two
+  // passes of the same part differ in depth by x tan(dswing); over a 480 mm sheet at dswing = 4 deg that is a mean
+  // d^2 of (0.48^2 / 12) tan^2(4 deg) = 9.4e-5 m^2, an error of 5.9e-4 at Lc = 0.4 m. The error threshold is a coarse
+  // gate (unrelated shapes); the two-way check is what tells near-identical parts apart.
+  // Area floor: own-class blobs stay under ~65 mm^2 (reconstructed scans, tests/bench/bench_cascade.cpp), a 40 mm
+  // hole leaves ~500 mm^2 with the default window; 150 mm^2 (31 cells of 2.2 mm) sits between them.
+  double error_factor = 2.0;
+  double error_floor = 6e-4;
+  double area_factor = 1.5;
+  double area_floor_m2 = 150e-6;
+};
+
+// What a template must meet for its class to be accepted; learnt per template at training (learn_thresholds).
+// Zero thresholds accept only a perfect match: an unlearnt template is effectively never accepted.
+struct TemplateThresholds {
+  double max_error = 0.0;            // Perfect Match error per point (PerfectMatchResult::error)
+  double max_missing_area_m2 = 0.0;  // largest connected template area the scan lacks
+  double max_extra_area_m2 = 0.0;    // largest connected scan area the template lacks
+};
+
+// One taught class as the cascade sees it. Borrows everything (the real map is a memory-mapped template file).
+struct TemplateModel {
+  int class_index = -1;  // must equal its position in the span given to decide()
+  int part_id = 0;       // PLC id
+  DistanceMapView map;
+  Eigen::Vector2d centroid_m = Eigen::Vector2d::Zero();  // c of the pose (centroid_xy_m of the template scan)
+  // The template scan's surface, carrier frame at the template's pose: its points, or the centres of its occupied
+  // cells (surface_points_from_map() recovers those from a stored map).
+  std::span<const Eigen::Vector3f> surface_points;
+  TemplateThresholds thresholds;
+};
+
+// Perfect Match plus the two-way check of one scan against one template.
+struct MatchReport {
+  PerfectMatchResult pm;
+  double missing_area_m2 = 0.0;  // largest 4-connected blob of template cells the scan lacks
+  double extra_area_m2 = 0.0;    // largest 4-connected blob of scan cells the template lacks
+  double coverage = 0.0;         // template cells seen in the scan / template cells
+  double scan_outliers = 1.0;    // scan cells without template / scan cells (cells outside the raster included)
+  // Depth levelling applied to the scan (z_scan - z_template ~ offset + slope_x * (x - c_x) + slope_y * (y - c_y),
+  // template frame): diagnostics; slope_x ~ -tan(swing difference).
+  double depth_offset_m = 0.0;
+  double depth_slope_x = 0.0;
+  double depth_slope_y = 0.0;
+  PlanarPose check_pose{};       // the pose the reported check ran at (Perfect Match's or the outline pose)
+  double outline_rms_m = 0.0;    // outline distances within the final cutoff, at the outline pose
+  int template_cells = 0;
+  int scan_cells = 0;
+  [[nodiscard]] bool passes(const TemplateThresholds& t) const {
+    // Written so that NaN fails.
+    return pm.error <= t.max_error && missing_area_m2 <= t.max_missing_area_m2 && extra_area_m2 <= t.max_extra_area_m2;
+  }
+};
+
+// Training time: thresholds of one template from the reports of its own class's training scans against it
+// (max * factor + floor, see CascadeParams). An empty span gives the floors.
+[[nodiscard]] TemplateThresholds learn_thresholds(std::span<const MatchReport> own_class, const CascadeParams& params);
+
+// Start-up helper: the centres of a map's occupied cells (distance 0), carrier frame. Allocates; reads every cell.
+void surface_points_from_map(const DistanceMapView& map, std::vector<Eigen::Vector3f>& out);
+
+// The decision stage. Everything is sized at construction for one grid; decide() never allocates. Not thread-safe.
+//
+// Policy (thesis 6.4.4, plus verification): p1 >= accept_p1 and p2 <= accept_p2_max -> the SVM's class, Perfect
+// Match for its pose (kSvm). Otherwise, or when that class fails verification, Perfect Match against the
+// pm_candidates most probable classes; the candidates are taken in order of increasing error and the first that
+// passes verification wins (kPm). None passes -> kUnknown. The deadline is checked before every Perfect Match;
+// when it has passed the decision is kTimeout. Never a guess.
+//
+// Two-way check: one-way matching (scan -> template distances, eq. 2.56) cannot see a scan that lacks material the
+// template has (a 40 mm hole is ~1 % of a plate's points and each sits at most 20 mm from the template). In the
+// template frame at the Perfect Match pose both surfaces are rasterised on the grid's x-y cells (per cell the depth
+// range); a template cell is "missing" when no scan cell within the window has a compatible depth, a scan cell is
+// "extra" when no template cell does. The largest 4-connected blob of each is compared with the template's learnt
+// maxima. Depth makes a pressed rib (20 mm) visible, which a flat x-y mask is blind to.
+class Cascade {
+ public:
+  Cascade(const CascadeParams& params, const PerfectMatchParams& pm_params, const GridSpec& grid);  // allocates
+
+  // svm_best_first: SvmModel::predict's output. templates_by_class[i] is class i's template.
+  // scan_without_carrier: the part's points after support removal, carrier frame.
+  [[nodiscard]] Decision decide(std::span<const ClassProbability> svm_best_first,
+                                std::span<const TemplateModel> templates_by_class,
+                                std::span<const ScanPoint> scan_without_carrier,
+                                std::chrono::steady_clock::time_point deadline);
+
+  // Perfect Match from the centroid start plus the two-way check (training: the reports learn_thresholds() takes).
+  [[nodiscard]] MatchReport evaluate(const TemplateModel& model, std::span<const ScanPoint> scan);
+
+  // The two-way check alone at a given pose (pm of the report left default). Exposed for tests and diagnostics.
+  [[nodiscard]] MatchReport two_way_check(const TemplateModel& model, std::span<const ScanPoint> scan,
+                                          const PlanarPose& pose);
+
+  [[nodiscard]] const CascadeParams& params() const { return params_; }
+  [[nodiscard]] int window_cells() const { return window_cells_; }
+
+ private:
+  struct Roi {
+    int x0, y0, x1, y1;  // inclusive-exclusive cell range of the raster
+    [[nodiscard]] bool empty() const { return x1 <= x0 || y1 <= y0; }
+  };
+  struct Candidate {
+    int class_index = -1;
+    bool evaluated = false;
+    bool passed = false;
+    double ms = 0.0;
+    MatchReport report;
+  };
+
+  // Perfect Match + check of the scan set in matcher_; false when the deadline passed before it could start.
+  bool evaluate_candidate(std::span<const TemplateModel> templates, std::span<const ScanPoint> scan,
+                          std::chrono::steady_clock::time_point deadline, Candidate& out);
+  // The check proper (takes the scan's outline when it first needs it and outline_valid_ is false). With
+  // thresholds, a pass at `pose` ends it (the outline pose is only tried when the given one fails).
+  [[nodiscard]] MatchReport check_prepared(const TemplateModel& model, std::span<const ScanPoint> scan,
+                                           const PlanarPose& pose, const TemplateThresholds* thresholds);
+  void prepare_scan_outline(std::span<const ScanPoint> scan);
+  [[nodiscard]] bool prepare_template_outline(const Roi& template_box);
+  [[nodiscard]] double outline_cost(const Eigen::Vector2d& centre_m, const PlanarPose& pose, double cutoff_m,
+                                    int* inliers) const;
+  [[nodiscard]] PlanarPose refine_on_outline(const Eigen::Vector2d& centre_m, const PlanarPose& start,
+                                             double& rms_m);
+  void outline_mask(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi);
+  [[nodiscard]] Roi grow(const Roi& roi, int cells) const;
+  [[nodiscard]] Roi rasterise_template(const TemplateModel& model);
+  [[nodiscard]] Roi rasterise_scan(std::span<const ScanPoint> scan, const Eigen::Vector2d& centre_m,
+                                   const PlanarPose& pose, int& outside_points);
+  void level_scan_depth(const Roi& roi, const Eigen::Vector2d& centre_m, MatchReport& report);
+  void window_range(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi);
+  [[nodiscard]] int largest_blob(const Roi& roi, std::uint8_t bit);
+  [[nodiscard]] MatchReport check_at(const Eigen::Vector2d& centre_m, std::span<const ScanPoint> scan,
+                                     const PlanarPose& pose, const Roi& template_box);
+  void reset_scan(const Roi& roi);
+  void reset_template(const Roi& roi);
+
+  CascadeParams params_;
+  PerfectMatcher matcher_;
+  // x-y raster of the grid plus a margin (scan points rotated and shifted by the pose may leave the grid).
+  int margin_cells_ = 0;
+  int width_ = 0, height_ = 0;
+  double resolution_m_ = 0.0;
+  Eigen::Vector2d raster_origin_m_ = Eigen::Vector2d::Zero();
+  int window_cells_ = 1;
+  std::vector<float> t_lo_, t_hi_;      // template depth range per cell (+inf / -inf when empty)
+  std::vector<float> s_lo_, s_hi_;      // scan depth range per cell, template frame
+  std::vector<float> w_lo_, w_hi_;      // window min / max of one of them
+  std::vector<float> tmp_lo_, tmp_hi_;  // separable-filter intermediate
+  std::vector<std::uint8_t> flags_;     // kMissing | kExtra per cell
+  std::vector<std::int32_t> stack_;     // flood fill, one entry per cell at most
+  // Outline refinement: masks, the template outline's distance transform over a box, the scan's outline points.
+  std::vector<std::uint8_t> mask_a_, mask_b_;
+  std::vector<std::uint8_t> edt_in_;
+  std::vector<float> edt_out_;  // distance to the template outline, cells, over edt_box_
+  EdtScratch edt_scratch_;
+  Roi edt_box_{0, 0, 0, 0};
+  std::vector<Eigen::Vector2d> outline_;  // scan points in the outline cells of its closed x-y mask, scan frame
+  std::size_t outline_count_ = 0;
+  bool outline_valid_ = false;  // outline_ belongs to the current scan
+  std::vector<Candidate> candidates_;   // one per SVM class slot considered, sized for pm_candidates + 1
+};
+
+}  // namespace cellsight::algo

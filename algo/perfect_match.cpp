@@ -1,0 +1,340 @@
+// Perfect Match (thesis 2.7.3): robust cost of a scan against a template's distance map and its RPROP minimisation.
+#include "algo/perfect_match.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <cstddef>
+#include <cstdint>
+
+namespace cellsight::algo {
+
+namespace {
+
+[[nodiscard]] bool finite_point(const ScanPoint& p) {
+  return std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z);
+}
+
+// One RPROP parameter (x, y or theta): its step and the previous derivative.
+struct RpropState {
+  double step;
+  double step_min;
+  double step_max;
+  double previous_grad = 0.0;
+};
+
+// iRprop- (Igel & Huesken 2000), the usual reading of thesis eq. 2.67-2.70: the step grows while the derivative
+// keeps its sign and shrinks when it flips; after a flip the parameter stays put for one iteration (and the stored
+// derivative is zeroed so the next one neither grows nor shrinks the step). The thesis words the test as a
+// difference of successive derivatives; RPROP (Riedmiller & Braun 1993) tests the sign of their product, which is
+// what "passed a local minimum" means.
+[[nodiscard]] double rprop_update(RpropState& s, double grad, double eta_plus, double eta_minus) {
+  const double product = grad * s.previous_grad;
+  if (product > 0.0) {
+    s.step = std::min(s.step * eta_plus, s.step_max);
+  } else if (product < 0.0) {
+    s.step = std::max(s.step * eta_minus, s.step_min);
+    s.previous_grad = 0.0;
+    return 0.0;
+  }
+  s.previous_grad = grad;
+  if (grad > 0.0) return -s.step;  // thesis eq. 2.69
+  if (grad < 0.0) return s.step;   // thesis eq. 2.70
+  return 0.0;
+}
+
+constexpr int kMinFeatureBins = 64;
+constexpr int kMinEdgeNeighbours = 2;
+// When the coarse level hands over, its steps may have shrunk to their minimum: the fine level restarts them at
+// this fraction of the initial step (the coarse pose is close, but not within a step minimum).
+constexpr double kFineRestartStepFraction = 0.125;
+
+}  // namespace
+
+Eigen::Vector2d centroid_xy_m(std::span<const ScanPoint> points) {
+  double sx = 0.0;
+  double sy = 0.0;
+  std::size_t n = 0;
+  for (const ScanPoint& p : points) {
+    if (!finite_point(p)) continue;
+    sx += p.x;
+    sy += p.y;
+    ++n;
+  }
+  if (n == 0) return Eigen::Vector2d::Zero();
+  return {sx / static_cast<double>(n), sy / static_cast<double>(n)};
+}
+
+PerfectMatcher::PerfectMatcher(const PerfectMatchParams& params) : params_(params) {
+  params_.max_points = std::max(params_.max_points, 1);
+  params_.max_iterations = std::max(params_.max_iterations, 0);
+  params_.informative_fraction = std::clamp(params_.informative_fraction, 0.0, 1.0);
+  params_.max_feature_bins = std::max(params_.max_feature_bins, kMinFeatureBins);
+  if (!(params_.feature_bin_m > 0.0)) params_.feature_bin_m = PerfectMatchParams{}.feature_bin_m;
+  params_.step_max_m = std::max(params_.step_max_m, params_.step_min_m);
+  params_.step_max_rad = std::max(params_.step_max_rad, params_.step_min_rad);
+  params_.step_initial_m = std::clamp(params_.step_initial_m, params_.step_min_m, params_.step_max_m);
+  params_.step_initial_rad = std::clamp(params_.step_initial_rad, params_.step_min_rad, params_.step_max_rad);
+  const auto n = static_cast<std::size_t>(params_.max_points);
+  points_.resize(n);
+  picked_.resize(n);
+  const auto bins = static_cast<std::size_t>(params_.max_feature_bins);
+  bin_count_.resize(bins);
+  bin_depth_.resize(bins);
+  bin_informative_.resize(bins);
+}
+
+void PerfectMatcher::set_scan(std::span<const ScanPoint> points) {
+  used_ = 0;
+  coarse_used_ = 0;
+  scan_centroid_m_ = Eigen::Vector2d::Zero();
+
+  std::size_t finite = 0;
+  double sx = 0.0;
+  double sy = 0.0;
+  double min_x = 0.0;
+  double max_x = 0.0;
+  double min_y = 0.0;
+  double max_y = 0.0;
+  for (const ScanPoint& p : points) {
+    if (!finite_point(p)) continue;
+    if (finite == 0) {
+      min_x = max_x = p.x;
+      min_y = max_y = p.y;
+    }
+    min_x = std::min(min_x, static_cast<double>(p.x));
+    max_x = std::max(max_x, static_cast<double>(p.x));
+    min_y = std::min(min_y, static_cast<double>(p.y));
+    max_y = std::max(max_y, static_cast<double>(p.y));
+    sx += p.x;
+    sy += p.y;
+    ++finite;
+  }
+  if (finite == 0) return;
+  scan_centroid_m_ = {sx / static_cast<double>(finite), sy / static_cast<double>(finite)};
+
+  // x-y bins over the footprint with one empty bin of margin all round, so every occupied bin has 8 neighbours.
+  double bin_m = params_.feature_bin_m;
+  const auto capacity = static_cast<double>(params_.max_feature_bins);
+  while ((std::floor((max_x - min_x) / bin_m) + 3.0) * (std::floor((max_y - min_y) / bin_m) + 3.0) > capacity) {
+    bin_m *= 1.25;
+  }
+  const int nbx = static_cast<int>(std::floor((max_x - min_x) / bin_m)) + 3;
+  const int nby = static_cast<int>(std::floor((max_y - min_y) / bin_m)) + 3;
+  const double inv_bin = 1.0 / bin_m;
+  const auto bin_of = [&](const ScanPoint& p) {
+    const int bx = std::min(static_cast<int>((p.x - min_x) * inv_bin), nbx - 3) + 1;
+    const int by = std::min(static_cast<int>((p.y - min_y) * inv_bin), nby - 3) + 1;
+    return static_cast<std::size_t>(by) * static_cast<std::size_t>(nbx) + static_cast<std::size_t>(bx);
+  };
+  const std::size_t bins = static_cast<std::size_t>(nbx) * static_cast<std::size_t>(nby);
+  std::fill_n(bin_count_.begin(), bins, 0U);
+  for (const ScanPoint& p : points) {
+    if (!finite_point(p)) continue;
+    const std::size_t b = bin_of(p);
+    BinDepth& z = bin_depth_[b];
+    if (bin_count_[b] == 0) z = {p.z, p.z, p.z, p.z};
+    if (p.z < z.low) {
+      z.second_low = z.low;
+      z.low = p.z;
+    } else if (p.z < z.second_low) {
+      z.second_low = p.z;
+    }
+    if (p.z > z.high) {
+      z.second_high = z.high;
+      z.high = p.z;
+    } else if (p.z > z.second_high) {
+      z.second_high = p.z;
+    }
+    ++bin_count_[b];
+  }
+  std::fill_n(bin_informative_.begin(), bins, std::uint8_t{0});
+  for (int by = 1; by + 1 < nby; ++by) {
+    for (int bx = 1; bx + 1 < nbx; ++bx) {
+      const std::size_t b = static_cast<std::size_t>(by) * static_cast<std::size_t>(nbx) + static_cast<std::size_t>(bx);
+      if (bin_count_[b] == 0) continue;
+      int occupied_neighbours = 0;
+      float z_lo = bin_depth_[b].second_low;
+      float z_hi = bin_depth_[b].second_high;
+      for (int dy = -1; dy <= 1; ++dy) {
+        for (int dx = -1; dx <= 1; ++dx) {
+          const std::size_t n = b + static_cast<std::size_t>(static_cast<std::ptrdiff_t>(dy) * nbx + dx);
+          if ((dx == 0 && dy == 0) || bin_count_[n] == 0) continue;
+          ++occupied_neighbours;
+          z_lo = std::min(z_lo, bin_depth_[n].second_low);
+          z_hi = std::max(z_hi, bin_depth_[n].second_high);
+        }
+      }
+      // An isolated bin is more likely a stray point than an edge: it gets no extra weight.
+      const bool edge = occupied_neighbours < 8 && occupied_neighbours >= kMinEdgeNeighbours;
+      const bool relief = static_cast<double>(z_hi - z_lo) > params_.relief_m;
+      bin_informative_[b] = edge || relief ? 1 : 0;
+    }
+  }
+
+  std::size_t informative = 0;
+  for (const ScanPoint& p : points) {
+    if (finite_point(p)) informative += bin_informative_[bin_of(p)];
+  }
+  const std::size_t others = finite - informative;
+  used_ = std::min(finite, picked_.size());
+  const auto wanted = static_cast<std::size_t>(std::lround(params_.informative_fraction * static_cast<double>(used_)));
+  const std::size_t pick_informative = std::min(informative, std::max(wanted, used_ - std::min(used_, others)));
+  const std::size_t pick_others = used_ - pick_informative;
+
+  // Pick j of a class takes its point of rank floor(j * class size / picks): a fixed stride over the scan order
+  // (frames along x, rows along the stripe), so the same scan always gives the same subset.
+  struct Stride {
+    std::size_t size;   // points of the class
+    std::size_t picks;  // how many to take
+    std::size_t first;  // where its picks go in picked_
+    std::size_t rank = 0, picked = 0, next = 0;
+  };
+  Stride classes[2] = {{others, pick_others, pick_informative}, {informative, pick_informative, 0}};
+  for (const ScanPoint& p : points) {
+    if (!finite_point(p)) continue;
+    Stride& c = classes[bin_informative_[bin_of(p)]];
+    if (c.picked < c.picks && c.rank == c.next) {
+      picked_[c.first + c.picked] = Eigen::Vector3f(p.x, p.y, p.z);
+      ++c.picked;
+      c.next = static_cast<std::size_t>(static_cast<std::uint64_t>(c.picked) * c.size / c.picks);
+    }
+    ++c.rank;
+  }
+
+  // Every stride-th pick goes to the front, so the coarse level is a prefix that is itself spread like the whole.
+  std::size_t stride = 1;
+  if (params_.coarse_points > 0 && params_.coarse_iterations > 0) {
+    const auto coarse = static_cast<std::size_t>(params_.coarse_points);
+    stride = (used_ + coarse - 1) / coarse;
+  }
+  coarse_used_ = (used_ + stride - 1) / stride;
+  for (std::size_t j = 0; j < used_; ++j) {
+    const std::size_t dest = j % stride == 0 ? j / stride : coarse_used_ + j - j / stride - 1;
+    points_[dest] = picked_[j];
+  }
+}
+
+PlanarPose PerfectMatcher::centroid_start(const Eigen::Vector2d& template_centroid_m) const {
+  const Eigen::Vector2d t = scan_centroid_m_ - template_centroid_m;
+  return {t.x(), t.y(), 0.0};
+}
+
+PerfectMatchCost PerfectMatcher::cost(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
+                                      const PlanarPose& pose, std::size_t count, double fit_lc_m) const {
+  count = std::min(count, used_);
+  const double lc2 = fit_lc_m > 0.0 ? fit_lc_m * fit_lc_m : params_.lc_m * params_.lc_m;
+  const double error_lc2 = params_.lc_m * params_.lc_m;
+  const double cos_t = std::cos(pose.theta_rad);
+  const double sin_t = std::sin(pose.theta_rad);
+  const double cx = template_centroid_m.x();
+  const double cy = template_centroid_m.y();
+  const double ox = cx + pose.x_m;
+  const double oy = cy + pose.y_m;
+
+  // Each scan point goes back into the template frame, p_t = c + R(-theta)(p_scan - c - t) (inverse of eq. 2.55
+  // with DESIGN.md's centre c), where the template's map is sampled. With r = p_t - c:
+  //   dd/dt     = -R(theta) grad_t    (grad_t: the map's x/y gradient, eq. 2.60, 2.63, 2.64)
+  //   dd/dtheta = grad_t . (r_y, -r_x)   (eq. 2.65 for the inverse rotation)
+  // so the per-point weights are summed in the template frame and rotated once at the end.
+  PerfectMatchCost out;
+  double sum_gx = 0.0;
+  double sum_gy = 0.0;
+  double sum_gt = 0.0;
+  for (std::size_t i = 0; i < count; ++i) {
+    const Eigen::Vector3f& p = points_[i];
+    const double qx = static_cast<double>(p.x()) - ox;
+    const double qy = static_cast<double>(p.y()) - oy;
+    const double rx = cos_t * qx + sin_t * qy;
+    const double ry = -sin_t * qx + cos_t * qy;
+    const MapSample s = map.sample(cx + rx, cy + ry, static_cast<double>(p.z()));
+    const double d = s.distance_m;
+    const double d2 = d * d;
+    const double w = lc2 / (lc2 + d2);
+    out.cost += d2 / (lc2 + d2);  // thesis eq. 2.56: 1 - w, without the cancellation for small d
+    out.error_sum += d2 / (error_lc2 + d2);  // = 1 - Lc^2 / (Lc^2 + d^2) with the error's Lc
+    out.sum_d2_m2 += d2;
+    const double de_dd = 2.0 * d * w * w / lc2;  // 2 Lc^2 d / (Lc^2 + d^2)^2, thesis eq. 2.57
+    const double gx = de_dd * s.grad_x;
+    const double gy = de_dd * s.grad_y;
+    sum_gx += gx;
+    sum_gy += gy;
+    sum_gt += gx * ry - gy * rx;
+  }
+  out.grad[0] = -(cos_t * sum_gx - sin_t * sum_gy);
+  out.grad[1] = -(sin_t * sum_gx + cos_t * sum_gy);
+  out.grad[2] = sum_gt;
+  return out;
+}
+
+PerfectMatchResult PerfectMatcher::match(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
+                                         const PlanarPose& start) const {
+  PerfectMatchResult result;
+  result.pose = start;
+  result.points = static_cast<int>(used_);
+  const bool finite_start = std::isfinite(start.x_m) && std::isfinite(start.y_m) && std::isfinite(start.theta_rad);
+  if (used_ == 0 || params_.max_iterations == 0 || !finite_start) return result;  // error stays 1: no match
+
+  RpropState state[3] = {
+      {params_.step_initial_m, params_.step_min_m, params_.step_max_m},
+      {params_.step_initial_m, params_.step_min_m, params_.step_max_m},
+      {params_.step_initial_rad, params_.step_min_rad, params_.step_max_rad},
+  };
+  const double step_initial[3] = {params_.step_initial_m, params_.step_initial_m, params_.step_initial_rad};
+  // Level 0 (coarse prefix) only when it is a real subset and leaves at least one iteration for all points.
+  const bool coarse = coarse_used_ < used_ && params_.coarse_iterations > 0 && params_.max_iterations > 1;
+  const int coarse_budget = coarse ? std::min(params_.coarse_iterations, params_.max_iterations - 1) : 0;
+
+  double pose[3] = {start.x_m, start.y_m, start.theta_rad};
+  double best_pose[3] = {pose[0], pose[1], pose[2]};
+  double best_cost = 0.0;
+  double best_error = 0.0;
+  double best_d2 = 0.0;
+  bool have_best = false;
+  int evaluations = 0;
+  for (int level = coarse ? 0 : 1; level < 2; ++level) {
+    const bool fine = level == 1;
+    const std::size_t count = fine ? used_ : coarse_used_;
+    const int budget = fine ? params_.max_iterations - evaluations : coarse_budget;
+    // The coarse level's wide bowl (lc_m) for capture, the fine level's robust one (fit_lc_m) for the pose.
+    const double fit_lc = fine ? params_.fit_lc_m : params_.lc_m;
+    if (fine && coarse) {
+      // The cost of all points is another function: its derivatives do not continue the coarse ones.
+      for (int k = 0; k < 3; ++k) {
+        state[k].previous_grad = 0.0;
+        state[k].step = std::clamp(std::max(state[k].step, kFineRestartStepFraction * step_initial[k]),
+                                   state[k].step_min, state[k].step_max);
+      }
+    }
+    for (int i = 0; i < budget; ++i) {
+      const PerfectMatchCost c = cost(map, template_centroid_m, {pose[0], pose[1], pose[2]}, count, fit_lc);
+      ++evaluations;
+      if (fine && (!have_best || c.cost < best_cost)) {
+        have_best = true;
+        best_cost = c.cost;
+        best_error = c.error_sum;
+        best_d2 = c.sum_d2_m2;
+        std::copy(pose, pose + 3, best_pose);
+      }
+      bool settled = true;
+      for (int k = 0; k < 3; ++k) {
+        pose[k] += rprop_update(state[k], c.grad[k], params_.eta_plus, params_.eta_minus);
+        // The coarse level hands over as soon as its steps are below those the fine level restarts with.
+        const double settle = fine ? state[k].step_min : kFineRestartStepFraction * step_initial[k];
+        settled = settled && state[k].step <= settle;
+      }
+      if (settled) {
+        result.converged = fine;
+        break;
+      }
+    }
+  }
+  if (!have_best) return result;  // unreachable: the fine level always has at least one iteration
+  const auto n = static_cast<double>(used_);
+  result.pose = {best_pose[0], best_pose[1], best_pose[2]};
+  result.error = best_error / n;
+  result.rms_distance_m = std::sqrt(best_d2 / n);
+  result.iterations = evaluations;
+  return result;
+}
+
+}  // namespace cellsight::algo

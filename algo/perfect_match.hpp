@@ -1,0 +1,137 @@
+// Perfect Match (thesis 2.7.3): pose (x, y, theta) of a scan against one template's distance map by RPROP on the
+// robust cost E = sum 1 - Lc^2 / (Lc^2 + d^2) (eq. 2.56), gradient per eq. 2.57-2.66, trilinear map sampling.
+// Accuracy is bounded by the map: a binary 2.2 mm occupancy places a straight axis-parallel edge or face only to half
+// a cell, so such parts come out up to ~1 mm off; parts whose edges and relief cross the cells at many phases come
+// out to 0.5 mm / 0.1 deg (tests/test_perfect_match.cpp, tests/bench/bench_perfect_match.cpp).
+#pragma once
+
+#include <Eigen/Core>
+#include <cstddef>
+#include <cstdint>
+#include <span>
+#include <vector>
+
+#include "algo/decision.hpp"
+#include "algo/distance_map.hpp"
+#include "algo/scan.hpp"
+
+namespace cellsight::algo {
+
+struct PerfectMatchParams {
+  // Lc of thesis eq. 2.56 for `error` (what the cascade compares between templates) and for the coarse level's fit,
+  // whose wide bowl catches offsets of several centimetres.
+  double lc_m = 0.4;
+  // Lc of the pose fit at the fine level (of the only level without coarse-to-fine); <= 0: lc_m. With Lc = 0.4 m the
+  // cost is least squares for every d that occurs, so anything that does not move with the part pulls the pose:
+  // carrier straps left in the scan, mixed pixels at edges. Measured on reconstructed passes of the simulated cell
+  // (tests/bench/bench_perfect_match.cpp --reconstructed): worst errors 6.1 / 1.6 / 0.4 mm with Lc = 0.4 m,
+  // 0.4 / 0.2 / 0.4 mm with Lc = 10 mm (ribbed_v3 / plate_4h / bracket_l).
+  double fit_lc_m = 0.01;
+  double eta_plus = 1.2, eta_minus = 0.5;  // RPROP step growth / shrink (thesis eq. 2.67, 2.68)
+  // Steps per parameter. A match has converged when every step has shrunk to its minimum: 10 um (and 1e-5 rad, 5 um
+  // at 0.5 m from the centre) is far below what the 2.2 mm map resolves, and 1e-6 only costs ~25 % more iterations
+  // for the same pose (tests/bench/bench_perfect_match.cpp).
+  double step_initial_m = 0.002, step_min_m = 1e-5, step_max_m = 0.01;        // x, y
+  double step_initial_rad = 0.002, step_min_rad = 1e-5, step_max_rad = 0.01;  // theta
+  int max_iterations = 100;  // cap per match (all levels together when coarse-to-fine)
+  int max_points = 1000;     // the scan is down-sampled to at most this many points (deterministic, no RNG)
+  // Down-sampling (set_scan): the scan's x-y footprint is binned; points in bins at an outline or hole edge (an
+  // empty neighbour bin) or on relief (z spans more than relief_m over the 3 x 3 bins, each bin's lowest and highest
+  // point left out so that a lone stray point does not make relief of a flat sheet: ribs, flanges, louvres) are
+  // "informative": they are what fixes x, y and theta, whereas a point inside a flat sheet has d = 0 for any small
+  // in-plane shift. informative_fraction of max_points is spread evenly over those, the rest evenly over the others
+  // (they keep the capture range for large offsets and the error meaningful for the cascade). Measured on six
+  // catalogue parts, 1000 points: an even spread of all points leaves 1-2 % of them near an edge and gives
+  // 0.8-7.7 mm / 0.15-0.74 deg worst errors; this selection 0.16-0.5 mm / 0.015-0.07 deg, the same as using all
+  // ~120 000 points.
+  double informative_fraction = 0.75;
+  double feature_bin_m = 0.0044;  // two frame pitches of 2.2 mm, so no bin of a surface stays empty between frames
+  double relief_m = 0.003;
+  int max_feature_bins = 1 << 18;  // scratch; a larger footprint gets coarser bins
+  // Coarse-to-fine: at most coarse_iterations iterations on an evenly spread subset of at most coarse_points of the
+  // points (a prefix of points()), handing over once its steps have shrunk to 1/8 of the initial ones, then all of
+  // them until max_iterations in total. coarse_points <= 0 or coarse_iterations <= 0: one level. Measured: same pose
+  // as one level, 35-40 % less time per match (a 250-point iteration costs a quarter of a 1000-point one).
+  int coarse_points = 250;
+  int coarse_iterations = 70;
+};
+
+struct PerfectMatchResult {
+  PlanarPose pose{};            // DESIGN.md "Pose": p_scan = c + R(theta)(p_template - c) + (x, y, 0)
+  // E / points: mean robust cost per used point, in [0, 1); 1 when there is nothing to match (no points, start not
+  // finite). The used points over-represent edges and relief (informative_fraction), which is where two parts differ.
+  double error = 1.0;
+  double rms_distance_m = 0.0;  // of the used points at the final pose (diagnostics, thresholds)
+  int iterations = 0;           // cost evaluations (= RPROP iterations) run
+  int points = 0;               // scan points used (at the finest level)
+  bool converged = false;       // steps fell under their minimum before the iteration cap
+};
+
+// Cost of one pose and its gradient (thesis eq. 2.56, 2.57-2.66); what match() minimises, public for tests.
+struct PerfectMatchCost {
+  double cost = 0.0;                 // E = sum over points of 1 - Lc^2 / (Lc^2 + d^2), with the fit's Lc
+  double grad[3] = {0.0, 0.0, 0.0};  // of cost: dE/dx [1/m], dE/dy [1/m], dE/dtheta [1/rad]
+  double error_sum = 0.0;            // E with lc_m (PerfectMatchResult::error times points)
+  double sum_d2_m2 = 0.0;            // sum of d^2 (for the rms distance)
+};
+
+// x-y mean of the finite points; (0, 0) when there is none. set_scan() uses it for centroid_start(). A template's c
+// may be defined otherwise (app/template_file: mean of the occupied cell centres): match() works with whatever c it
+// is given, the start is then off by the difference, which RPROP removes like any other offset.
+[[nodiscard]] Eigen::Vector2d centroid_xy_m(std::span<const ScanPoint> points);
+
+// Holds the down-sampled scan; sized once, set_scan() and match() never allocate. Not thread-safe.
+class PerfectMatcher {
+ public:
+  PerfectMatcher() : PerfectMatcher(PerfectMatchParams{}) {}
+  explicit PerfectMatcher(const PerfectMatchParams& params);  // start-up: allocates for params.max_points
+
+  // Takes a deterministic subset of the scan's finite points (carrier already removed; see informative_fraction) and
+  // computes the x-y centroid of all its finite points. Call once per scan, then match() against as many templates as
+  // needed. Four passes over the scan (~1.5 ms for 120 000 points).
+  void set_scan(std::span<const ScanPoint> points);
+  [[nodiscard]] Eigen::Vector2d scan_centroid_m() const { return scan_centroid_m_; }
+  // The used points; the first coarse_count() of them are the coarse level's subset, spread like the whole.
+  [[nodiscard]] std::span<const Eigen::Vector3f> points() const { return {points_.data(), used_}; }
+  [[nodiscard]] std::size_t coarse_count() const { return coarse_used_; }
+
+  // RPROP (iRprop-, thesis eq. 2.67-2.70) from `start` (typically centroid_start()) against one template;
+  // `template_centroid_m` is c of the pose. Returns the pose with the lowest cost seen at the finest level. At most
+  // max_iterations cost evaluations of at most max_points samples each.
+  [[nodiscard]] PerfectMatchResult match(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
+                                         const PlanarPose& start) const;
+
+  // Cost and gradient of the first `count` used points at `pose` (count is clamped to the used points), fitted with
+  // `fit_lc_m` (<= 0: lc_m); error_sum always with lc_m. Default: the fine level's Lc.
+  [[nodiscard]] PerfectMatchCost cost(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
+                                      const PlanarPose& pose, std::size_t count, double fit_lc_m) const;
+  [[nodiscard]] PerfectMatchCost cost(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
+                                      const PlanarPose& pose, std::size_t count) const {
+    return cost(map, template_centroid_m, pose, count, params_.fit_lc_m);
+  }
+
+  // Start by centroid alignment: x, y = scan centroid - template centroid, theta 0.
+  [[nodiscard]] PlanarPose centroid_start(const Eigen::Vector2d& template_centroid_m) const;
+
+  [[nodiscard]] const PerfectMatchParams& params() const { return params_; }
+
+ private:
+  PerfectMatchParams params_{};
+  // set_scan() scratch, sized at construction.
+  std::vector<Eigen::Vector3f> picked_;
+  std::vector<std::uint32_t> bin_count_;
+  // z extremes of a bin's points; the second lowest / highest (the extreme itself when the bin has one point) give a
+  // depth range that one stray point does not widen.
+  struct BinDepth {
+    float low, second_low, second_high, high;
+  };
+  std::vector<BinDepth> bin_depth_;
+  std::vector<std::uint8_t> bin_informative_;
+
+  std::vector<Eigen::Vector3f> points_;
+  std::size_t used_ = 0;
+  std::size_t coarse_used_ = 0;
+  Eigen::Vector2d scan_centroid_m_ = Eigen::Vector2d::Zero();
+};
+
+}  // namespace cellsight::algo

@@ -1,0 +1,396 @@
+// `cellsight classify` (one decision per scan) and `cellsight eval` (labelled scans -> accuracy, confusion, pose).
+#include "app/classify_mode.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <numbers>
+#include <optional>
+#include <Eigen/Geometry>
+#include <sstream>
+
+#include "algo/ply.hpp"
+#include "app/atomic_file.hpp"
+#include "app/calibration_file.hpp"
+#include "app/cli.hpp"
+#include "app/mode_args.hpp"
+#include "app/model_db.hpp"
+#include "app/recognition.hpp"
+#include "app/scan_mode.hpp"
+#include "drivers/sim/sim_cell.hpp"
+#include "app/sim_mode.hpp"
+#include "app/template_file.hpp"
+
+namespace cellsight::app {
+namespace {
+
+namespace fs = std::filesystem;
+using Clock = std::chrono::steady_clock;
+constexpr double kRadToDeg = 180.0 / std::numbers::pi;
+
+int fail(int code, const std::string& message) {
+  std::fprintf(stderr, "cellsight: %s\n", message.c_str());
+  return code;
+}
+
+std::string json_string(const std::string& s) {
+  std::string out = "\"";
+  for (const char c : s) {
+    if (c == '"' || c == '\\') {
+      out += '\\';
+      out += c;
+    } else if (static_cast<unsigned char>(c) < 0x20) {
+      char buf[8];
+      std::snprintf(buf, sizeof buf, "\\u%04x", c);
+      out += buf;
+    } else {
+      out += c;
+    }
+  }
+  return out + "\"";
+}
+
+std::string json_number(double v) {
+  if (!std::isfinite(v)) return "null";
+  char buf[40];
+  std::snprintf(buf, sizeof buf, "%.6g", v);
+  return buf;
+}
+
+std::string decision_json(const std::string& scan, const algo::Decision& d, std::string_view class_name) {
+  std::ostringstream o;
+  o << "{\"scan\": " << json_string(scan) << ", \"class\": "
+    << (d.class_index >= 0 ? json_string(std::string(class_name)) : "null") << ", \"id\": " << d.part_id
+    << ", \"status\": \"" << algo::to_string(d.source) << "\", \"probability\": " << json_number(d.probability)
+    << ", \"pm_error\": " << json_number(d.pm_error) << ", \"pose\": ";
+  if (d.pose_valid) {
+    o << "{\"x\": " << json_number(d.pose.x_m) << ", \"y\": " << json_number(d.pose.y_m)
+      << ", \"theta_deg\": " << json_number(d.pose.theta_rad * kRadToDeg) << "}";
+  } else {
+    o << "null";
+  }
+  o << ", \"ms\": " << json_number(d.total_ms) << "}";
+  return o.str();
+}
+
+struct Options {
+  RecogniserMode mode = RecogniserMode::kCascade;
+  std::string calibration_path;
+};
+
+Expected<Options> common_options(const ModeArgs& args, const Config& config) {
+  Options o;
+  if (args.has("--svm-only") && args.has("--pm-only")) return make_error("--svm-only and --pm-only exclude each other");
+  if (args.has("--svm-only")) o.mode = RecogniserMode::kSvmOnly;
+  if (args.has("--pm-only")) o.mode = RecogniserMode::kPmOnly;
+  const std::string* c = args.value("--calibration");
+  o.calibration_path = c != nullptr ? *c : default_calibration_path(config);
+  return o;
+}
+
+struct LabelledScan {
+  std::string path;
+  std::string truth_class;  // folder name
+  bool has_pose = false;
+  algo::PlanarPose pose{};
+  std::vector<algo::ScanPoint> points;  // filled for generated scans only
+};
+
+// DIR/truth.csv: file,x_m,y_m,theta_deg (file relative to DIR); '#' comments and a header line allowed.
+Expected<std::map<std::string, algo::PlanarPose>> read_truth(const std::string& dir) {
+  std::map<std::string, algo::PlanarPose> truth;
+  const std::string path = dir + "/truth.csv";
+  if (!fs::exists(path)) return truth;
+  std::ifstream in(path);
+  std::string line;
+  int number = 0;
+  while (std::getline(in, line)) {
+    ++number;
+    if (line.empty() || line[0] == '#' || line.rfind("file,", 0) == 0) continue;
+    std::istringstream fields(line);
+    std::string file, xs, ys, ts;
+    if (!std::getline(fields, file, ',') || !std::getline(fields, xs, ',') || !std::getline(fields, ys, ',') ||
+        !std::getline(fields, ts, ',')) {
+      return make_error(path + ":" + std::to_string(number) + ": expected file,x_m,y_m,theta_deg");
+    }
+    char* e1 = nullptr;
+    char* e2 = nullptr;
+    char* e3 = nullptr;
+    const double x = std::strtod(xs.c_str(), &e1);
+    const double y = std::strtod(ys.c_str(), &e2);
+    const double t = std::strtod(ts.c_str(), &e3);
+    if (*e1 != '\0' || *e2 != '\0' || (*e3 != '\0' && *e3 != '\r') || !std::isfinite(x + y + t)) {
+      return make_error(path + ":" + std::to_string(number) + ": numbers expected in '" + line + "'");
+    }
+    truth[file] = {x, y, t / kRadToDeg};
+  }
+  return truth;
+}
+
+struct EvalTotals {
+  std::vector<std::string> names;  // truth classes seen (taught or not) + "unknown"
+  std::map<std::string, std::map<std::string, int>> confusion;
+  int scans = 0, correct = 0, wrong = 0, unknown = 0, untaught = 0, untaught_unknown = 0;
+  std::vector<double> pose_mm, pose_deg, ms;
+  std::map<std::string, int> sources;
+};
+
+double percentile(std::vector<double> v, double p) {
+  if (v.empty()) return std::nan("");
+  std::sort(v.begin(), v.end());
+  const std::size_t i = std::min(v.size() - 1, static_cast<std::size_t>(std::ceil(p * v.size())) - (p > 0 ? 1 : 0));
+  return v[i];
+}
+
+void print_stats(const char* name, const std::vector<double>& v, const char* unit) {
+  if (v.empty()) return;
+  double sum = 0;
+  for (double x : v) sum += x;
+  std::printf("  %-12s mean %.3f  p95 %.3f  max %.3f %s  (%zu)\n", name, sum / v.size(), percentile(v, 0.95),
+              *std::max_element(v.begin(), v.end()), unit, v.size());
+}
+
+// The simulated pose of a pass -> the pose relative to the part's template (DESIGN.md "Pose"). Both passes place
+// the part as p = c0 + R(theta) p_part + t (drivers/sim/sim_cell.cpp), so
+// p_scan = c0 + t_s + R(theta_s - theta_t)(p_tmpl - c0 - t_t); written as c + R(theta)(p_tmpl - c) + d with the
+// template centroid c this gives theta = theta_s - theta_t and d = (c0 + t_s) - c - R(theta)(c0 + t_t - c).
+// (The swing about the hook is outside the x, y, theta pose and is left out.)
+algo::PlanarPose relative_pose(const sim::PartPose& scan, const sim::PartPose& tmpl, const Eigen::Vector2d& c0,
+                               const Eigen::Vector2d& c) {
+  const double theta = scan.theta_rad - tmpl.theta_rad;
+  const Eigen::Rotation2Dd r(theta);
+  const Eigen::Vector2d d = (c0 + Eigen::Vector2d(scan.x_m, scan.y_m)) - c -
+                            (r * (c0 + Eigen::Vector2d(tmpl.x_m, tmpl.y_m) - c));
+  return {d.x(), d.y(), theta};
+}
+
+// eval --sim: K simulated passes of each listed part (seeds S..S+K-1) written as DIR/<part>/sSEED.ply with
+// DIR/truth.csv; passes of taught parts get their pose relative to the template (whose seed the manifest records).
+Status generate_sim_scans(const Config& config, const ModelDb& db, const std::vector<std::string>& parts, int count,
+                          std::uint64_t first_seed, const std::string& calibration_path, const std::string& dir) {
+  auto cell = make_sim_cell(config);
+  if (!cell) return cell.error();
+  std::error_code ec;
+  fs::create_directories(dir, ec);
+  if (ec) return make_error(dir + ": cannot create: " + ec.message());
+  std::string truth = "file,x_m,y_m,theta_deg\n";
+  for (const std::string& part : parts) {
+    const sim::PartSpec* spec = cell->find_part(part);
+    if (spec == nullptr) return make_error("eval --sim: no part '" + part + "' in the simulated catalogue");
+    std::optional<sim::PartPose> template_pose;
+    Eigen::Vector2d centroid = Eigen::Vector2d::Zero();
+    if (const PartEntry* taught = db.find(part); taught != nullptr && !taught->scans.empty()) {
+      const std::string& source = taught->scans.front().source;
+      std::int64_t seed = 0;
+      auto info = read_template_info(db.path_of(taught->template_file));
+      if (source.rfind("sim seed ", 0) == 0 && parse_whole(source.substr(9), 0, INT64_MAX, seed) && info) {
+        template_pose = cell->random_pass(part, static_cast<std::uint64_t>(seed))->pose;
+        centroid = info->centroid_m;
+      }
+    }
+    const Eigen::Vector3d c0 = cell->nominal_centre(*spec);
+    fs::create_directories(fs::path(dir) / part, ec);
+    for (int k = 0; k < count; ++k) {
+      const std::uint64_t seed = first_seed + static_cast<std::uint64_t>(k);
+      ScanOptions options;
+      options.sim = true;
+      options.part = part;
+      options.seed = seed;
+      options.calibration_path = calibration_path;
+      ScanSummary summary;
+      auto points = acquire_scan(config, options, summary);
+      if (!points) return make_error(part + " seed " + std::to_string(seed) + ": " + points.error().message);
+      const std::string rel = part + "/s" + std::to_string(seed) + ".ply";
+      if (auto ok = write_file_atomic(dir + "/" + rel, algo::write_ply_binary(*points)); !ok) return ok;
+      if (template_pose) {
+        const algo::PlanarPose p = relative_pose(cell->random_pass(part, seed)->pose, *template_pose, c0.head<2>(), centroid);
+        char line[256];
+        std::snprintf(line, sizeof line, "%s,%.9f,%.9f,%.9f\n", rel.c_str(), p.x_m, p.y_m, p.theta_rad * kRadToDeg);
+        truth += line;
+      }
+      std::printf("\r  generated %s %d / %d   ", part.c_str(), k + 1, count);
+      std::fflush(stdout);
+    }
+  }
+  std::printf("\n");
+  return write_file_atomic(dir + "/truth.csv", truth);
+}
+
+}  // namespace
+
+int run_classify(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
+  ModeArgs args;
+  std::string error;
+  if (!parse_mode_args(words, {"--calibration"}, {"--json", "--svm-only", "--pm-only"}, args, error)) {
+    return fail(kExitUsage, "classify: " + error);
+  }
+  if (args.positional.empty()) return fail(kExitUsage, "classify needs scan files: classify [--json] SCAN.ply ...");
+  auto options = common_options(args, config);
+  if (!options) return fail(kExitUsage, "classify: " + options.error().message);
+  auto recogniser = make_recogniser(config, models_dir, options->calibration_path, options->mode);
+  if (!recogniser) return fail(kExitUsage, recogniser.error().message);
+  int failures = 0;
+  for (const std::string& path : args.positional) {
+    auto bytes = read_whole_file(path);
+    Expected<std::vector<algo::ScanPoint>> points = bytes ? algo::parse_ply(*bytes) : Expected<std::vector<algo::ScanPoint>>(bytes.error());
+    if (!points) {
+      std::fprintf(stderr, "cellsight: %s: %s\n", path.c_str(), points.error().message.c_str());
+      ++failures;
+      continue;
+    }
+    const auto deadline = Clock::now() + std::chrono::milliseconds(config.runtime.deadline_ms);
+    const algo::Decision d = (*recogniser)->recognise(*points, deadline);
+    const std::string_view name = (*recogniser)->class_name(d.class_index);
+    if (args.has("--json")) {
+      std::printf("%s\n", decision_json(path, d, name).c_str());
+    } else {
+      std::printf("%s: %s (%s, p %.3f, PM error %.3g", path.c_str(),
+                  d.class_index >= 0 ? std::string(name).c_str() : "unknown", std::string(algo::to_string(d.source)).c_str(),
+                  d.probability, d.pm_error);
+      if (d.pose_valid) {
+        std::printf(", pose x %.2f mm y %.2f mm theta %.3f deg", d.pose.x_m * 1e3, d.pose.y_m * 1e3,
+                    d.pose.theta_rad * kRadToDeg);
+      }
+      std::printf(", %.1f ms)\n", d.total_ms);
+    }
+  }
+  return failures == 0 ? kExitOk : kExitUsage;
+}
+
+int run_eval(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
+  ModeArgs args;
+  std::string error;
+  if (!parse_mode_args(words, {"--scans", "--calibration", "--count", "--seed", "--parts"},
+                       {"--json", "--svm-only", "--pm-only", "--sim"}, args, error) ||
+      !args.positional.empty()) {
+    return fail(kExitUsage, "eval: " + (error.empty() ? "unexpected argument '" + args.positional.front() + "'" : error));
+  }
+  const std::string* dir = args.value("--scans");
+  if (dir == nullptr) return fail(kExitUsage, "eval needs --scans DIR (DIR/<part>/*.ply, optional DIR/truth.csv)");
+  auto options = common_options(args, config);
+  if (!options) return fail(kExitUsage, "eval: " + options.error().message);
+  if (args.has("--sim")) {
+    // Generate the labelled set first (it stays in DIR: the same scans can be run again, or elsewhere, as PLY).
+    std::int64_t count = 0, seed = 100001;
+    const std::string* c = args.value("--count");
+    if (c == nullptr || !parse_whole(*c, 1, 100000, count)) return fail(kExitUsage, "eval --sim needs --count K");
+    if (const std::string* s = args.value("--seed"); s != nullptr && !parse_whole(*s, 0, INT64_MAX, seed)) {
+      return fail(kExitUsage, "eval: --seed '" + *s + "': expected a whole number");
+    }
+    auto db = ModelDb::open(models_dir, grid_spec(config), false);
+    if (!db) return fail(kExitUsage, db.error().message);
+    std::vector<std::string> parts;
+    if (const std::string* list = args.value("--parts")) {
+      std::stringstream in(*list);
+      for (std::string p; std::getline(in, p, ',');) {
+        if (!p.empty()) parts.push_back(p);
+      }
+    } else {
+      for (const PartEntry& p : db->manifest().parts) parts.push_back(p.name);
+    }
+    if (fs::exists(*dir) && !fs::is_empty(*dir)) return fail(kExitUsage, "eval --sim: " + *dir + " is not empty");
+    if (auto ok = generate_sim_scans(config, *db, parts, static_cast<int>(count), static_cast<std::uint64_t>(seed),
+                                     options->calibration_path, *dir);
+        !ok) {
+      return fail(kExitFailure, "eval --sim: " + ok.error().message);
+    }
+  }
+  std::error_code ec;
+  if (!fs::is_directory(*dir, ec)) return fail(kExitUsage, "eval: " + *dir + " is not a folder");
+  auto truth = read_truth(*dir);
+  if (!truth) return fail(kExitUsage, "eval: " + truth.error().message);
+  std::vector<LabelledScan> scans;
+  for (const auto& entry : fs::directory_iterator(*dir)) {
+    if (!entry.is_directory()) continue;
+    for (const auto& f : fs::directory_iterator(entry.path())) {
+      if (f.path().extension() != ".ply") continue;
+      LabelledScan s;
+      s.path = f.path().string();
+      s.truth_class = entry.path().filename().string();
+      const std::string rel = s.truth_class + "/" + f.path().filename().string();
+      if (const auto t = truth->find(rel); t != truth->end()) {
+        s.has_pose = true;
+        s.pose = t->second;
+      }
+      scans.push_back(std::move(s));
+    }
+  }
+  std::sort(scans.begin(), scans.end(), [](const auto& a, const auto& b) { return a.path < b.path; });
+  if (scans.empty()) return fail(kExitUsage, "eval: no DIR/<part>/*.ply under " + *dir);
+  auto recogniser = make_recogniser(config, models_dir, options->calibration_path, options->mode);
+  if (!recogniser) return fail(kExitUsage, recogniser.error().message);
+  auto db = ModelDb::open(models_dir, grid_spec(config), false);
+  if (!db) return fail(kExitUsage, db.error().message);
+
+  EvalTotals t;
+  for (const LabelledScan& s : scans) {
+    auto bytes = read_whole_file(s.path);
+    if (!bytes) return fail(kExitUsage, bytes.error().message);
+    auto points = algo::parse_ply(*bytes);
+    if (!points) return fail(kExitUsage, s.path + ": " + points.error().message);
+    const auto deadline = Clock::now() + std::chrono::milliseconds(config.runtime.deadline_ms);
+    const algo::Decision d = (*recogniser)->recognise(*points, deadline);
+    const std::string decided = d.class_index >= 0 ? std::string((*recogniser)->class_name(d.class_index)) : "unknown";
+    const bool taught = db->find(s.truth_class) != nullptr;
+    ++t.scans;
+    ++t.confusion[s.truth_class][decided];
+    ++t.sources[std::string(algo::to_string(d.source))];
+    t.ms.push_back(d.total_ms);
+    if (!taught) {
+      ++t.untaught;
+      if (d.class_index < 0) ++t.untaught_unknown;
+      else ++t.wrong;
+    } else if (decided == s.truth_class) {
+      ++t.correct;
+      if (s.has_pose && d.pose_valid) {
+        t.pose_mm.push_back(std::hypot(d.pose.x_m - s.pose.x_m, d.pose.y_m - s.pose.y_m) * 1e3);
+        t.pose_deg.push_back(std::abs(d.pose.theta_rad - s.pose.theta_rad) * kRadToDeg);
+      }
+    } else if (d.class_index < 0) {
+      ++t.unknown;
+    } else {
+      ++t.wrong;
+    }
+    if (args.has("--json")) std::printf("%s\n", decision_json(s.path, d, decided).c_str());
+  }
+  const int taught_scans = t.scans - t.untaught;
+  std::printf("eval of %d scans in %s (%d of taught parts, %d of parts not taught)\n", t.scans, dir->c_str(),
+              taught_scans, t.untaught);
+  if (taught_scans > 0) {
+    std::printf("  accuracy     %.2f %% (%d correct, %d unknown, %d wrong)\n", 100.0 * t.correct / taught_scans,
+                t.correct, t.unknown, t.wrong - (t.untaught - t.untaught_unknown));
+  }
+  if (t.untaught > 0) {
+    std::printf("  not taught   %d of %d came out unknown\n", t.untaught_unknown, t.untaught);
+  }
+  std::printf("  wrong ids    %d\n", t.wrong);
+  std::printf("  sources     ");
+  for (const auto& [k, v] : t.sources) std::printf(" %s %d", k.c_str(), v);
+  std::printf("\n");
+  print_stats("pose xy", t.pose_mm, "mm");
+  print_stats("pose theta", t.pose_deg, "deg");
+  print_stats("time", t.ms, "ms");
+  std::printf("confusion (rows: truth, columns: decision)\n");
+  std::vector<std::string> columns;
+  for (const PartEntry& p : db->manifest().parts) columns.push_back(p.name);
+  columns.push_back("unknown");
+  std::printf("  %-20s", "");
+  for (std::size_t c = 0; c < columns.size(); ++c) std::printf(" %4zu", c);
+  std::printf("\n");
+  for (const auto& [truth_class, row] : t.confusion) {
+    std::printf("  %-20s", truth_class.c_str());
+    for (const std::string& c : columns) {
+      const auto it = row.find(c);
+      std::printf(" %4d", it == row.end() ? 0 : it->second);
+    }
+    std::printf("\n");
+  }
+  for (std::size_t c = 0; c < columns.size(); ++c) std::printf("  column %zu = %s\n", c, columns[c].c_str());
+  return kExitOk;
+}
+
+}  // namespace cellsight::app

@@ -1,0 +1,103 @@
+// The model database (DESIGN.md "Model database"): manifest.yaml, the taught scans, one template per part, the SVM.
+// Every write is atomic; every file is checked (checksum, version, grid) before use and refused when it fails.
+#pragma once
+
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "algo/grid.hpp"
+#include "algo/result.hpp"
+
+namespace cellsight::app {
+
+inline constexpr int kManifestFormatVersion = 1;
+
+// Acceptance limits of one template, learnt by `cellsight train` from the part's own scans (algo/cascade).
+struct PartThresholds {
+  bool learnt = false;
+  double max_error = 0.0;            // per-point Perfect Match cost
+  double max_missing_area_m2 = 0.0;  // largest template region absent from a scan
+  double max_extra_area_m2 = 0.0;    // largest scan region where the template has nothing
+};
+
+struct ScanEntry {
+  std::string file;  // relative to the database folder
+  std::uint32_t crc32 = 0;
+  std::string source;  // where it came from: "sim seed 12", or the imported file's path
+};
+
+struct PartEntry {
+  std::string name;
+  int id = 0;                 // PLC id (robot program), 1..65535, unique
+  std::string template_file;  // relative; the .dmap checks itself (header + body checksums)
+  std::string taught_at;      // local time
+  std::vector<ScanEntry> scans;
+  PartThresholds thresholds;
+};
+
+struct SvmEntry {
+  bool present = false;
+  std::string file;  // relative
+  std::uint32_t crc32 = 0;
+  std::string trained_at;
+  std::string parts_fingerprint;  // of the parts and scans it was trained on: differs -> stale
+  double test_accuracy = 0.0, cv_accuracy = 0.0;
+  int train_scans = 0, test_scans = 0, active_features = 0;
+  std::string hyper;  // readable C / gamma / degree
+};
+
+struct Manifest {
+  int format_version = kManifestFormatVersion;
+  std::uint32_t feature_version = 0;  // algo::kFeatureVersion at the last training
+  algo::GridSpec grid{};
+  std::vector<PartEntry> parts;
+  SvmEntry svm;
+};
+
+// crc32 (zlib) of bytes, for the database's files.
+[[nodiscard]] std::uint32_t crc32_of(std::string_view bytes);
+
+// Reads a whole file; a clear error naming it otherwise.
+[[nodiscard]] Expected<std::string> read_whole_file(const std::string& path);
+
+class ModelDb {
+ public:
+  // Opens the database at `dir`. A missing manifest gives an empty database when `create` is set (nothing is
+  // written until save()), an error saying what to run otherwise. A manifest for another grid is refused.
+  [[nodiscard]] static Expected<ModelDb> open(const std::string& dir, const algo::GridSpec& grid, bool create);
+
+  [[nodiscard]] const std::string& dir() const { return dir_; }
+  [[nodiscard]] const Manifest& manifest() const { return manifest_; }
+  [[nodiscard]] Manifest& manifest() { return manifest_; }
+  [[nodiscard]] std::string path_of(const std::string& relative) const { return dir_ + "/" + relative; }
+  [[nodiscard]] std::string manifest_path() const { return dir_ + "/manifest.yaml"; }
+
+  [[nodiscard]] const PartEntry* find(std::string_view name) const;
+  [[nodiscard]] PartEntry* find(std::string_view name);
+
+  // Identity of the taught parts and scans (names, ids, scan checksums): what a trained SVM depends on.
+  [[nodiscard]] std::string parts_fingerprint() const;
+  // Empty when the SVM matches the parts; otherwise why it is stale and what to run.
+  [[nodiscard]] std::string svm_stale_reason() const;
+
+  // Writes manifest.yaml atomically (checksum on its last line).
+  [[nodiscard]] Status save() const;
+
+  // Removes a part: its manifest entry first (saved), then its files. The SVM becomes stale.
+  [[nodiscard]] Status delete_part(std::string_view name);
+
+ private:
+  std::string dir_;
+  Manifest manifest_;
+};
+
+// Part names become file names: letters, digits, '_' and '-' only, 1..64 characters.
+[[nodiscard]] bool valid_part_name(std::string_view name);
+
+// Local time "YYYY-MM-DD HH:MM:SS".
+[[nodiscard]] std::string local_time_text();
+
+}  // namespace cellsight::app

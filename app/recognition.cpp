@@ -1,0 +1,256 @@
+// The production recogniser (see recognition.hpp).
+#include "app/recognition.hpp"
+
+#include <filesystem>
+
+#include "algo/support.hpp"
+#include "app/calibration_file.hpp"
+#include "app/scan_mode.hpp"
+#include "drivers/log.hpp"
+
+namespace cellsight::app {
+
+algo::GridSpec grid_spec(const Config& config) {
+  algo::GridSpec spec;
+  spec.origin_m = config.grid.origin_m;
+  spec.nx = config.grid.nx;
+  spec.ny = config.grid.ny;
+  spec.nz = config.grid.nz;
+  spec.resolution_m = config.grid.resolution_m;
+  return spec;
+}
+
+std::string_view to_string(PrepareStatus status) {
+  switch (status) {
+    case PrepareStatus::kOk:
+      return "ok";
+    case PrepareStatus::kEmpty:
+      return "the scan has no point";
+    case PrepareStatus::kNoPart:
+      return "nothing in front of the carrier";
+    case PrepareStatus::kOutsideGrid:
+      return "the part does not fit the grid";
+    case PrepareStatus::kTooFewPoints:
+      return "too few points for a part";
+  }
+  return "invalid";
+}
+
+std::string PrepareReport::describe() const {
+  return std::to_string(raw_points) + " points, " + std::to_string(support_points) + " on the carrier, " +
+         std::to_string(outside_points) + " of the part outside the grid, " + std::to_string(part_points) +
+         " on the part";
+}
+
+ScanPreparer::ScanPreparer(const Config& config, const algo::Plane& support, std::size_t max_points)
+    : support_(support),
+      support_threshold_m_(config.support.distance_threshold_mm * 1e-3),
+      part_(max_points),
+      grid_(grid_spec(config), max_points) {
+  const algo::GridSpec spec = grid_spec(config);
+  extractor_ = algo::FeatureExtractor(spec.ny, spec.nx, algo::feature_params_for(spec));
+  depth_.create(spec.ny, spec.nx, CV_8UC1);
+}
+
+PrepareReport ScanPreparer::prepare(std::span<const algo::ScanPoint> raw) {
+  PrepareReport r;
+  r.raw_points = raw.size();
+  part_.clear();
+  grid_.clear();
+  if (raw.empty()) return r;
+  for (const algo::ScanPoint& p : raw) (void)part_.push(p);  // a scan beyond capacity keeps what fits
+  r.support_points = algo::remove_support(part_, support_, support_threshold_m_);
+  r.part_points = part_.size();
+  if (part_.size() == 0) {
+    r.status = PrepareStatus::kNoPart;
+    return r;
+  }
+  r.outside_points = grid_.accumulate(part_.points());
+  if (static_cast<double>(r.outside_points) > kMaxOutsideFraction * static_cast<double>(part_.size())) {
+    r.status = PrepareStatus::kOutsideGrid;
+    return r;
+  }
+  if (part_.size() - r.outside_points < kMinPartPoints) {
+    r.status = PrepareStatus::kTooFewPoints;
+    return r;
+  }
+  grid_.depth_image(depth_);
+  if (extractor_.compute(depth_, features_) != algo::FeatureStatus::kOk) {
+    r.status = PrepareStatus::kNoPart;
+    return r;
+  }
+  r.status = PrepareStatus::kOk;
+  return r;
+}
+
+algo::PerfectMatchParams perfect_match_params(const Config& config) {
+  algo::PerfectMatchParams p;
+  p.lc_m = config.pm.lc_m;
+  p.eta_plus = config.pm.eta_plus;
+  p.eta_minus = config.pm.eta_minus;
+  p.step_min_m = config.pm.step_min_m;
+  p.step_max_m = config.pm.step_max_m;
+  p.step_initial_m = config.pm.step_initial_m;
+  p.max_iterations = config.pm.max_iterations;
+  return p;
+}
+
+algo::CascadeParams cascade_params(const Config& config) {
+  algo::CascadeParams p;
+  p.accept_p1 = config.cascade.accept_p1;
+  p.accept_p2_max = config.cascade.accept_p2_max;
+  p.pm_candidates = config.cascade.pm_candidates;
+  return p;
+}
+
+LoadedTemplates open_templates(const Config& config, const ModelDb& db) {
+  LoadedTemplates out;
+  const algo::GridSpec grid = grid_spec(config);
+  const Manifest& m = db.manifest();
+  out.files.reserve(m.parts.size());  // the models borrow from the files: no reallocation after the first
+  for (std::size_t c = 0; c < m.parts.size(); ++c) {
+    const PartEntry& p = m.parts[c];
+    algo::TemplateModel model;
+    model.class_index = static_cast<int>(c);
+    model.part_id = p.id;
+    model.thresholds = {p.thresholds.max_error, p.thresholds.max_missing_area_m2, p.thresholds.max_extra_area_m2};
+    auto file = TemplateFile::open(db.path_of(p.template_file), grid);
+    if (!file) {
+      out.problems.push_back("part '" + p.name + "' disabled: " + file.error().message);
+      out.files.emplace_back(std::nullopt);
+    } else {
+      out.files.emplace_back(std::move(*file));
+      const TemplateFile& t = *out.files.back();
+      model.map = t.view();
+      model.centroid_m = t.centroid_m();
+      model.surface_points = t.surface_points();
+    }
+    out.models.push_back(model);
+  }
+  return out;
+}
+
+Expected<LoadedModels> load_models(const Config& config, const ModelDb& db) {
+  const Manifest& m = db.manifest();
+  if (const std::string stale = db.svm_stale_reason(); !stale.empty()) {
+    return make_error("model database " + db.dir() + ": " + stale);
+  }
+  LoadedModels out;
+  const std::string svm_path = db.path_of(m.svm.file);
+  auto blob = read_whole_file(svm_path);
+  if (!blob) return blob.error();
+  if (crc32_of(*blob) != m.svm.crc32) {
+    return make_error(svm_path + ": checksum differs from the manifest: the model was changed or damaged; run "
+                                 "'cellsight train' again");
+  }
+  auto svm = algo::SvmModel::deserialize(*blob);
+  if (!svm) return make_error(svm_path + ": " + svm.error().message + "; run 'cellsight train' again");
+  out.svm = std::move(*svm);
+  if (out.svm.classes().size() != m.parts.size()) {
+    return make_error(svm_path + ": the model knows " + std::to_string(out.svm.classes().size()) +
+                      " parts, the manifest " + std::to_string(m.parts.size()) + "; run 'cellsight train'");
+  }
+  for (std::size_t c = 0; c < m.parts.size(); ++c) {
+    const PartEntry& p = m.parts[c];
+    if (out.svm.classes()[c].name != p.name || out.svm.classes()[c].id != p.id) {
+      return make_error(svm_path + ": class " + std::to_string(c) + " is '" + out.svm.classes()[c].name +
+                        "' in the model, '" + p.name + "' in the manifest; run 'cellsight train'");
+    }
+    out.class_names.push_back(p.name);
+  }
+  out.templates = open_templates(config, db);
+  return out;
+}
+
+namespace {
+
+// The production recogniser: everything sized here, recognise() allocates nothing.
+class ModelRecogniser final : public Recogniser {
+ public:
+  ModelRecogniser(const Config& config, const algo::Plane& support, LoadedModels models, RecogniserMode mode)
+      : preparer_(config, support, scan_builder_params_max_points(config)),
+        models_(std::move(models)),
+        cascade_(mode_params(config, mode, models_.class_names.size()), perfect_match_params(config), grid_spec(config)),
+        mode_(mode) {}
+
+  algo::Decision recognise(std::span<const algo::ScanPoint> points,
+                           std::chrono::steady_clock::time_point deadline) override {
+    using Clock = std::chrono::steady_clock;
+    const auto ms_since = [](Clock::time_point t) {
+      return std::chrono::duration<double, std::milli>(Clock::now() - t).count();
+    };
+    const Clock::time_point t0 = Clock::now();
+    algo::Decision d;
+    const PrepareReport r = preparer_.prepare(points);
+    d.features_ms = ms_since(t0);
+    if (r.status != PrepareStatus::kOk) {
+      d.source = r.status == PrepareStatus::kNoPart || r.status == PrepareStatus::kEmpty ? algo::DecisionSource::kNoPart
+                                                                                         : algo::DecisionSource::kBadScan;
+      d.total_ms = ms_since(t0);
+      return d;
+    }
+    const Clock::time_point t1 = Clock::now();
+    const std::span<const algo::ClassProbability> probabilities = models_.svm.predict(preparer_.features());
+    const double svm_ms = ms_since(t1);
+    if (Clock::now() >= deadline) {
+      d.source = algo::DecisionSource::kTimeout;
+    } else if (mode_ == RecogniserMode::kSvmOnly) {
+      if (!probabilities.empty()) {
+        d.source = algo::DecisionSource::kSvm;
+        d.class_index = probabilities[0].class_index;
+        d.part_id = models_.svm.classes()[static_cast<std::size_t>(d.class_index)].id;
+        d.probability = probabilities[0].probability;
+        if (probabilities.size() > 1) d.second_class_index = probabilities[1].class_index;
+      }
+    } else {
+      d = cascade_.decide(probabilities, models_.templates.models, preparer_.part_points(), deadline);
+    }
+    d.features_ms = std::chrono::duration<double, std::milli>(t1 - t0).count();
+    d.svm_ms = svm_ms;
+    d.total_ms = ms_since(t0);
+    return d;
+  }
+
+  std::string_view class_name(int class_index) const override {
+    if (class_index < 0 || static_cast<std::size_t>(class_index) >= models_.class_names.size()) return {};
+    return models_.class_names[static_cast<std::size_t>(class_index)];
+  }
+
+ private:
+  static std::size_t scan_builder_params_max_points(const Config& config) {
+    return scan_builder_params(config).max_points;
+  }
+  // --pm-only: the SVM never decides alone and Perfect Match tries every class.
+  static algo::CascadeParams mode_params(const Config& config, RecogniserMode mode, std::size_t classes) {
+    algo::CascadeParams p = cascade_params(config);
+    if (mode == RecogniserMode::kPmOnly) {
+      p.accept_p1 = 2.0;
+      p.pm_candidates = static_cast<int>(std::max<std::size_t>(1, classes));
+    }
+    return p;
+  }
+
+  ScanPreparer preparer_;
+  LoadedModels models_;
+  algo::Cascade cascade_;
+  RecogniserMode mode_;
+};
+
+}  // namespace
+
+Expected<std::unique_ptr<Recogniser>> make_recogniser(const Config& config, const std::string& models_dir,
+                                                      const std::string& calibration_path, RecogniserMode mode) {
+  auto record = load_calibration(calibration_path);
+  if (!record) return make_error(record.error().message + "\n(run scripts/calibrate.sh, or cellsight calibrate, first)");
+  if (!record->has_support) {
+    return make_error(calibration_path + ": no support section: run 'cellsight calibrate support' first");
+  }
+  auto db = ModelDb::open(models_dir, grid_spec(config), false);
+  if (!db) return db.error();
+  auto models = load_models(config, *db);
+  if (!models) return models.error();
+  for (const std::string& p : models->templates.problems) CS_LOG_ERROR("models", "%s", p.c_str());
+  return std::unique_ptr<Recogniser>(std::make_unique<ModelRecogniser>(config, record->support, std::move(*models), mode));
+}
+
+}  // namespace cellsight::app

@@ -1,0 +1,109 @@
+// The production recogniser: support removal -> grid -> depth image -> 74 features -> SVM -> Perfect Match cascade,
+// over the model database, sized once at start-up so recognise() never allocates.
+#pragma once
+
+#include <memory>
+#include <optional>
+#include <vector>
+#include <span>
+#include <string>
+#include <string_view>
+
+#include <opencv2/core.hpp>
+
+#include "algo/cascade.hpp"
+#include "algo/features.hpp"
+#include "algo/perfect_match.hpp"
+#include "algo/svm.hpp"
+#include "algo/grid.hpp"
+#include "algo/result.hpp"
+#include "algo/scan.hpp"
+#include "algo/sensor_model.hpp"
+#include "app/config.hpp"
+#include "app/model_db.hpp"
+#include "app/template_file.hpp"
+#include "app/recogniser.hpp"
+
+namespace cellsight::app {
+
+[[nodiscard]] algo::GridSpec grid_spec(const Config& config);
+
+// What became of one scan on its way to the features.
+enum class PrepareStatus : std::uint8_t {
+  kOk,
+  kEmpty,        // no point at all
+  kNoPart,       // nothing left in front of the carrier
+  kOutsideGrid,  // too much of the part lies outside the grid (it would be cut off)
+  kTooFewPoints, // a few stray points, not a part
+};
+[[nodiscard]] std::string_view to_string(PrepareStatus status);
+
+struct PrepareReport {
+  PrepareStatus status = PrepareStatus::kEmpty;
+  std::size_t raw_points = 0, support_points = 0, outside_points = 0, part_points = 0;
+  [[nodiscard]] std::string describe() const;  // "12345 points, 2345 carrier, 0 outside the grid"
+};
+
+// Support removal -> occupancy grid -> depth image -> 74 features, with every buffer sized at construction: the
+// part of the cycle that turns a raw scan into what the SVM and Perfect Match take. prepare() never allocates.
+class ScanPreparer {
+ public:
+  static constexpr double kMaxOutsideFraction = 0.02;  // more of the part outside the grid: refused
+  static constexpr std::size_t kMinPartPoints = 500;   // fewer: stray points, not a part
+
+  ScanPreparer(const Config& config, const algo::Plane& support, std::size_t max_points);
+
+  [[nodiscard]] PrepareReport prepare(std::span<const algo::ScanPoint> raw);
+  // Valid after prepare() returned kOk.
+  [[nodiscard]] std::span<const algo::ScanPoint> part_points() const { return part_.points(); }
+  [[nodiscard]] const algo::FeatureVector& features() const { return features_; }
+  [[nodiscard]] const algo::OccupancyGrid& grid() const { return grid_; }
+  [[nodiscard]] const cv::Mat& depth_image() const { return depth_; }
+  [[nodiscard]] std::size_t max_points() const { return part_.capacity(); }
+
+ private:
+  algo::Plane support_{};
+  double support_threshold_m_ = 0.0;
+  algo::ScanBuffer part_;
+  algo::OccupancyGrid grid_;
+  cv::Mat depth_;
+  algo::FeatureExtractor extractor_;
+  algo::FeatureVector features_{};
+};
+
+// Parameters of the recognition stages from the configuration.
+[[nodiscard]] algo::PerfectMatchParams perfect_match_params(const Config& config);
+[[nodiscard]] algo::CascadeParams cascade_params(const Config& config);
+
+// The memory-mapped templates of every part, by class index (manifest order). A template that is missing or refused
+// leaves an empty map in `models` (its class can never be accepted) and a line in `problems`.
+struct LoadedTemplates {
+  std::vector<std::optional<TemplateFile>> files;
+  std::vector<algo::TemplateModel> models;
+  std::vector<std::string> problems;
+};
+[[nodiscard]] LoadedTemplates open_templates(const Config& config, const ModelDb& db);
+
+// One opened model database, ready to recognise: the SVM and the memory-mapped templates. A part whose template
+// is missing or refused (checksum, version, another grid) stays in `problems` and can never be accepted; the other
+// parts keep working.
+struct LoadedModels {
+  std::vector<std::string> class_names;
+  algo::SvmModel svm;
+  LoadedTemplates templates;
+};
+[[nodiscard]] Expected<LoadedModels> load_models(const Config& config, const ModelDb& db);
+
+enum class RecogniserMode : std::uint8_t {
+  kCascade,  // production: thesis 6.4.4 cascade with verification
+  kSvmOnly,  // debug: the SVM's best class, no Perfect Match, no verification
+  kPmOnly,   // debug: Perfect Match against every template, lowest error that passes its thresholds
+};
+
+// Opens the model database at `models_dir` (manifest, SVM model, templates, calibration's support plane) and builds
+// the recogniser. A missing, stale or corrupt database is a clear error that says what to run.
+[[nodiscard]] Expected<std::unique_ptr<Recogniser>> make_recogniser(const Config& config, const std::string& models_dir,
+                                                                   const std::string& calibration_path,
+                                                                   RecogniserMode mode = RecogniserMode::kCascade);
+
+}  // namespace cellsight::app

@@ -1,0 +1,288 @@
+// `cellsight teach` and `cellsight parts`: store scans of a part type, build its template, manage the database.
+#include "app/teach_mode.hpp"
+
+#include <atomic>
+#include <cstdio>
+#include <filesystem>
+#include <mutex>
+#include <thread>
+
+#include "algo/ply.hpp"
+#include "app/atomic_file.hpp"
+#include "app/calibration_file.hpp"
+#include "app/cli.hpp"
+#include "app/mode_args.hpp"
+#include "app/recognition.hpp"
+#include "app/scan_mode.hpp"
+#include "app/template_file.hpp"
+#include "app/train_mode.hpp"
+#include "drivers/log.hpp"
+
+namespace cellsight::app {
+namespace {
+
+constexpr std::int64_t kMaxPlcId = 65535;
+constexpr int kMaxTeachCount = 10000;
+
+struct TaughtScan {
+  std::vector<algo::ScanPoint> points;
+  std::string source;
+};
+
+int fail(int code, const std::string& message) {
+  std::fprintf(stderr, "cellsight: %s\n", message.c_str());
+  return code;
+}
+
+std::string scan_file_name(const std::string& part, std::size_t index) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%05zu.ply", index);
+  return "scans/" + part + "/" + buf;
+}
+
+// Acquires `count` passes of `part` on the simulated cell, seeds first_seed.., on all cores.
+Expected<std::vector<TaughtScan>> acquire_sim_scans(const Config& config, const std::string& part, int count,
+                                                    std::uint64_t first_seed, const std::string& calibration_path) {
+  std::vector<TaughtScan> scans(static_cast<std::size_t>(count));
+  std::atomic<int> next{0};
+  std::atomic<int> done{0};
+  std::mutex mutex;
+  std::string first_error;
+  const auto worker = [&] {
+    for (int i = next++; i < count; i = next++) {
+      {
+        const std::lock_guard<std::mutex> lock(mutex);
+        if (!first_error.empty()) return;
+      }
+      ScanOptions options;
+      options.sim = true;
+      options.part = part;
+      options.seed = first_seed + static_cast<std::uint64_t>(i);
+      options.calibration_path = calibration_path;
+      ScanSummary summary;
+      auto points = acquire_scan(config, options, summary);
+      if (!points) {
+        const std::lock_guard<std::mutex> lock(mutex);
+        if (first_error.empty()) first_error = "seed " + std::to_string(options.seed) + ": " + points.error().message;
+        return;
+      }
+      scans[static_cast<std::size_t>(i)] = {std::move(*points), "sim seed " + std::to_string(options.seed)};
+      const int n = ++done;
+      std::printf("\r  scanned %d / %d", n, count);
+      std::fflush(stdout);
+    }
+  };
+  const int threads = static_cast<int>(std::max(1U, std::thread::hardware_concurrency()));
+  std::vector<std::thread> pool;
+  for (int t = 1; t < std::min(threads, count); ++t) pool.emplace_back(worker);
+  worker();
+  for (auto& t : pool) t.join();
+  std::printf("\n");
+  if (!first_error.empty()) return make_error(first_error);
+  return scans;
+}
+
+Expected<std::vector<TaughtScan>> import_scans(const std::vector<std::string>& files) {
+  std::vector<TaughtScan> scans;
+  for (const std::string& f : files) {
+    auto bytes = read_whole_file(f);
+    if (!bytes) return bytes.error();
+    auto points = algo::parse_ply(*bytes);
+    if (!points) return make_error(f + ": " + points.error().message);
+    scans.push_back({std::move(*points), std::filesystem::absolute(f).lexically_normal().string()});
+  }
+  return scans;
+}
+
+void print_part(const ModelDb& db, const PartEntry& p, bool detail) {
+  std::printf("%-24s %6d %6zu  %-5s %s\n", p.name.c_str(), p.id, p.scans.size(), p.thresholds.learnt ? "yes" : "no",
+              p.taught_at.c_str());
+  if (!detail) return;
+  auto info = read_template_info(db.path_of(p.template_file));
+  if (info) {
+    std::printf("  template     %s (%.1f MB, %llu occupied cells, centroid x %.1f mm y %.1f mm)\n",
+                p.template_file.c_str(), static_cast<double>(info->file_bytes) / 1e6,
+                static_cast<unsigned long long>(info->occupied_cells), info->centroid_m.x() * 1e3,
+                info->centroid_m.y() * 1e3);
+  } else {
+    std::printf("  template     %s: %s\n", p.template_file.c_str(), info.error().message.c_str());
+  }
+  if (p.thresholds.learnt) {
+    std::printf("  accepts      PM error <= %.3g, missing <= %.0f mm2, extra <= %.0f mm2\n", p.thresholds.max_error,
+                p.thresholds.max_missing_area_m2 * 1e6, p.thresholds.max_extra_area_m2 * 1e6);
+  }
+  for (const ScanEntry& s : p.scans) std::printf("  scan         %s  (%s)\n", s.file.c_str(), s.source.c_str());
+}
+
+}  // namespace
+
+int run_teach(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
+  ModeArgs args;
+  std::string error;
+  if (!parse_mode_args(words, {"--part", "--id", "--count", "--seed", "--calibration"}, {"--sim"}, args, error)) {
+    return fail(kExitUsage, "teach: " + error);
+  }
+  const std::string* part = args.value("--part");
+  if (part == nullptr) return fail(kExitUsage, "teach needs --part NAME");
+  if (!valid_part_name(*part)) {
+    return fail(kExitUsage, "teach: part name '" + *part + "': use 1..64 letters, digits, '_' or '-'");
+  }
+  const bool sim = args.has("--sim");
+  if (sim == !args.positional.empty()) {
+    return fail(kExitUsage, "teach needs either --sim --count K or scan files (SCAN.ply ...), not both");
+  }
+  std::int64_t count = 0;
+  if (sim) {
+    const std::string* c = args.value("--count");
+    if (c == nullptr || !parse_whole(*c, 1, kMaxTeachCount, count)) {
+      return fail(kExitUsage, "teach --sim needs --count K (1.." + std::to_string(kMaxTeachCount) + ")");
+    }
+  } else if (args.value("--count") != nullptr || args.value("--seed") != nullptr) {
+    return fail(kExitUsage, "teach: --count and --seed apply to --sim only");
+  }
+  auto db = ModelDb::open(models_dir, grid_spec(config), true);
+  if (!db) return fail(kExitUsage, db.error().message);
+  PartEntry* existing = db->find(*part);
+  std::int64_t id = 0;
+  if (const std::string* v = args.value("--id")) {
+    if (!parse_whole(*v, 1, kMaxPlcId, id)) return fail(kExitUsage, "teach: --id '" + *v + "': expected 1..65535");
+    if (existing != nullptr && existing->id != id) {
+      return fail(kExitUsage, "teach: part '" + *part + "' already has PLC id " + std::to_string(existing->id) +
+                                  "; delete it first to change its id");
+    }
+    for (const PartEntry& p : db->manifest().parts) {
+      if (p.name != *part && p.id == id) {
+        return fail(kExitUsage, "teach: PLC id " + std::to_string(id) + " belongs to part '" + p.name + "'");
+      }
+    }
+  } else if (existing != nullptr) {
+    id = existing->id;
+  } else {
+    for (const PartEntry& p : db->manifest().parts) id = std::max<std::int64_t>(id, p.id);
+    ++id;
+  }
+  const std::string* calibration_arg = args.value("--calibration");
+  const std::string calibration_path = calibration_arg ? *calibration_arg : default_calibration_path(config);
+  auto support = load_support_plane(calibration_path);
+  if (!support) return fail(kExitUsage, support.error().message);
+
+  const std::size_t already = existing != nullptr ? existing->scans.size() : 0;
+  Expected<std::vector<TaughtScan>> scans = std::vector<TaughtScan>{};
+  if (sim) {
+    std::uint64_t first_seed = already + 1;
+    if (const std::string* s = args.value("--seed")) {
+      std::int64_t v = 0;
+      if (!parse_whole(*s, 0, INT64_MAX, v)) return fail(kExitUsage, "teach: --seed '" + *s + "': expected a number");
+      first_seed = static_cast<std::uint64_t>(v);
+    }
+    std::printf("teaching %s (PLC id %lld): %lld simulated passes, seeds %llu..\n", part->c_str(),
+                static_cast<long long>(id), static_cast<long long>(count), static_cast<unsigned long long>(first_seed));
+    scans = acquire_sim_scans(config, *part, static_cast<int>(count), first_seed, calibration_path);
+  } else {
+    scans = import_scans(args.positional);
+  }
+  if (!scans) return fail(kExitUsage, "teach: " + scans.error().message);
+
+  // Every scan must show a part that fits the grid before anything is written.
+  ScanPreparer preparer(config, *support, scan_builder_params(config).max_points);
+  for (const TaughtScan& s : *scans) {
+    const PrepareReport r = preparer.prepare(s.points);
+    if (r.status != PrepareStatus::kOk) {
+      return fail(kExitUsage, "teach: " + s.source + ": " + std::string(to_string(r.status)) + " (" + r.describe() +
+                                  "); nothing was stored");
+    }
+  }
+
+  std::vector<std::string> written;
+  const auto undo = [&] {
+    std::error_code ec;
+    for (const std::string& f : written) std::filesystem::remove(db->path_of(f), ec);
+  };
+  PartEntry entry = existing != nullptr ? *existing : PartEntry{};
+  if (existing == nullptr) {
+    entry.name = *part;
+    entry.id = static_cast<int>(id);
+    entry.template_file = "templates/" + *part + ".dmap";
+    entry.taught_at = local_time_text();
+    // The template is the first scan: the robot is taught on that one.
+    (void)preparer.prepare(scans->front().points);
+    auto model = build_template(preparer.part_points(), grid_spec(config));
+    if (!model) return fail(kExitUsage, "teach: template of " + *part + ": " + model.error().message);
+    std::error_code ec;
+    std::filesystem::create_directories(db->path_of("templates"), ec);
+    TemplateIdentity identity;
+    identity.part_name = *part;
+    identity.plc_id = static_cast<std::uint32_t>(id);
+    if (auto ok = write_template(db->path_of(entry.template_file), *model, identity); !ok) {
+      return fail(kExitFailure, "teach: " + ok.error().message);
+    }
+    written.push_back(entry.template_file);
+  }
+  std::error_code ec;
+  std::filesystem::create_directories(db->path_of("scans/" + *part), ec);
+  if (ec) return fail(kExitFailure, "teach: cannot create " + db->path_of("scans/" + *part) + ": " + ec.message());
+  std::size_t index = already;
+  for (const TaughtScan& s : *scans) {
+    std::string file;
+    do {
+      file = scan_file_name(*part, ++index);
+    } while (std::filesystem::exists(db->path_of(file)));
+    const std::string bytes = algo::write_ply_binary(s.points);
+    if (auto ok = write_file_atomic(db->path_of(file), bytes); !ok) {
+      undo();
+      return fail(kExitFailure, "teach: " + ok.error().message);
+    }
+    written.push_back(file);
+    entry.scans.push_back({file, crc32_of(bytes), s.source});
+  }
+  if (existing != nullptr) {
+    *existing = entry;
+  } else {
+    db->manifest().parts.push_back(entry);
+  }
+  if (auto ok = db->save(); !ok) {
+    undo();
+    return fail(kExitFailure, "teach: " + ok.error().message + " (nothing was stored)");
+  }
+  std::printf("%s: %zu scans stored (%zu in all), template %s; the SVM is now stale: run 'cellsight train'\n",
+              part->c_str(), scans->size(), entry.scans.size(), entry.template_file.c_str());
+  return kExitOk;
+}
+
+int run_parts(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
+  ModeArgs args;
+  std::string error;
+  if (!parse_mode_args(words, {}, {}, args, error)) return fail(kExitUsage, "parts: " + error);
+  if (args.positional.empty()) return fail(kExitUsage, "parts needs list, show NAME or delete NAME");
+  const std::string& action = args.positional.front();
+  auto db = ModelDb::open(models_dir, grid_spec(config), false);
+  if (!db) return fail(kExitUsage, db.error().message);
+  if (action == "list" && args.positional.size() == 1) {
+    std::printf("%-24s %6s %6s  %-5s %s\n", "part", "id", "scans", "thr", "taught");
+    for (const PartEntry& p : db->manifest().parts) print_part(*db, p, false);
+    const std::string stale = db->svm_stale_reason();
+    if (stale.empty()) {
+      std::printf("SVM: trained %s, %.2f %% on %d test scans, %s\n", db->manifest().svm.trained_at.c_str(),
+                  db->manifest().svm.test_accuracy * 100.0, db->manifest().svm.test_scans,
+                  db->manifest().svm.hyper.c_str());
+    } else {
+      std::printf("SVM: stale: %s\n", stale.c_str());
+    }
+    return kExitOk;
+  }
+  if ((action == "show" || action == "delete") && args.positional.size() == 2) {
+    const std::string& name = args.positional[1];
+    const PartEntry* p = db->find(name);
+    if (p == nullptr) return fail(kExitUsage, "parts: no part '" + name + "' in " + db->manifest_path());
+    if (action == "show") {
+      print_part(*db, *p, true);
+      return kExitOk;
+    }
+    if (auto ok = db->delete_part(name); !ok) return fail(kExitFailure, "parts delete: " + ok.error().message);
+    std::printf("deleted %s; the SVM is now stale: run 'cellsight train'\n", name.c_str());
+    return kExitOk;
+  }
+  return fail(kExitUsage, "parts needs list, show NAME or delete NAME");
+}
+
+}  // namespace cellsight::app

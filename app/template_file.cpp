@@ -1,0 +1,664 @@
+// Template files: build from a scan, streaming atomic write, memory-mapped checked open.
+#include "app/template_file.hpp"
+
+#include <fcntl.h>
+#include <sys/mman.h>
+#include <sys/stat.h>
+#include <unistd.h>
+#include <zlib.h>
+
+#include <algorithm>
+#include <array>
+#include <bit>
+#include <cerrno>
+#include <chrono>
+#include <cinttypes>
+#include <cmath>
+#include <cstddef>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <ctime>
+#include <filesystem>
+#include <limits>
+#include <type_traits>
+#include <utility>
+
+namespace cellsight::app {
+namespace {
+
+static_assert(std::endian::native == std::endian::little, "template files store numbers as the host does");
+static_assert(sizeof(Eigen::Vector3f) == 3 * sizeof(float), "surface points are stored as 3 x float32");
+static_assert(std::is_trivially_copyable_v<algo::MapCell> && std::is_standard_layout_v<algo::MapCell>,
+              "MapCell is read in place from the mapping");
+
+constexpr std::array<char, 8> kMagic = {'\x89', 'D', 'M', 'A', 'P', '\r', '\n', '\x1a'};  // PNG-style transfer check
+constexpr std::uint32_t kByteOrderMark = 0x01020304u;
+constexpr std::size_t kPointBytes = 3 * sizeof(float);
+constexpr std::size_t kHeaderCrcBytes = kTemplateHeaderBytes - sizeof(std::uint32_t);
+// Origin and resolution of the file must equal the configured grid to this (metres): far below any meaningful
+// difference, far above the rounding of a number read back from text.
+constexpr double kGridToleranceM = 1e-9;
+constexpr double kMmPerM = 1000.0;
+constexpr double kMsPerS = 1000.0;
+
+// Version 1 header, exactly as on disk.
+struct TemplateHeader {
+  char magic[8];
+  std::uint32_t format_version;
+  std::uint32_t header_bytes;
+  std::uint32_t byte_order;
+  std::uint32_t gradient_method;
+  std::int32_t nx, ny, nz;
+  std::uint32_t cell_bytes;
+  double resolution_m;
+  double origin_m[3];
+  double distance_unit_m;
+  double gradient_scale;
+  double centroid_m[2];
+  std::uint64_t occupied_cells;
+  std::uint64_t surface_point_count;
+  std::uint64_t surface_offset;
+  std::uint64_t cell_count;
+  std::uint64_t cells_offset;
+  std::uint64_t file_bytes;
+  std::int64_t created_unix_s;
+  std::uint32_t plc_id;
+  std::uint32_t point_bytes;
+  std::uint32_t section_alignment;
+  std::uint32_t body_crc32;
+  char part_name[kTemplatePartNameCapacity];
+  std::uint8_t reserved[12];
+  std::uint32_t header_crc32;
+};
+static_assert(sizeof(TemplateHeader) == kTemplateHeaderBytes);
+static_assert(std::is_trivially_copyable_v<TemplateHeader> && std::is_standard_layout_v<TemplateHeader>);
+static_assert(offsetof(TemplateHeader, resolution_m) == 40 && offsetof(TemplateHeader, occupied_cells) == 104 &&
+              offsetof(TemplateHeader, plc_id) == 160 && offsetof(TemplateHeader, part_name) == 176 &&
+              offsetof(TemplateHeader, header_crc32) == kHeaderCrcBytes);
+
+std::string errno_text(int error) {
+  return std::strerror(error);
+}
+
+std::size_t align_up(std::size_t n) {
+  return (n + kTemplateSectionAlignment - 1) / kTemplateSectionAlignment * kTemplateSectionAlignment;
+}
+
+std::uint32_t crc_of(std::uint32_t crc, const void* data, std::size_t bytes) {
+  return static_cast<std::uint32_t>(crc32_z(crc, static_cast<const Bytef*>(data), bytes));
+}
+
+std::uint32_t header_crc(const TemplateHeader& h) {
+  return crc_of(crc32_z(0, nullptr, 0), &h, kHeaderCrcBytes);
+}
+
+algo::GridDims dims_of(const algo::GridSpec& grid) {
+  return {grid.nx, grid.ny, grid.nz, grid.resolution_m};
+}
+
+std::string number(double v) {
+  char buf[40];
+  std::snprintf(buf, sizeof buf, "%.9g", v);
+  return buf;
+}
+
+bool valid_gradient_method(std::uint32_t m) {
+  return m == static_cast<std::uint32_t>(algo::GradientMethod::kSobelAveraged) ||
+         m == static_cast<std::uint32_t>(algo::GradientMethod::kCentralDifference);
+}
+
+// Where the sections of a file with these counts lie.
+struct Layout {
+  std::size_t surface_offset = 0;
+  std::size_t cells_offset = 0;
+  std::size_t file_bytes = 0;
+};
+Layout layout_for(std::size_t surface_points, std::size_t cells) {
+  Layout l;
+  l.surface_offset = align_up(kTemplateHeaderBytes);
+  l.cells_offset = align_up(l.surface_offset + surface_points * kPointBytes);
+  l.file_bytes = l.cells_offset + cells * sizeof(algo::MapCell);
+  return l;
+}
+
+// One contiguous piece of the body as written: either bytes of the model or `bytes` zeros.
+struct Segment {
+  const void* data;  // nullptr: zeros
+  std::size_t bytes;
+};
+constexpr std::array<std::uint8_t, kTemplateSectionAlignment> kZeros{};
+
+std::array<Segment, 4> body_segments(const TemplateModel& model, const Layout& l) {
+  const std::size_t points_bytes = model.surface_points.size() * kPointBytes;
+  return {Segment{nullptr, l.surface_offset - kTemplateHeaderBytes}, Segment{model.surface_points.data(), points_bytes},
+          Segment{nullptr, l.cells_offset - l.surface_offset - points_bytes},
+          Segment{model.map.cells().data(), model.map.cells().size() * sizeof(algo::MapCell)}};
+}
+
+// Interleaves the low 21 bits of x, y, z (x lowest): the Morton (Z-order) key of a cell.
+std::uint64_t spread_bits(std::uint32_t v) {
+  std::uint64_t x = v & 0x1fffffu;
+  x = (x | x << 32) & 0x1f00000000ffffULL;
+  x = (x | x << 16) & 0x1f0000ff0000ffULL;
+  x = (x | x << 8) & 0x100f00f00f00f00fULL;
+  x = (x | x << 4) & 0x10c30c30c30c30c3ULL;
+  x = (x | x << 2) & 0x1249249249249249ULL;
+  return x;
+}
+std::uint64_t morton_key(int x, int y, int z) {
+  return spread_bits(static_cast<std::uint32_t>(x)) | spread_bits(static_cast<std::uint32_t>(y)) << 1 |
+         spread_bits(static_cast<std::uint32_t>(z)) << 2;
+}
+
+// Points beyond each side of the grid, counted as GridSpec::cell_of decides (a point may count on two sides).
+struct OutsideCount {
+  std::size_t below[3] = {0, 0, 0};
+  std::size_t above[3] = {0, 0, 0};
+  std::size_t not_finite = 0;
+  std::size_t total = 0;
+};
+OutsideCount count_outside(std::span<const algo::ScanPoint> points, const algo::GridSpec& grid) {
+  OutsideCount c;
+  const int n[3] = {grid.nx, grid.ny, grid.nz};
+  for (const algo::ScanPoint& p : points) {
+    const double v[3] = {p.x, p.y, p.z};
+    bool out = false;
+    bool finite = true;
+    for (int a = 0; a < 3; ++a) {
+      const double f = (v[a] - grid.origin_m[a]) / grid.resolution_m;
+      if (!std::isfinite(f)) {
+        finite = false;
+      } else if (f < 0.0) {
+        ++c.below[a];
+        out = true;
+      } else if (f >= n[a]) {
+        ++c.above[a];
+        out = true;
+      }
+    }
+    if (!finite) ++c.not_finite;
+    if (out || !finite) ++c.total;
+  }
+  return c;
+}
+
+std::string describe_outside(const OutsideCount& c, std::size_t points, const algo::GridSpec& grid) {
+  static constexpr const char* kAxis[3] = {"x", "y", "z"};
+  const int n[3] = {grid.nx, grid.ny, grid.nz};
+  std::string sides;
+  const auto add = [&sides](const std::string& what, std::size_t count) {
+    if (count == 0) return;
+    if (!sides.empty()) sides += ", ";
+    sides += what + ": " + std::to_string(count);
+  };
+  std::string span;
+  for (int a = 0; a < 3; ++a) {
+    const double lo = grid.origin_m[a];
+    const double hi = grid.origin_m[a] + n[a] * grid.resolution_m;
+    add(std::string(kAxis[a]) + " < " + number(lo) + " m", c.below[a]);
+    add(std::string(kAxis[a]) + " >= " + number(hi) + " m", c.above[a]);
+    span += std::string(a == 0 ? "" : ", ") + kAxis[a] + " [" + number(lo) + ", " + number(hi) + ")";
+  }
+  add("not finite", c.not_finite);
+  return std::to_string(c.total) + " of " + std::to_string(points) + " points lie outside the grid (" + sides +
+         "); the grid spans " + span +
+         " m: the part does not fit, so its template would be cut off. Check the "
+         "support removal and the part's position, or move/enlarge the grid in the configuration";
+}
+
+Status validate_name(const std::string& name) {
+  if (name.empty() || name.size() >= kTemplatePartNameCapacity) {
+    return make_error("template part name must be 1.." + std::to_string(kTemplatePartNameCapacity - 1) +
+                      " bytes, got " + std::to_string(name.size()));
+  }
+  for (const char ch : name) {
+    if (static_cast<unsigned char>(ch) < 0x20 || ch == 0x7f) {
+      return make_error("template part name \"" + name + "\" contains a control character");
+    }
+  }
+  return {};
+}
+
+Status validate_grid(const algo::GridSpec& grid) {
+  if (Status dims = algo::validate_dims(dims_of(grid)); !dims) return dims;
+  if (!grid.origin_m.allFinite()) return make_error("template: grid origin must be finite");
+  return {};
+}
+
+// File descriptor closed on scope exit unless released.
+class UniqueFd {
+ public:
+  explicit UniqueFd(int fd) : fd_(fd) {}
+  UniqueFd(const UniqueFd&) = delete;
+  UniqueFd& operator=(const UniqueFd&) = delete;
+  ~UniqueFd() {
+    if (fd_ >= 0) ::close(fd_);
+  }
+  [[nodiscard]] int get() const { return fd_; }
+  int release() { return std::exchange(fd_, -1); }
+  void reset(int fd) {
+    if (fd_ >= 0) ::close(fd_);
+    fd_ = fd;
+  }
+  // close() reports errors (a failed close after writing may mean lost data).
+  [[nodiscard]] int close() {
+    const int rc = ::close(fd_);
+    fd_ = -1;
+    return rc;
+  }
+
+ private:
+  int fd_;
+};
+
+// Removes the temp file on scope exit unless the rename happened.
+class TempFileGuard {
+ public:
+  explicit TempFileGuard(std::string path) : path_(std::move(path)) {}
+  TempFileGuard(const TempFileGuard&) = delete;
+  TempFileGuard& operator=(const TempFileGuard&) = delete;
+  ~TempFileGuard() {
+    if (!path_.empty()) ::unlink(path_.c_str());
+  }
+  void release() { path_.clear(); }
+
+ private:
+  std::string path_;
+};
+
+Status write_all(int fd, const void* data, std::size_t bytes, const std::string& path) {
+  const auto* p = static_cast<const std::uint8_t*>(data);
+  while (bytes > 0) {
+    const ssize_t n = ::write(fd, p, bytes);
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) return make_error(path + ": write failed: " + errno_text(n < 0 ? errno : EIO));
+    p += n;
+    bytes -= static_cast<std::size_t>(n);
+  }
+  return {};
+}
+
+Status write_segment(int fd, const Segment& s, const std::string& path) {
+  if (s.data != nullptr) return write_all(fd, s.data, s.bytes, path);
+  for (std::size_t done = 0; done < s.bytes;) {
+    const std::size_t chunk = std::min(s.bytes - done, kZeros.size());
+    if (Status w = write_all(fd, kZeros.data(), chunk, path); !w) return w;
+    done += chunk;
+  }
+  return {};
+}
+
+std::string parent_of(const std::string& path) {
+  const std::filesystem::path parent = std::filesystem::path(path).parent_path();
+  return parent.empty() ? "." : parent.string();
+}
+
+// Everything a header must satisfy on its own and against the file length. `path` prefixes every message.
+Expected<TemplateInfo> check_header(const std::string& path, const TemplateHeader& h, std::uint64_t file_length) {
+  const auto fail = [&path](const std::string& why) { return make_error(path + ": " + why); };
+  if (std::memcmp(h.magic, kMagic.data(), kMagic.size()) != 0) {
+    return fail("not a cellsight template file (wrong magic number)");
+  }
+  if (h.byte_order != kByteOrderMark) return fail("byte-order mark is wrong (corrupt, or written by another machine)");
+  if (h.format_version != kTemplateFormatVersion) {
+    return fail("template format version " + std::to_string(h.format_version) + ", this build reads version " +
+                std::to_string(kTemplateFormatVersion) + "; re-teach the part with this version");
+  }
+  if (h.header_bytes != kTemplateHeaderBytes) {
+    return fail("header size " + std::to_string(h.header_bytes) + " bytes, version 1 has " +
+                std::to_string(kTemplateHeaderBytes));
+  }
+  if (header_crc(h) != h.header_crc32) return fail("header checksum mismatch: the header is corrupt");
+
+  // From here on the fields are as written, so a failure means a writer bug or a different build.
+  if (h.cell_bytes != sizeof(algo::MapCell) || h.point_bytes != kPointBytes ||
+      h.section_alignment != kTemplateSectionAlignment) {
+    return fail("record sizes (cell " + std::to_string(h.cell_bytes) + " B, point " + std::to_string(h.point_bytes) +
+                " B, alignment " + std::to_string(h.section_alignment) + ") differ from this build's");
+  }
+  if (h.distance_unit_m != algo::kDistanceUnitM || h.gradient_scale != algo::kGradientScale) {
+    return fail("map quantization (distance unit " + number(h.distance_unit_m) + " m, gradient scale " +
+                number(h.gradient_scale) + ") differs from this build's; re-teach the part");
+  }
+  if (!valid_gradient_method(h.gradient_method)) {
+    return fail("unknown gradient method " + std::to_string(h.gradient_method));
+  }
+  TemplateInfo info;
+  info.format_version = h.format_version;
+  info.grid.nx = h.nx;
+  info.grid.ny = h.ny;
+  info.grid.nz = h.nz;
+  info.grid.resolution_m = h.resolution_m;
+  info.grid.origin_m = Eigen::Vector3d(h.origin_m[0], h.origin_m[1], h.origin_m[2]);
+  if (Status g = validate_grid(info.grid); !g) return fail(g.error().message);
+  info.gradient_method = static_cast<algo::GradientMethod>(h.gradient_method);
+  info.centroid_m = Eigen::Vector2d(h.centroid_m[0], h.centroid_m[1]);
+  if (!info.centroid_m.allFinite()) return fail("centroid is not finite");
+  const std::size_t grid_cells = info.grid.cells();
+  if (h.occupied_cells == 0 || h.occupied_cells > grid_cells || h.surface_point_count == 0 ||
+      h.surface_point_count > h.occupied_cells) {
+    return fail("inconsistent counts: " + std::to_string(h.occupied_cells) + " occupied cells, " +
+                std::to_string(h.surface_point_count) + " surface points, grid of " + std::to_string(grid_cells) +
+                " cells");
+  }
+  const std::size_t layout_cells = algo::BrickLayout(dims_of(info.grid)).cell_count();
+  if (h.cell_count != layout_cells) {
+    return fail("cell count " + std::to_string(h.cell_count) + " does not match the grid (" +
+                std::to_string(layout_cells) + " cells in brick layout)");
+  }
+  const Layout l = layout_for(h.surface_point_count, layout_cells);
+  if (h.surface_offset != l.surface_offset || h.cells_offset != l.cells_offset || h.file_bytes != l.file_bytes) {
+    return fail("section offsets or file size in the header are inconsistent with its counts");
+  }
+  if (std::memchr(h.part_name, '\0', sizeof h.part_name) == nullptr || h.part_name[0] == '\0') {
+    return fail("part name is empty or not terminated");
+  }
+  if (file_length < h.file_bytes) {
+    return fail("truncated: the file has " + std::to_string(file_length) + " bytes, its header says " +
+                std::to_string(h.file_bytes));
+  }
+  if (file_length > h.file_bytes) {
+    return fail("has " + std::to_string(file_length - h.file_bytes) + " bytes more than its header says (" +
+                std::to_string(h.file_bytes) + "): appended to or overwritten");
+  }
+  info.occupied_cells = h.occupied_cells;
+  info.surface_point_count = h.surface_point_count;
+  info.cell_count = h.cell_count;
+  info.file_bytes = h.file_bytes;
+  info.body_crc32 = h.body_crc32;
+  info.part_name = h.part_name;
+  info.plc_id = h.plc_id;
+  info.created_unix_s = h.created_unix_s;
+  return info;
+}
+
+bool same_grid(const algo::GridSpec& a, const algo::GridSpec& b) {
+  return a.nx == b.nx && a.ny == b.ny && a.nz == b.nz && std::abs(a.resolution_m - b.resolution_m) <= kGridToleranceM &&
+         (a.origin_m - b.origin_m).cwiseAbs().maxCoeff() <= kGridToleranceM;
+}
+
+// Opens for reading and reads the file length; a message names the file.
+Expected<std::uint64_t> open_for_reading(const std::string& path, UniqueFd& fd) {
+  const int raw = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (raw < 0) return make_error(path + ": cannot open the template file: " + errno_text(errno));
+  fd.reset(raw);
+  struct stat st {};
+  if (::fstat(raw, &st) != 0) return make_error(path + ": cannot stat: " + errno_text(errno));
+  if (!S_ISREG(st.st_mode)) return make_error(path + ": not a regular file");
+  const auto length = static_cast<std::uint64_t>(st.st_size);
+  if (length < kTemplateHeaderBytes) {
+    return make_error(path + ": truncated: the file has " + std::to_string(length) + " bytes, the header alone " +
+                      std::to_string(kTemplateHeaderBytes));
+  }
+  return length;
+}
+
+double ms_since(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() * kMsPerS;
+}
+
+}  // namespace
+
+std::string describe_grid(const algo::GridSpec& grid) {
+  return std::to_string(grid.nx) + " x " + std::to_string(grid.ny) + " x " + std::to_string(grid.nz) + " cells of " +
+         number(grid.resolution_m * kMmPerM) + " mm, origin (" + number(grid.origin_m.x()) + ", " +
+         number(grid.origin_m.y()) + ", " + number(grid.origin_m.z()) + ") m";
+}
+
+// --- build -----------------------------------------------------------------------------------------------------------
+
+Expected<TemplateModel> build_template(std::span<const algo::ScanPoint> points, const algo::GridSpec& grid,
+                                       const TemplateBuildParams& params) {
+  if (Status g = validate_grid(grid); !g) return g.error();
+  if (params.max_surface_points == 0) return make_error("template: max_surface_points must be at least 1");
+  if (points.empty()) return make_error("template: the scan has no points (after carrier removal); nothing to teach");
+  const OutsideCount outside = count_outside(points, grid);
+  if (outside.total > params.max_outside_points || outside.total == points.size()) {
+    return make_error("template: " + describe_outside(outside, points.size(), grid));
+  }
+
+  TemplateModel model;
+  model.grid = grid;
+  model.gradient_method = params.gradient_method;
+  model.outside_points = outside.total;
+
+  algo::OccupancyGrid occupancy(grid, points.size());
+  if (const std::size_t missed = occupancy.accumulate(points); missed != outside.total) {
+    return make_error("template: internal error: " + std::to_string(missed) + " points fell outside the grid, " +
+                      std::to_string(outside.total) + " expected");
+  }
+
+  // Occupied cells: centroid of all of them (x-y), Morton keys for the surface subsample.
+  struct KeyedCell {
+    std::uint64_t key;
+    std::uint32_t x, y, z;
+  };
+  std::vector<KeyedCell> occupied;
+  occupied.reserve(std::min(points.size(), grid.cells()));
+  const std::uint8_t* cells = occupancy.data();
+  double sum_x = 0.0;
+  double sum_y = 0.0;
+  for (int z = 0; z < grid.nz; ++z) {
+    for (int y = 0; y < grid.ny; ++y) {
+      const std::uint8_t* row = cells + grid.index(0, y, z);
+      for (int x = 0; x < grid.nx; ++x) {
+        if (row[x] == 0) continue;
+        occupied.push_back({morton_key(x, y, z), static_cast<std::uint32_t>(x), static_cast<std::uint32_t>(y),
+                            static_cast<std::uint32_t>(z)});
+        sum_x += x + 0.5;
+        sum_y += y + 0.5;
+      }
+    }
+  }
+  const auto n = occupied.size();
+  model.occupied_cells = n;
+  model.centroid_m =
+      grid.origin_m.head<2>() + grid.resolution_m * Eigen::Vector2d(sum_x, sum_y) / static_cast<double>(n);
+
+  std::sort(occupied.begin(), occupied.end(), [](const KeyedCell& a, const KeyedCell& b) { return a.key < b.key; });
+  const std::size_t m = std::min(n, params.max_surface_points);
+  model.surface_points.reserve(m);
+  for (std::size_t k = 0; k < m; ++k) {
+    // The centre of the k-th of m equal strata of the Morton order (every cell when m == n).
+    const std::size_t i = (2 * k + 1) * n / (2 * m);
+    const KeyedCell& c = occupied[i];
+    model.surface_points.push_back(
+        grid.centre(static_cast<int>(c.x), static_cast<int>(c.y), static_cast<int>(c.z)).cast<float>());
+  }
+  occupied = {};  // release before the big buffers below
+
+  const algo::GridDims dims = dims_of(grid);
+  algo::EdtScratch scratch(dims);
+  std::vector<float> work(dims.cell_count());
+  if (Status built =
+          algo::build_distance_map(cells, dims, grid.origin_m, params.gradient_method, scratch, work.data(), model.map);
+      !built) {
+    return make_error("template: " + built.error().message);
+  }
+  return model;
+}
+
+// --- write -----------------------------------------------------------------------------------------------------------
+
+Status write_template(const std::string& path, const TemplateModel& model, const TemplateIdentity& identity) {
+  const auto fail = [&path](const std::string& why) { return make_error(path + ": " + why); };
+  if (Status name = validate_name(identity.part_name); !name) return fail(name.error().message);
+  if (Status g = validate_grid(model.grid); !g) return fail(g.error().message);
+  const algo::GridDims dims = dims_of(model.grid);
+  const algo::GridDims& map_dims = model.map.dims();
+  const std::size_t layout_cells = algo::BrickLayout(dims).cell_count();
+  if (map_dims.nx != dims.nx || map_dims.ny != dims.ny || map_dims.nz != dims.nz ||
+      map_dims.resolution_m != dims.resolution_m || model.map.origin_m() != model.grid.origin_m ||
+      model.map.cells().size() != layout_cells) {
+    return fail("template model is inconsistent: its map was not built for its grid");
+  }
+  if (model.surface_points.empty() || model.occupied_cells < model.surface_points.size() ||
+      !model.centroid_m.allFinite()) {
+    return fail("template model is inconsistent: no surface points, or not a built template");
+  }
+
+  const Layout l = layout_for(model.surface_points.size(), layout_cells);
+  TemplateHeader h{};
+  std::memcpy(h.magic, kMagic.data(), kMagic.size());
+  h.format_version = kTemplateFormatVersion;
+  h.header_bytes = kTemplateHeaderBytes;
+  h.byte_order = kByteOrderMark;
+  h.gradient_method = static_cast<std::uint32_t>(model.gradient_method);
+  h.nx = dims.nx;
+  h.ny = dims.ny;
+  h.nz = dims.nz;
+  h.cell_bytes = sizeof(algo::MapCell);
+  h.resolution_m = model.grid.resolution_m;
+  for (int a = 0; a < 3; ++a) h.origin_m[a] = model.grid.origin_m[a];
+  h.distance_unit_m = algo::kDistanceUnitM;
+  h.gradient_scale = algo::kGradientScale;
+  h.centroid_m[0] = model.centroid_m.x();
+  h.centroid_m[1] = model.centroid_m.y();
+  h.occupied_cells = model.occupied_cells;
+  h.surface_point_count = model.surface_points.size();
+  h.surface_offset = l.surface_offset;
+  h.cell_count = layout_cells;
+  h.cells_offset = l.cells_offset;
+  h.file_bytes = l.file_bytes;
+  h.created_unix_s =
+      identity.created_unix_s != 0 ? identity.created_unix_s : static_cast<std::int64_t>(std::time(nullptr));
+  h.plc_id = identity.plc_id;
+  h.point_bytes = kPointBytes;
+  h.section_alignment = kTemplateSectionAlignment;
+  std::memcpy(h.part_name, identity.part_name.data(), identity.part_name.size());
+
+  // The body CRC over exactly the bytes about to be written, straight from the model's buffers.
+  const std::array<Segment, 4> body = body_segments(model, l);
+  std::uint32_t crc = static_cast<std::uint32_t>(crc32_z(0, nullptr, 0));
+  for (const Segment& s : body) {
+    if (s.data != nullptr) {
+      crc = crc_of(crc, s.data, s.bytes);
+    } else {
+      for (std::size_t done = 0; done < s.bytes; done += kZeros.size()) {
+        crc = crc_of(crc, kZeros.data(), std::min(kZeros.size(), s.bytes - done));
+      }
+    }
+  }
+  h.body_crc32 = crc;
+  h.header_crc32 = header_crc(h);
+
+  // Streaming atomic save: temp beside the target, fsync, rename, fsync of the folder (as app/atomic_file).
+  std::string temp = path + ".tmp-XXXXXX";
+  UniqueFd fd(::mkstemp(temp.data()));
+  if (fd.get() < 0) return fail("cannot create a temporary file beside it: " + errno_text(errno));
+  TempFileGuard guard(temp);
+  if (Status w = write_all(fd.get(), &h, sizeof h, path); !w) return w;
+  for (const Segment& s : body) {
+    if (Status w = write_segment(fd.get(), s, path); !w) return w;
+  }
+  if (::fchmod(fd.get(), 0644) != 0 || ::fsync(fd.get()) != 0)
+    return fail("cannot finish the file: " + errno_text(errno));
+  if (fd.close() != 0) return fail("cannot finish the file: " + errno_text(errno));
+  if (::rename(temp.c_str(), path.c_str()) != 0) return fail("cannot replace: " + errno_text(errno));
+  guard.release();
+  const std::string folder = parent_of(path);
+  UniqueFd dir(::open(folder.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC));
+  if (dir.get() < 0 || ::fsync(dir.get()) != 0) {
+    return fail("written, but the folder " + folder + " could not be synced: " + errno_text(errno));
+  }
+  return {};
+}
+
+// --- read ------------------------------------------------------------------------------------------------------------
+
+Expected<TemplateInfo> read_template_info(const std::string& path) {
+  UniqueFd fd(-1);
+  Expected<std::uint64_t> length = open_for_reading(path, fd);
+  if (!length) return length.error();
+  TemplateHeader h{};
+  const ssize_t n = ::pread(fd.get(), &h, sizeof h, 0);
+  if (n != static_cast<ssize_t>(sizeof h)) {
+    return make_error(path + ": cannot read the header: " + (n < 0 ? errno_text(errno) : std::string("short read")));
+  }
+  return check_header(path, h, *length);
+}
+
+TemplateFile::TemplateFile(TemplateFile&& other) noexcept
+    : path_(std::move(other.path_)),
+      fd_(std::exchange(other.fd_, -1)),
+      mapping_(std::exchange(other.mapping_, nullptr)),
+      mapping_bytes_(std::exchange(other.mapping_bytes_, 0)),
+      info_(std::move(other.info_)),
+      view_(std::exchange(other.view_, {})),
+      surface_points_(std::move(other.surface_points_)),
+      timing_(other.timing_) {}
+
+TemplateFile& TemplateFile::operator=(TemplateFile&& other) noexcept {
+  if (this != &other) {
+    release();
+    path_ = std::move(other.path_);
+    fd_ = std::exchange(other.fd_, -1);
+    mapping_ = std::exchange(other.mapping_, nullptr);
+    mapping_bytes_ = std::exchange(other.mapping_bytes_, 0);
+    info_ = std::move(other.info_);
+    view_ = std::exchange(other.view_, {});
+    surface_points_ = std::move(other.surface_points_);
+    timing_ = other.timing_;
+  }
+  return *this;
+}
+
+TemplateFile::~TemplateFile() {
+  release();
+}
+
+void TemplateFile::release() {
+  view_ = {};
+  if (mapping_ != nullptr) ::munmap(const_cast<std::uint8_t*>(mapping_), mapping_bytes_);
+  mapping_ = nullptr;
+  mapping_bytes_ = 0;
+  if (fd_ >= 0) ::close(fd_);
+  fd_ = -1;
+}
+
+Expected<TemplateFile> TemplateFile::open(const std::string& path, const algo::GridSpec& expected_grid) {
+  const auto start = std::chrono::steady_clock::now();
+  TemplateFile file;  // owns whatever is acquired below, so every early return releases it
+  file.path_ = path;
+  UniqueFd fd(-1);
+  Expected<std::uint64_t> length = open_for_reading(path, fd);
+  if (!length) return length.error();
+  file.fd_ = fd.release();
+  void* mapped = ::mmap(nullptr, *length, PROT_READ, MAP_SHARED, file.fd_, 0);
+  if (mapped == MAP_FAILED) return make_error(path + ": cannot map the file: " + errno_text(errno));
+  file.mapping_ = static_cast<const std::uint8_t*>(mapped);
+  file.mapping_bytes_ = *length;
+
+  TemplateHeader h{};
+  std::memcpy(&h, file.mapping_, sizeof h);
+  Expected<TemplateInfo> info = check_header(path, h, *length);
+  if (!info) return info.error();
+  if (!same_grid(info->grid, expected_grid)) {
+    return make_error(path + ": built for another grid: the file has " + describe_grid(info->grid) +
+                      ", the configuration " + describe_grid(expected_grid) + "; re-teach the part for this grid");
+  }
+  file.info_ = std::move(*info);
+  file.timing_.map_ms = ms_since(start);
+
+  const auto verify_start = std::chrono::steady_clock::now();
+  const std::uint32_t crc = crc_of(static_cast<std::uint32_t>(crc32_z(0, nullptr, 0)),
+                                   file.mapping_ + kTemplateHeaderBytes, *length - kTemplateHeaderBytes);
+  if (crc != h.body_crc32) {
+    return make_error(path + ": body checksum mismatch: the maps or surface points are corrupt; re-teach the part");
+  }
+  file.timing_.verify_ms = ms_since(verify_start);
+
+  file.surface_points_.resize(h.surface_point_count);
+  const std::uint8_t* points = file.mapping_ + h.surface_offset;
+  for (std::size_t i = 0; i < h.surface_point_count; ++i) {
+    float xyz[3];
+    std::memcpy(xyz, points + i * kPointBytes, kPointBytes);
+    file.surface_points_[i] = Eigen::Vector3f(xyz[0], xyz[1], xyz[2]);
+  }
+  const auto* cells = reinterpret_cast<const algo::MapCell*>(file.mapping_ + h.cells_offset);
+  file.view_ = algo::DistanceMapView(dims_of(file.info_.grid), file.info_.grid.origin_m, cells);
+  return file;
+}
+
+}  // namespace cellsight::app

@@ -1,0 +1,153 @@
+// Perfect Match template files (models/templates/NAME.dmap): distance and gradient maps (thesis 2.7.3.1), centroid
+// and surface points of one taught part; built at teach time, memory-mapped read-only and used in place at run time.
+#pragma once
+
+#include <Eigen/Core>
+#include <cstddef>
+#include <cstdint>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "algo/distance_map.hpp"
+#include "algo/grid.hpp"
+#include "algo/result.hpp"
+#include "algo/scan.hpp"
+
+namespace cellsight::app {
+
+// File layout, version 1 (all numbers little-endian, the types exactly as in memory):
+//   [0, 256)               TemplateHeader: magic, version, sizes, grid, quantization, centroid, counts, offsets,
+//                          part name and PLC id, creation time, body CRC; header CRC in its last 4 bytes
+//   [256, 4096)            zeros
+//   [4096, ...)            surface points: surface_point_count x 3 float32 (x, y, z, metres, carrier frame)
+//   zeros up to the next multiple of 4096
+//   [cells_offset, end)    cell_count algo::MapCell (6 bytes each), algo::BrickLayout order, padding included
+// The header CRC (zlib crc32) covers header bytes [0, 252); the body CRC every byte from 256 to the end of the file.
+// Sections start on 4 KiB boundaries so that the mapped cells are page-aligned and read in place.
+inline constexpr std::uint32_t kTemplateFormatVersion = 1;
+inline constexpr std::size_t kTemplateHeaderBytes = 256;
+inline constexpr std::size_t kTemplateSectionAlignment = 4096;
+inline constexpr std::size_t kTemplatePartNameCapacity = 64;  // bytes in the header, NUL included
+
+struct TemplateBuildParams {
+  // Sobel averaged over z (thesis eq. 2.47-2.53) by default: per algo/distance_map.hpp it is 20-35 % closer to the
+  // gradient of the continuous surface a voxelised surface came from, and scan points sample that surface. Which
+  // method gives the better pose is for Perfect Match's end-to-end tests to settle; the file records the choice.
+  algo::GradientMethod gradient_method = algo::GradientMethod::kSobelAveraged;
+  // The two-way check of the cascade rasterises these at grid resolution and looks for connected regions the scan
+  // lacks: it needs every occupied cell (a 4096-point subset of a 0.3 m^2 plate is one point per ~8 mm, which
+  // breaks a 40 mm hole into unconnected cells and hid a one-hole difference in test_model_db). The cap only
+  // guards against absurd inputs; a full 2.2 mm part has ~60-100 k cells (~1 MB in the file).
+  std::size_t max_surface_points = 1U << 21;
+  // Points of the (carrier-free) scan allowed outside the grid before the part counts as cut off. Strict by default:
+  // a template that misses part of its surface would penalise every complete scan of the part.
+  std::size_t max_outside_points = 0;
+};
+
+// A template in memory, as teach builds it from one scan. Teach time only: allocates (the full grid needs ~165 MB
+// for the map plus ~135 MB of transient work buffers).
+struct TemplateModel {
+  algo::GridSpec grid{};
+  algo::GradientMethod gradient_method = algo::GradientMethod::kSobelAveraged;
+  algo::DistanceMap map;
+  // x-y mean of the occupied cell centres: c of DESIGN.md "Pose".
+  Eigen::Vector2d centroid_m = Eigen::Vector2d::Zero();
+  // Occupied cell centres, Morton (Z-order) sorted, then subsampled evenly along that order to at most
+  // max_surface_points: a run of consecutive points is a compact patch, so any strided subset is still spread over
+  // the whole part.
+  std::vector<Eigen::Vector3f> surface_points;
+  std::size_t occupied_cells = 0;
+  std::size_t outside_points = 0;  // tolerated by max_outside_points, not accumulated
+};
+
+// Accumulates `points` (carrier already removed) into an occupancy grid of `grid`, builds the distance map and the
+// centroid and surface points. Refuses an empty scan, a grid the distance transform cannot take, and a part that
+// does not fit the grid (the message says how many points lie beyond which side).
+[[nodiscard]] Expected<TemplateModel> build_template(std::span<const algo::ScanPoint> points,
+                                                     const algo::GridSpec& grid,
+                                                     const TemplateBuildParams& params = {});
+
+// Who the template is, for reports (the manifest stays the authority on names and ids).
+struct TemplateIdentity {
+  std::string part_name;            // 1..63 bytes, no control characters
+  std::uint32_t plc_id = 0;         // PART_ID register (DESIGN.md Modbus map)
+  std::int64_t created_unix_s = 0;  // 0: now
+};
+
+// Writes the file atomically (temp file beside `path`, fsync, rename, fsync of the folder), streaming the sections
+// from `model` without a second copy in memory. On failure the previous file at `path` is untouched and the temp
+// file removed.
+[[nodiscard]] Status write_template(const std::string& path, const TemplateModel& model,
+                                    const TemplateIdentity& identity);
+
+// The header of a checked file.
+struct TemplateInfo {
+  std::uint32_t format_version = 0;
+  algo::GridSpec grid{};
+  algo::GradientMethod gradient_method = algo::GradientMethod::kSobelAveraged;
+  Eigen::Vector2d centroid_m = Eigen::Vector2d::Zero();
+  std::uint64_t occupied_cells = 0;
+  std::uint64_t surface_point_count = 0;
+  std::uint64_t cell_count = 0;  // BrickLayout(grid).cell_count()
+  std::uint64_t file_bytes = 0;
+  std::uint32_t body_crc32 = 0;  // e.g. for a manifest checksum: identifies the content without rereading it
+  std::string part_name;
+  std::uint32_t plc_id = 0;
+  std::int64_t created_unix_s = 0;
+};
+
+// Header only (`parts list/show`): magic, version, header checksum, consistency of the sizes with each other and
+// with the file length. Does not read the body, so it does not prove the maps intact: use TemplateFile to use them.
+[[nodiscard]] Expected<TemplateInfo> read_template_info(const std::string& path);
+
+// "296 x 500 x 182 cells of 2.2 mm, origin (0, 0, 0) m"
+[[nodiscard]] std::string describe_grid(const algo::GridSpec& grid);
+
+struct TemplateLoadTiming {
+  double map_ms = 0.0;     // open, mmap, header checks
+  double verify_ms = 0.0;  // body checksum (reads every page of the file)
+};
+
+// An open, fully checked template: owns the read-only mapping and its file descriptor, and serves the maps in
+// place. Move-only; the view's cell pointer stays valid across moves (the mapping does not move).
+class TemplateFile {
+ public:
+  // Maps `path` read-only and checks magic, version, header checksum, sizes against the file length, that the grid
+  // is `expected_grid`, then the body checksum. Any failure is an error naming the file and the reason, and nothing
+  // of the file is kept. Start-up only (reads the whole file once; see the timing).
+  [[nodiscard]] static Expected<TemplateFile> open(const std::string& path, const algo::GridSpec& expected_grid);
+
+  TemplateFile(TemplateFile&& other) noexcept;
+  TemplateFile& operator=(TemplateFile&& other) noexcept;
+  TemplateFile(const TemplateFile&) = delete;
+  TemplateFile& operator=(const TemplateFile&) = delete;
+  ~TemplateFile();
+
+  // Distance and gradient maps, cells read straight from the mapping.
+  [[nodiscard]] const algo::DistanceMapView& view() const { return view_; }
+  [[nodiscard]] const Eigen::Vector2d& centroid_m() const { return info_.centroid_m; }
+  [[nodiscard]] std::span<const Eigen::Vector3f> surface_points() const { return surface_points_; }
+  [[nodiscard]] const std::string& part_name() const { return info_.part_name; }
+  [[nodiscard]] std::uint32_t plc_id() const { return info_.plc_id; }
+  [[nodiscard]] const TemplateInfo& info() const { return info_; }
+  [[nodiscard]] const std::string& path() const { return path_; }
+  [[nodiscard]] const TemplateLoadTiming& load_timing() const { return timing_; }
+
+ private:
+  TemplateFile() = default;
+  void release();
+
+  std::string path_;
+  int fd_ = -1;
+  const std::uint8_t* mapping_ = nullptr;
+  std::size_t mapping_bytes_ = 0;
+  TemplateInfo info_{};
+  algo::DistanceMapView view_{};
+  // Copied out of the file (48 KiB at the default cap): Eigen::Vector3f is not trivially copyable, so it is not
+  // read in place.
+  std::vector<Eigen::Vector3f> surface_points_;
+  TemplateLoadTiming timing_{};
+};
+
+}  // namespace cellsight::app

@@ -1,0 +1,302 @@
+// `cellsight train`: dataset from the taught scans, training (algo/training), thresholds, atomic database update.
+#include "app/train_mode.hpp"
+
+#include <csignal>
+#include <cstdio>
+#include <filesystem>
+#include <mutex>
+#include <optional>
+#include <thread>
+
+#include "algo/ply.hpp"
+#include "app/atomic_file.hpp"
+#include "app/calibration_file.hpp"
+#include "app/cli.hpp"
+#include "app/mode_args.hpp"
+#include "app/recognition.hpp"
+#include "app/scan_mode.hpp"
+#include "app/train_report.hpp"
+#include "drivers/log.hpp"
+
+namespace cellsight::app {
+namespace {
+
+std::atomic<bool> g_stop{false};  // set by SIGINT/SIGTERM while training: keep the best so far
+
+extern "C" void on_train_stop_signal(int /*signal*/) { g_stop.store(true); }
+
+// SIGINT/SIGTERM -> g_stop for the lifetime of the object; the previous handlers come back afterwards.
+class StopOnSignal {
+ public:
+  StopOnSignal() {
+    g_stop.store(false);
+    struct sigaction sa {};
+    sa.sa_handler = on_train_stop_signal;
+    sigemptyset(&sa.sa_mask);
+    sigaction(SIGINT, &sa, &old_int_);
+    sigaction(SIGTERM, &sa, &old_term_);
+  }
+  ~StopOnSignal() {
+    sigaction(SIGINT, &old_int_, nullptr);
+    sigaction(SIGTERM, &old_term_, nullptr);
+  }
+  StopOnSignal(const StopOnSignal&) = delete;
+  StopOnSignal& operator=(const StopOnSignal&) = delete;
+
+ private:
+  struct sigaction old_int_ {};
+  struct sigaction old_term_ {};
+};
+
+std::size_t max_scan_points(const Config& config) { return scan_builder_params(config).max_points; }
+
+}  // namespace
+
+Expected<algo::Plane> load_support_plane(const std::string& calibration_path) {
+  auto record = load_calibration(calibration_path);
+  if (!record) return make_error(record.error().message + "\n(run scripts/calibrate.sh, or cellsight calibrate, first)");
+  if (!record->has_support) {
+    return make_error(calibration_path +
+                      ": no support section: scan the empty carrier and run 'cellsight calibrate support' first");
+  }
+  return record->support;
+}
+
+Expected<std::vector<algo::ScanPoint>> load_taught_scan(const ModelDb& db, const ScanEntry& scan) {
+  const std::string path = db.path_of(scan.file);
+  auto bytes = read_whole_file(path);
+  if (!bytes) return bytes.error();
+  const std::uint32_t crc = crc32_of(*bytes);
+  if (crc != scan.crc32) {
+    return make_error(path + ": checksum differs from the manifest: the scan was changed or damaged; delete the "
+                             "part ('cellsight parts delete') and teach it again");
+  }
+  auto points = algo::parse_ply(*bytes);
+  if (!points) return make_error(path + ": " + points.error().message);
+  return points;
+}
+
+Expected<TaughtData> build_dataset(const Config& config, const ModelDb& db, const algo::Plane& support, int threads,
+                                   const std::atomic<bool>* stop, const LoadedTemplates* templates) {
+  const Manifest& m = db.manifest();
+  struct Job {
+    int label;
+    const ScanEntry* scan;
+  };
+  std::vector<Job> jobs;
+  TaughtData out;
+  algo::Dataset& data = out.data;
+  for (std::size_t c = 0; c < m.parts.size(); ++c) {
+    data.classes.push_back({m.parts[c].name, m.parts[c].id});
+    for (const ScanEntry& s : m.parts[c].scans) jobs.push_back({static_cast<int>(c), &s});
+  }
+  data.features.resize(jobs.size());
+  data.labels.resize(jobs.size());
+  std::vector<algo::MatchReport> matches(templates != nullptr ? jobs.size() : 0);
+  std::mutex mutex;
+  std::string first_error;
+  std::atomic<std::size_t> next{0};
+  std::atomic<std::size_t> done{0};
+  const auto worker = [&] {
+    ScanPreparer preparer(config, support, max_scan_points(config));
+    std::optional<algo::Cascade> cascade;
+    if (templates != nullptr) cascade.emplace(cascade_params(config), perfect_match_params(config), grid_spec(config));
+    for (std::size_t i = next++; i < jobs.size(); i = next++) {
+      if (stop != nullptr && stop->load()) return;
+      {
+        const std::lock_guard<std::mutex> lock(mutex);
+        if (!first_error.empty()) return;
+      }
+      auto points = load_taught_scan(db, *jobs[i].scan);
+      std::string error;
+      if (!points) {
+        error = points.error().message;
+      } else {
+        const PrepareReport r = preparer.prepare(*points);
+        if (r.status != PrepareStatus::kOk) {
+          error = db.path_of(jobs[i].scan->file) + ": " + std::string(to_string(r.status)) + " (" + r.describe() + ")";
+        } else {
+          data.features[i] = preparer.features();
+          data.labels[i] = jobs[i].label;
+          if (cascade) {
+            matches[i] = cascade->evaluate(templates->models[static_cast<std::size_t>(jobs[i].label)],
+                                           preparer.part_points());
+          }
+        }
+      }
+      if (!error.empty()) {
+        const std::lock_guard<std::mutex> lock(mutex);
+        if (first_error.empty()) first_error = error;
+        return;
+      }
+      const std::size_t n = ++done;
+      if (n % 50 == 0 || n == jobs.size()) CS_LOG_INFO("train", "features of %zu / %zu scans", n, jobs.size());
+    }
+  };
+  const int count = std::max(1, threads);
+  std::vector<std::thread> pool;
+  for (int t = 1; t < count; ++t) pool.emplace_back(worker);
+  worker();
+  for (auto& t : pool) t.join();
+  if (!first_error.empty()) return make_error(first_error);
+  if (stop != nullptr && stop->load()) return make_error("stopped before the features of every scan were computed");
+  if (templates != nullptr) {
+    out.own_matches.resize(data.classes.size());
+    for (std::size_t i = 0; i < jobs.size(); ++i) {
+      out.own_matches[static_cast<std::size_t>(data.labels[i])].push_back(matches[i]);
+    }
+  }
+  return out;
+}
+
+int run_train(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
+  ModeArgs args;
+  std::string error;
+  if (!parse_mode_args(words, {"--report", "--calibration", "--iterations", "--seed"}, {"--compare"}, args, error) ||
+      !args.positional.empty()) {
+    std::fprintf(stderr, "cellsight train: %s\n",
+                 error.empty() ? ("unexpected argument '" + args.positional.front() + "'").c_str() : error.c_str());
+    return kExitUsage;
+  }
+  const auto fail = [](int code, const std::string& message) {
+    std::fprintf(stderr, "cellsight train: %s\n", message.c_str());
+    return code;
+  };
+  auto db = ModelDb::open(models_dir, grid_spec(config), false);
+  if (!db) return fail(kExitUsage, db.error().message);
+  const Manifest& m = db->manifest();
+
+  algo::TrainParams params;
+  params.annealing.start_temperature = config.svm.sa_start_temperature;
+  params.annealing.cooling_ratio = config.svm.sa_cooling_ratio;
+  params.annealing.iterations = config.svm.sa_iterations;
+  params.folds = config.svm.folds;
+  params.seed = static_cast<std::uint64_t>(config.svm.seed);
+  params.threads = config.svm.threads;
+  params.kernel = config.svm.kernel == "poly" ? algo::KernelType::kPoly : algo::KernelType::kRbf;
+  params.compare = args.has("--compare");
+  if (const std::string* v = args.value("--iterations")) {
+    std::int64_t n = 0;
+    if (!parse_whole(*v, 0, 100000, n)) return fail(kExitUsage, "--iterations '" + *v + "': expected 0..100000");
+    params.annealing.iterations = static_cast<int>(n);
+  }
+  if (const std::string* v = args.value("--seed")) {
+    std::int64_t n = 0;
+    if (!parse_whole(*v, 0, INT64_MAX, n)) return fail(kExitUsage, "--seed '" + *v + "': expected a whole number");
+    params.seed = static_cast<std::uint64_t>(n);
+  }
+
+  // Everything that can be refused is refused before hours of work start.
+  if (m.parts.size() < 2) {
+    return fail(kExitUsage, "the database " + models_dir + " has " + std::to_string(m.parts.size()) +
+                                " part(s); the SVM needs at least two taught parts");
+  }
+  int min_scans = INT32_MAX;
+  for (const PartEntry& p : m.parts) {
+    const int n = static_cast<int>(p.scans.size());
+    const int train_n = static_cast<int>(std::lround(config.svm.train_fraction * n));
+    if (train_n < params.folds || n - train_n < 1) {
+      return fail(kExitUsage, "part '" + p.name + "' has " + std::to_string(n) + " scans: with train_fraction " +
+                                  std::to_string(config.svm.train_fraction) + " and " + std::to_string(params.folds) +
+                                  "-fold cross-validation it needs at least " +
+                                  std::to_string(static_cast<int>(std::ceil(params.folds / config.svm.train_fraction)) + 1) +
+                                  " (teach more: cellsight teach --part " + p.name + " ...)");
+    }
+    min_scans = std::min(min_scans, n);
+  }
+  const int train_per_class = static_cast<int>(std::lround(config.svm.train_fraction * min_scans));
+
+  const std::string* calibration_arg = args.value("--calibration");
+  auto support = load_support_plane(calibration_arg ? *calibration_arg : default_calibration_path(config));
+  if (!support) return fail(kExitUsage, support.error().message);
+
+  StopOnSignal stop_on_signal;
+  const int threads = config.svm.threads > 0 ? config.svm.threads
+                                             : static_cast<int>(std::max(1U, std::thread::hardware_concurrency()));
+  std::printf("computing the features of %zu taught scans of %zu parts...\n", [&] {
+    std::size_t n = 0;
+    for (const PartEntry& p : m.parts) n += p.scans.size();
+    return n;
+  }(), m.parts.size());
+  const LoadedTemplates templates = open_templates(config, *db);
+  if (!templates.problems.empty()) {
+    std::string all;
+    for (const std::string& p : templates.problems) all += "\n  " + p;
+    return fail(kExitUsage, "refused templates:" + all + "\n(delete the part with 'cellsight parts delete' and teach it again)");
+  }
+  auto taught = build_dataset(config, *db, *support, threads, &g_stop, &templates);
+  if (!taught) return fail(kExitUsage, taught.error().message);
+  auto split = algo::split_per_class(taught->data, train_per_class, params.seed);
+  if (!split) return fail(kExitUsage, split.error().message);
+
+  ProgressPrinter printer = ProgressPrinter::for_stream(stdout);
+  auto trained = algo::train_recogniser(
+      *split, params, [&](const algo::TrainingProgress& p) { printer.update(p); }, &g_stop);
+  printer.finish();
+  if (!trained) return fail(kExitFailure, trained.error().message);
+  const algo::TrainingReport& report = trained->report;
+  if (report.stopped) std::printf("stopped: the model is trained on the best feature set found so far\n");
+
+  // Acceptance thresholds of every template from its own taught scans (the unknown-part decision, algo/cascade).
+  std::vector<PartThresholds> thresholds;
+  for (const auto& own : taught->own_matches) {
+    const algo::TemplateThresholds t = algo::learn_thresholds(own, cascade_params(config));
+    thresholds.push_back({true, t.max_error, t.max_missing_area_m2, t.max_extra_area_m2});
+  }
+
+  // Atomic update: the new model under a new name, then the manifest that points at it, then the old one goes.
+  const std::string model_file = "svm-" + local_time_text().substr(0, 10) + "-" +
+                                 std::to_string(static_cast<long long>(std::time(nullptr))) + ".model";
+  const std::string blob = trained->model.serialize();
+  if (auto ok = write_file_atomic(db->path_of(model_file), blob); !ok) return fail(kExitFailure, ok.error().message);
+  const std::string old_model = m.svm.present ? m.svm.file : "";
+  Manifest& mm = db->manifest();
+  mm.feature_version = algo::kFeatureVersion;
+  mm.svm.present = true;
+  mm.svm.file = model_file;
+  mm.svm.crc32 = crc32_of(blob);
+  mm.svm.trained_at = local_time_text();
+  mm.svm.parts_fingerprint = db->parts_fingerprint();
+  mm.svm.test_accuracy = report.svm.test_accuracy;
+  mm.svm.cv_accuracy = report.svm.cv_accuracy;
+  mm.svm.train_scans = report.train_samples;
+  mm.svm.test_scans = report.test_samples;
+  mm.svm.active_features = trained->model.active_features();
+  mm.svm.hyper = report.svm.parameters;
+  for (std::size_t c = 0; c < mm.parts.size(); ++c) mm.parts[c].thresholds = thresholds[c];
+  if (auto ok = db->save(); !ok) {
+    std::error_code ec;
+    std::filesystem::remove(db->path_of(model_file), ec);
+    return fail(kExitFailure, ok.error().message + " (the database is unchanged)");
+  }
+  if (!old_model.empty() && old_model != model_file) {
+    std::error_code ec;
+    std::filesystem::remove(db->path_of(old_model), ec);
+  }
+
+  std::printf("SVM: %.2f %% on the %d held-back test scans (%d-fold CV %.2f %%), %d of %d features, %s\n",
+              report.svm.test_accuracy * 100.0, report.test_samples, report.folds, report.svm.cv_accuracy * 100.0,
+              trained->model.active_features(), algo::kFeatureCount, report.svm.parameters.c_str());
+  if (report.knn) {
+    std::printf("kNN: %.2f %% test (CV %.2f %%), %s\n", report.knn->test_accuracy * 100.0,
+                report.knn->cv_accuracy * 100.0, report.knn->parameters.c_str());
+  }
+  if (report.mlp) {
+    std::printf("MLP: %.2f %% test (CV %.2f %%), %s\n", report.mlp->test_accuracy * 100.0,
+                report.mlp->cv_accuracy * 100.0, report.mlp->parameters.c_str());
+  }
+  std::printf("model -> %s (%.1f s)\n", db->path_of(model_file).c_str(), report.seconds);
+  if (const std::string* dir = args.value("--report")) {
+    TrainReportContext context;
+    context.model_db_path = db->path_of(model_file);
+    context.dataset = models_dir + ": " + std::to_string(m.parts.size()) + " taught parts, " +
+                      std::to_string(taught->data.size()) + " scans";
+    context.planned_iterations = params.annealing.iterations;
+    auto written = write_training_report(*dir, report, context);
+    if (!written) return fail(kExitFailure, "the model is saved, but the report failed: " + written.error().message);
+    std::printf("report -> %s\n", written->c_str());
+  }
+  return kExitOk;
+}
+
+}  // namespace cellsight::app

@@ -1,0 +1,41 @@
+// `cellsight train [--report DIR] [--compare]`: features of every taught scan, simulated-annealing feature
+// selection with k-fold CV, the probability SVM, acceptance thresholds per template; written atomically into the
+// model database.
+#pragma once
+
+#include <atomic>
+#include <string>
+#include <vector>
+
+#include "algo/scan.hpp"
+#include "algo/sensor_model.hpp"
+#include "algo/cascade.hpp"
+#include "algo/training.hpp"
+#include "app/config.hpp"
+#include "app/model_db.hpp"
+#include "app/recognition.hpp"
+
+namespace cellsight::app {
+
+// The support plane the scans are cleaned with: calibration.yaml's support section (cellsight calibrate support).
+[[nodiscard]] Expected<algo::Plane> load_support_plane(const std::string& calibration_path);
+
+// Reads a taught scan: checksum against the manifest, then the PLY parser.
+[[nodiscard]] Expected<std::vector<algo::ScanPoint>> load_taught_scan(const ModelDb& db, const ScanEntry& scan);
+
+struct TaughtData {
+  algo::Dataset data;
+  std::vector<std::vector<algo::MatchReport>> own_matches;  // per class: its scans against its own template
+};
+
+// Features of every taught scan, one class per part in manifest order (class index = position). Runs on
+// `threads` threads; any bad scan (checksum, empty, no part, outside the grid) stops it with an error naming
+// the file.
+// With `templates`, every scan is also matched against its own template (for the acceptance thresholds).
+[[nodiscard]] Expected<TaughtData> build_dataset(const Config& config, const ModelDb& db, const algo::Plane& support,
+                                                 int threads, const std::atomic<bool>* stop,
+                                                 const LoadedTemplates* templates);
+
+[[nodiscard]] int run_train(const std::vector<std::string>& args, const Config& config, const std::string& models_dir);
+
+}  // namespace cellsight::app

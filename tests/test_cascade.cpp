@@ -1,0 +1,662 @@
+// Tests of algo/cascade: the thesis 6.4.4 decision table on real (small) template maps of catalogue parts, the
+// two-way check on parts that differ by one hole or one rib (both directions), threshold learning, and an
+// allocation counter around decide(). Scans are sampled from the catalogue's exact facet geometry
+// (drivers/sim/scene build_part) at known poses, so the truth is the simulator's pose.
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <atomic>
+#include <catch2/catch.hpp>
+#include <chrono>
+#include <cmath>
+#include <cstdlib>
+#include <map>
+#include <memory>
+#include <new>
+#include <numbers>
+#include <random>
+#include <set>
+#include <string>
+#include <tuple>
+#include <vector>
+
+#include "algo/cascade.hpp"
+#include "algo/distance_map.hpp"
+#include "algo/grid.hpp"
+#include "algo/perfect_match.hpp"
+#include "app/catalogue.hpp"
+#include "drivers/sim/rig.hpp"
+#include "drivers/sim/scene.hpp"
+#include "drivers/sim/sim_cell.hpp"
+
+// ---- Allocation counter: proves decide() never reaches the heap. ----
+namespace {
+std::atomic<bool> g_count_allocations{false};
+std::atomic<long> g_allocations{0};
+
+void* counted_malloc(std::size_t size) noexcept {
+  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1, std::memory_order_relaxed);
+  return std::malloc(size == 0 ? 1 : size);
+}
+void* counted_new(std::size_t size) {
+  void* memory = counted_malloc(size);
+  if (memory == nullptr) throw std::bad_alloc();
+  return memory;
+}
+}  // namespace
+
+void* operator new(std::size_t size) {
+  return counted_new(size);
+}
+void* operator new[](std::size_t size) {
+  return counted_new(size);
+}
+void* operator new(std::size_t size, const std::nothrow_t&) noexcept {
+  return counted_malloc(size);
+}
+void* operator new[](std::size_t size, const std::nothrow_t&) noexcept {
+  return counted_malloc(size);
+}
+void operator delete(void* memory) noexcept {
+  std::free(memory);
+}
+void operator delete[](void* memory) noexcept {
+  std::free(memory);
+}
+void operator delete(void* memory, std::size_t) noexcept {
+  std::free(memory);
+}
+void operator delete[](void* memory, std::size_t) noexcept {
+  std::free(memory);
+}
+
+using namespace cellsight;
+using algo::Cascade;
+using algo::CascadeParams;
+using algo::ClassProbability;
+using algo::Decision;
+using algo::DecisionSource;
+using algo::MatchReport;
+using algo::PlanarPose;
+using algo::ScanPoint;
+using algo::TemplateModel;
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+constexpr double kDeg = std::numbers::pi / 180.0;
+constexpr double kHoleRadiusM = 0.020;  // plate_5h's centre hole (config/parts.yaml)
+const sim::PartPose kTaughtPose{0.004, -0.006, 0.6 * kDeg, -0.5 * kDeg};
+const sim::PartPose kTestPose{-0.019, 0.011, 2.3 * kDeg, 1.3 * kDeg};
+
+// A grid that holds every test pose (+-30 mm, +-4 deg, swing +-2 deg) at the real 2.2 mm, but only the depth slab
+// the flat and ribbed parts occupy, so that a map builds in about a second under ASan.
+algo::GridSpec test_grid() {
+  algo::GridSpec g;
+  g.origin_m = {0.03, 0.18, 0.07};
+  g.resolution_m = 0.0022;
+  g.nx = 275;
+  g.ny = 380;
+  g.nz = 36;
+  return g;
+}
+
+const std::vector<sim::PartSpec>& catalogue() {
+  static const std::vector<sim::PartSpec> parts = [] {
+    auto loaded = app::load_catalogue(CELLSIGHT_SOURCE_DIR "/config/parts.yaml");
+    REQUIRE(loaded.ok());
+    return *loaded;
+  }();
+  return parts;
+}
+
+const sim::PartSpec& part(const std::string& name) {
+  for (const sim::PartSpec& p : catalogue()) {
+    if (p.name == name) return p;
+  }
+  FAIL("no part " << name);
+  return catalogue().front();
+}
+
+// The simulated cell's placement (SimCell::begin_pass): p_C = n + R_z(theta) R_y(swing) p_part + (x, y, 0).
+Eigen::Vector3d nominal_centre(const sim::PartSpec& spec) {
+  const sim::CarrierParams c = sim::default_rig_params().carrier;
+  return {0.5 * c.length_m, c.hook_height_m - 0.5e-3 * spec.height_mm, c.part_plane_z_m};
+}
+Eigen::Isometry3d part_to_carrier(const sim::PartSpec& spec, const sim::PartPose& pose) {
+  return Eigen::Translation3d(nominal_centre(spec) + Eigen::Vector3d(pose.x_m, pose.y_m, 0.0)) *
+         Eigen::AngleAxisd(pose.theta_rad, Eigen::Vector3d::UnitZ()) *
+         Eigen::AngleAxisd(pose.swing_rad, Eigen::Vector3d::UnitY());
+}
+
+// A scan of the part's exact surface: every facet sampled on a lattice of about one profile per 2.2 mm along x and
+// one row per 1.6 mm along y (the rig's spacing), lattice phase and depth noise from `seed`.
+std::vector<ScanPoint> sample_part(const sim::PartSpec& spec, const sim::PartPose& pose, std::uint64_t seed,
+                                   double noise_m = 0.3e-3) {
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> phase(0.0, 1.0);
+  std::normal_distribution<double> noise(0.0, noise_m);
+  const Eigen::Isometry3d to_carrier = part_to_carrier(spec, pose);
+  constexpr double kStepU = 0.0022, kStepV = 0.0016;
+  std::vector<ScanPoint> out;
+  for (const sim::Facet& f : sim::build_part(spec)) {
+    double u0 = 1e9, u1 = -1e9, v0 = 1e9, v1 = -1e9;
+    for (const Eigen::Vector2d& q : f.outline) {
+      u0 = std::min(u0, q.x());
+      u1 = std::max(u1, q.x());
+      v0 = std::min(v0, q.y());
+      v1 = std::max(v1, q.y());
+    }
+    const double pu = phase(rng) * kStepU, pv = phase(rng) * kStepV;
+    for (double u = u0 + pu; u < u1; u += kStepU) {
+      for (double v = v0 + pv; v < v1; v += kStepV) {
+        if (!f.contains({u, v})) continue;
+        const Eigen::Vector3d p = to_carrier * (f.at({u, v}) + noise(rng) * f.normal);
+        out.push_back({static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z()), 0, 0});
+      }
+    }
+  }
+  return out;
+}
+
+// A taught template: the scan's occupancy grid, its distance map and surface, its centroid.
+struct Template {
+  std::string name;
+  sim::PartPose pose;
+  std::vector<ScanPoint> scan;
+  algo::DistanceMap map;
+  std::vector<Eigen::Vector3f> surface;
+  Eigen::Vector2d centroid_m = Eigen::Vector2d::Zero();
+};
+
+std::unique_ptr<Template> teach(const std::string& name, const sim::PartPose& pose, std::uint64_t seed) {
+  auto t = std::make_unique<Template>();
+  t->name = name;
+  t->pose = pose;
+  t->scan = sample_part(part(name), pose, seed);
+  const algo::GridSpec g = test_grid();
+  algo::OccupancyGrid occupancy(g, t->scan.size());
+  REQUIRE(occupancy.accumulate(t->scan) == 0);
+  const algo::GridDims dims{g.nx, g.ny, g.nz, g.resolution_m};
+  algo::EdtScratch scratch(dims);
+  std::vector<float> work(dims.cell_count());
+  REQUIRE(algo::build_distance_map(occupancy.data(), dims, g.origin_m, algo::GradientMethod::kCentralDifference,
+                                   scratch, work.data(), t->map)
+              .ok());
+  algo::surface_points_from_map(t->map.view(), t->surface);
+  t->centroid_m = algo::centroid_xy_m(t->scan);
+  return t;
+}
+
+// Templates are taught once per process (each ctest run is one process; Catch re-enters a scenario per leaf).
+const Template& taught(const std::string& name) {
+  static std::map<std::string, std::unique_ptr<Template>> cache;
+  auto it = cache.find(name);
+  if (it == cache.end()) {
+    std::uint64_t seed = 1000;
+    for (const char ch : name) seed = seed * 31 + static_cast<unsigned char>(ch);
+    it = cache.emplace(name, teach(name, kTaughtPose, seed)).first;
+  }
+  return *it->second;
+}
+
+TemplateModel model_of(const Template& t, int class_index, int part_id) {
+  TemplateModel m;
+  m.class_index = class_index;
+  m.part_id = part_id;
+  m.map = t.map.view();
+  m.centroid_m = t.centroid_m;
+  m.surface_points = t.surface;
+  return m;
+}
+
+// DESIGN.md's pose of a scan taken at `scan` relative to a template taught at `taught` (swing left out: the planar
+// pose does not model it): p_scan = c + R(dtheta)(p_template - c) + t.
+PlanarPose true_relative_pose(const Template& taught, const sim::PartPose& scan) {
+  const sim::PartSpec& spec = part(taught.name);
+  const Eigen::Vector2d n = nominal_centre(spec).head<2>();
+  const Eigen::Vector2d t0(taught.pose.x_m, taught.pose.y_m), t1(scan.x_m, scan.y_m);
+  const double dtheta = scan.theta_rad - taught.pose.theta_rad;
+  const Eigen::Vector2d c = taught.centroid_m;
+  const Eigen::Vector2d t = Eigen::Rotation2Dd(dtheta) * (c - n - t0) + n + t1 - c;
+  return {t.x(), t.y(), dtheta};
+}
+
+// Poses of "other passes" of the same part (thesis pose range is +-50 mm / +-5 deg; here +-30 mm / +-4 deg so the
+// small test grid holds them).
+const std::vector<sim::PartPose>& other_poses() {
+  static const std::vector<sim::PartPose> poses = {
+      {0.021, -0.013, 3.1 * kDeg, 1.6 * kDeg},
+      {-0.027, 0.018, -3.7 * kDeg, -1.9 * kDeg},
+      {0.008, 0.026, 1.2 * kDeg, 0.7 * kDeg},
+      {-0.015, -0.024, -1.8 * kDeg, 1.1 * kDeg},
+      {0.029, 0.004, -2.6 * kDeg, -0.4 * kDeg},
+  };
+  return poses;
+}
+
+algo::PerfectMatchParams pm_params() {
+  return algo::PerfectMatchParams{};
+}
+
+// Learns a template's thresholds the way training does: its own class's scans at the other poses.
+algo::TemplateThresholds learn(Cascade& cascade, const TemplateModel& model, const std::string& name,
+                               std::uint64_t seed_base) {
+  std::vector<MatchReport> reports;
+  for (std::size_t i = 0; i < other_poses().size(); ++i) {
+    const auto scan = sample_part(part(name), other_poses()[i], seed_base + i);
+    reports.push_back(cascade.evaluate(model, scan));
+  }
+  return algo::learn_thresholds(reports, cascade.params());
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------------------------------
+
+TEST_CASE("surface_points_from_map returns exactly the centres of the occupied cells", "[cascade]") {
+  // Given a small random occupancy grid and its map
+  const algo::GridDims dims{23, 17, 11, 0.003};
+  const Eigen::Vector3d origin(0.1, -0.2, 0.05);
+  std::vector<std::uint8_t> occupied(dims.cell_count(), 0);
+  std::mt19937 rng(7);
+  std::set<std::tuple<int, int, int>> truth;
+  for (int i = 0; i < 60; ++i) {
+    const int x = static_cast<int>(rng() % 23), y = static_cast<int>(rng() % 17), z = static_cast<int>(rng() % 11);
+    occupied[dims.index(x, y, z)] = 1;
+    truth.insert({x, y, z});
+  }
+  algo::EdtScratch scratch(dims);
+  std::vector<float> work(dims.cell_count());
+  algo::DistanceMap map;
+  REQUIRE(algo::build_distance_map(occupied.data(), dims, origin, algo::GradientMethod::kCentralDifference, scratch,
+                                   work.data(), map)
+              .ok());
+  // When its surface points are recovered
+  std::vector<Eigen::Vector3f> surface;
+  algo::surface_points_from_map(map.view(), surface);
+  // Then they are the occupied cells' centres, each once
+  std::set<std::tuple<int, int, int>> found;
+  for (const Eigen::Vector3f& p : surface) {
+    const Eigen::Vector3d f = (p.cast<double>() - origin) / dims.resolution_m - Eigen::Vector3d::Constant(0.5);
+    const Eigen::Vector3d r = f.array().round();
+    CHECK((f - r).cwiseAbs().maxCoeff() < 1e-3);
+    found.insert({static_cast<int>(r.x()), static_cast<int>(r.y()), static_cast<int>(r.z())});
+  }
+  CHECK(surface.size() == truth.size());
+  CHECK(found == truth);
+}
+
+TEST_CASE("learn_thresholds takes the own-class maxima times the factor plus the floor", "[cascade]") {
+  CascadeParams p;
+  p.error_factor = 2.0;
+  p.error_floor = 1e-4;
+  p.area_factor = 1.5;
+  p.area_floor_m2 = 100e-6;
+  std::vector<MatchReport> reports(3);
+  reports[0].pm.error = 3e-4;
+  reports[0].missing_area_m2 = 20e-6;
+  reports[0].extra_area_m2 = 5e-6;
+  reports[1].pm.error = 5e-4;
+  reports[1].missing_area_m2 = 10e-6;
+  reports[1].extra_area_m2 = 40e-6;
+  reports[2].pm.error = 1e-4;
+  reports[2].missing_area_m2 = 30e-6;
+  reports[2].extra_area_m2 = 0.0;
+  const algo::TemplateThresholds t = algo::learn_thresholds(reports, p);
+  CHECK(t.max_error == Approx(5e-4 * 2.0 + 1e-4));
+  CHECK(t.max_missing_area_m2 == Approx(30e-6 * 1.5 + 100e-6));
+  CHECK(t.max_extra_area_m2 == Approx(40e-6 * 1.5 + 100e-6));
+  const algo::TemplateThresholds empty = algo::learn_thresholds({}, p);
+  CHECK(empty.max_error == Approx(1e-4));
+  CHECK(empty.max_missing_area_m2 == Approx(100e-6));
+}
+
+SCENARIO("The two-way check sees one hole more or less in both directions and the same part at other poses passes",
+         "[cascade][two-way]") {
+  GIVEN("templates of plate_4h and plate_5h (= plate_4h + one 40 mm centre hole), taught at one pose") {
+    const Template* t4 = &taught("plate_4h");
+    const Template* t5 = &taught("plate_5h");
+    Cascade cascade(CascadeParams{}, pm_params(), test_grid());
+    // What a hole leaves: the template cells whose window (a square of half-side h = (r + 1/2) cells around the
+    // cell) lies wholly inside the hole, i.e. the disc eroded by that square: between the discs of radius
+    // R - sqrt(2) h and R - h, one cell of rasterisation either way.
+    const double cell = test_grid().resolution_m;
+    const double h = (cascade.window_cells() + 0.5) * cell;
+    const double hole_min_m2 = std::numbers::pi * std::pow(kHoleRadiusM - std::numbers::sqrt2 * h - cell, 2);
+    const double hole_max_m2 = std::numbers::pi * std::pow(kHoleRadiusM - h + cell, 2);
+
+    WHEN("a plate_5h scan is checked against the plate_4h template at the true pose (the scan LACKS material)") {
+      const auto scan = sample_part(part("plate_5h"), kTestPose, 21);
+      const MatchReport r = cascade.two_way_check(model_of(*t4, 0, 1), scan, true_relative_pose(*t4, kTestPose));
+      THEN("the template area it misses is the hole's disc shrunk by the window, and nothing is extra") {
+        INFO("missing " << r.missing_area_m2 * 1e6 << " mm^2, extra " << r.extra_area_m2 * 1e6 << " mm^2, expected "
+                        << hole_min_m2 * 1e6 << ".." << hole_max_m2 * 1e6);
+        CHECK(r.missing_area_m2 >= hole_min_m2);
+        CHECK(r.missing_area_m2 <= hole_max_m2);
+        CHECK(r.extra_area_m2 < 20e-6);
+        CHECK(r.coverage < 1.0);
+        CHECK(r.coverage > 0.98);
+      }
+    }
+    WHEN("a plate_4h scan is checked against the plate_5h template at the true pose (the scan has EXTRA material)") {
+      const auto scan = sample_part(part("plate_4h"), kTestPose, 22);
+      const MatchReport r = cascade.two_way_check(model_of(*t5, 0, 1), scan, true_relative_pose(*t5, kTestPose));
+      THEN("the extra area is the hole's disc shrunk by the window, and nothing is missing") {
+        INFO("missing " << r.missing_area_m2 * 1e6 << " mm^2, extra " << r.extra_area_m2 * 1e6 << " mm^2, expected "
+                        << hole_min_m2 * 1e6 << ".." << hole_max_m2 * 1e6);
+        CHECK(r.extra_area_m2 >= hole_min_m2);
+        CHECK(r.extra_area_m2 <= hole_max_m2);
+        CHECK(r.missing_area_m2 < 20e-6);
+        CHECK(r.scan_outliers > 0.0);
+      }
+    }
+    WHEN("plate_4h and plate_5h scans at five other poses are checked against their own templates") {
+      double worst = 0.0;
+      for (std::size_t i = 0; i < other_poses().size(); ++i) {
+        for (const Template* t : {t4, t5}) {
+          const auto scan = sample_part(part(t->name), other_poses()[i], 100 + i);
+          const MatchReport r = cascade.two_way_check(model_of(*t, 0, 1), scan, true_relative_pose(*t, other_poses()[i]));
+          INFO(t->name << " pose " << i << ": missing " << r.missing_area_m2 * 1e6 << " mm^2, extra "
+                       << r.extra_area_m2 * 1e6 << " mm^2, depth slope " << r.depth_slope_x);
+          worst = std::max({worst, r.missing_area_m2, r.extra_area_m2});
+          CHECK(r.coverage > 0.99);
+          CHECK(r.scan_outliers < 0.01);
+          // The swing difference (up to 2.4 deg) is a depth slope the levelling finds: -tan(dswing).
+          CHECK(r.depth_slope_x == Approx(-std::tan(other_poses()[i].swing_rad - kTaughtPose.swing_rad)).margin(0.004));
+        }
+      }
+      THEN("every blob stays a small fraction of the one-hole difference") {
+        INFO("worst own-class blob " << worst * 1e6 << " mm^2, one hole >= " << hole_min_m2 * 1e6 << " mm^2");
+        CHECK(worst < 0.1 * hole_min_m2);
+      }
+    }
+  }
+}
+
+SCENARIO("The two-way check sees one pressed rib more or less, which a flat x-y mask cannot", "[cascade][two-way]") {
+  GIVEN("templates of ribbed_v4 and ribbed_v3 (= ribbed_v4 without its right-most rib)") {
+    const Template* t4 = &taught("ribbed_v4");
+    const Template* t3 = &taught("ribbed_v3");
+    Cascade cascade(CascadeParams{}, pm_params(), test_grid());
+    // The rib's top (20 mm wide, 560 mm long, 20 mm proud) is certainly off by more than the depth tolerance.
+    const double rib_top_m2 = (0.020 - 2 * cascade.window_cells() * test_grid().resolution_m) * 0.560;
+    WHEN("each scan is checked against the other template at the true pose") {
+      const auto scan3 = sample_part(part("ribbed_v3"), kTestPose, 41);
+      const auto scan4 = sample_part(part("ribbed_v4"), kTestPose, 42);
+      const MatchReport v3_on_v4 = cascade.two_way_check(model_of(*t4, 0, 1), scan3, true_relative_pose(*t4, kTestPose));
+      const MatchReport v4_on_v3 = cascade.two_way_check(model_of(*t3, 0, 1), scan4, true_relative_pose(*t3, kTestPose));
+      THEN("both directions show a rib-sized blob of missing and of extra surface") {
+        INFO("v3 scan on v4: missing " << v3_on_v4.missing_area_m2 * 1e6 << " extra " << v3_on_v4.extra_area_m2 * 1e6
+                                       << "; v4 scan on v3: missing " << v4_on_v3.missing_area_m2 * 1e6 << " extra "
+                                       << v4_on_v3.extra_area_m2 * 1e6 << " mm^2; rib top " << rib_top_m2 * 1e6);
+        CHECK(v3_on_v4.missing_area_m2 > rib_top_m2);
+        CHECK(v3_on_v4.extra_area_m2 > rib_top_m2);
+        CHECK(v4_on_v3.missing_area_m2 > rib_top_m2);
+        CHECK(v4_on_v3.extra_area_m2 > rib_top_m2);
+      }
+    }
+    WHEN("the same is done with an unbounded depth tolerance (a flat x-y mask)") {
+      CascadeParams flat;
+      flat.depth_tolerance_m = 1.0;
+      Cascade flat_cascade(flat, pm_params(), test_grid());
+      const auto scan3 = sample_part(part("ribbed_v3"), kTestPose, 41);
+      const MatchReport r = flat_cascade.two_way_check(model_of(*t4, 0, 1), scan3, true_relative_pose(*t4, kTestPose));
+      THEN("the difference is invisible: the masks of a ribbed and a flat sheet coincide") {
+        CHECK(r.missing_area_m2 < 20e-6);
+        CHECK(r.extra_area_m2 < 20e-6);
+      }
+    }
+    WHEN("ribbed scans at other poses are checked against their own templates") {
+      for (std::size_t i = 0; i < other_poses().size(); ++i) {
+        for (const Template* t : {t4, t3}) {
+          const auto scan = sample_part(part(t->name), other_poses()[i], 200 + i);
+          const MatchReport r = cascade.two_way_check(model_of(*t, 0, 1), scan, true_relative_pose(*t, other_poses()[i]));
+          INFO(t->name << " pose " << i << ": missing " << r.missing_area_m2 * 1e6 << " extra " << r.extra_area_m2 * 1e6);
+          CHECK(r.missing_area_m2 < 0.1 * rib_top_m2);
+          CHECK(r.extra_area_m2 < 0.1 * rib_top_m2);
+        }
+      }
+    }
+  }
+}
+
+SCENARIO("The check aligns the outlines when the pose it is given is millimetres off", "[cascade][two-way]") {
+  GIVEN("plate_4h, ribbed_v4 and plate_5h templates and scans of the same parts at another pose") {
+    CascadeParams no_refine;
+    no_refine.refine_iterations = 0;
+    Cascade cascade(CascadeParams{}, pm_params(), test_grid());
+    Cascade cascade_fixed(no_refine, pm_params(), test_grid());
+    for (const std::string name : {"plate_4h", "ribbed_v4", "plate_5h"}) {
+      const Template& t = taught(name);
+      const auto scan = sample_part(part(name), kTestPose, 51);
+      const PlanarPose truth = true_relative_pose(t, kTestPose);
+      WHEN(name + ": the check is given a pose 4 mm, -3 mm and 0.5 deg off the true one") {
+        const PlanarPose start{truth.x_m + 0.004, truth.y_m - 0.003, truth.theta_rad + 0.5 * kDeg};
+        const MatchReport r = cascade.two_way_check(model_of(t, 0, 1), scan, start);
+        const MatchReport fixed = cascade_fixed.two_way_check(model_of(t, 0, 1), scan, start);
+        THEN("it runs at the outline pose, close to the truth, and finds no blob where the fixed pose finds some") {
+          INFO("check pose " << r.check_pose.x_m << ", " << r.check_pose.y_m << ", " << r.check_pose.theta_rad / kDeg
+                             << " deg; truth " << truth.x_m << ", " << truth.y_m << ", " << truth.theta_rad / kDeg
+                             << "; outline rms " << r.outline_rms_m * 1e3 << " mm; at the given pose: missing "
+                             << fixed.missing_area_m2 * 1e6 << ", extra " << fixed.extra_area_m2 * 1e6 << " mm^2");
+          // Along x the outline is known to one profile spacing (2.2 mm) at either edge, along y to a row (1.6 mm).
+          CHECK(std::abs(r.check_pose.x_m - truth.x_m) < 0.0025);
+          CHECK(std::abs(r.check_pose.y_m - truth.y_m) < 0.0015);
+          CHECK(std::abs(r.check_pose.theta_rad - truth.theta_rad) < 0.08 * kDeg);
+          CHECK(r.missing_area_m2 < 30e-6);
+          CHECK(r.extra_area_m2 < 30e-6);
+          CHECK(fixed.missing_area_m2 + fixed.extra_area_m2 > 100e-6);
+        }
+      }
+    }
+  }
+}
+
+// ---- The decision table ----------------------------------------------------------------------------------------------
+
+namespace {
+
+// Four classes: plate_4h (0), ribbed_v4 (1), plate_5h (2), ribbed_v3 (3); thresholds learnt from own-class scans.
+class Catalogue4 {
+ public:
+  Catalogue4() : cascade_(CascadeParams{}, pm_params(), test_grid()) {
+    const std::vector<std::string> names = {"plate_4h", "ribbed_v4", "plate_5h", "ribbed_v3"};
+    for (std::size_t i = 0; i < names.size(); ++i) {
+      templates_.push_back(&::taught(names[i]));
+      models_.push_back(model_of(*templates_.back(), static_cast<int>(i), 101 + static_cast<int>(i)));
+    }
+    for (std::size_t i = 0; i < names.size(); ++i) {
+      models_[i].thresholds = learn(cascade_, models_[i], names[i], 400 + 10 * i);
+    }
+  }
+  Cascade& cascade() { return cascade_; }
+  [[nodiscard]] std::span<const TemplateModel> models() const { return models_; }
+  [[nodiscard]] const Template& taught(int i) const { return *templates_[static_cast<std::size_t>(i)]; }
+
+ private:
+  Cascade cascade_;
+  std::vector<const Template*> templates_;
+  std::vector<TemplateModel> models_;
+};
+
+// Built once per process (see taught()).
+Catalogue4& catalogue4() {
+  static Catalogue4 cat;
+  return cat;
+}
+
+Clock::time_point far_deadline() {
+  return Clock::now() + std::chrono::seconds(60);
+}
+
+void check_pose(const Decision& d, const PlanarPose& truth) {
+  INFO("pose " << d.pose.x_m << ", " << d.pose.y_m << ", " << d.pose.theta_rad / kDeg << " deg; truth " << truth.x_m
+               << ", " << truth.y_m << ", " << truth.theta_rad / kDeg);
+  REQUIRE(d.pose_valid);
+  // Perfect Match's pose (thesis table 6.13 with real parts: 8 mm, 2.7 mm, 0.95 deg at most).
+  CHECK(std::abs(d.pose.x_m - truth.x_m) < 0.008);
+  CHECK(std::abs(d.pose.y_m - truth.y_m) < 0.008);
+  CHECK(std::abs(d.pose.theta_rad - truth.theta_rad) < 0.95 * kDeg);
+}
+
+}  // namespace
+
+SCENARIO("The cascade decides by the thesis 6.4.4 table and verifies every accepted class", "[cascade][policy]") {
+  GIVEN("four taught classes with learnt thresholds, and a plate_4h scan at another pose") {
+    Catalogue4& cat = catalogue4();
+    const auto scan = sample_part(part("plate_4h"), kTestPose, 501);
+    const PlanarPose truth = true_relative_pose(cat.taught(0), kTestPose);
+
+    WHEN("the SVM is sure of the right class (p1 0.90 >= 0.70, p2 0.05 <= 0.06)") {
+      const ClassProbability svm[] = {{0, 0.90}, {2, 0.05}, {1, 0.03}, {3, 0.02}};
+      const Decision d = cat.cascade().decide(svm, cat.models(), scan, far_deadline());
+      THEN("the SVM's class is taken, Perfect Match gives the pose, the decision is filled") {
+        CHECK(d.source == DecisionSource::kSvm);
+        CHECK(d.class_index == 0);
+        CHECK(d.part_id == 101);
+        CHECK(d.probability == 0.90);
+        CHECK(d.second_class_index == 2);
+        CHECK(d.pm_error <= cat.models()[0].thresholds.max_error);
+        CHECK(d.template_coverage > 0.98);
+        CHECK(d.scan_outliers < 0.02);
+        CHECK(d.pm_ms > 0.0);
+        CHECK(d.total_ms >= d.pm_ms);
+        check_pose(d, truth);
+      }
+    }
+    WHEN("the SVM is unsure (p1 0.55 < 0.70) between ribbed_v4 and plate_4h") {
+      const ClassProbability svm[] = {{1, 0.55}, {0, 0.40}, {2, 0.03}, {3, 0.02}};
+      const Decision d = cat.cascade().decide(svm, cat.models(), scan, far_deadline());
+      // Independent of decide(): each candidate's error on its own.
+      const MatchReport r0 = cat.cascade().evaluate(cat.models()[0], scan);
+      const MatchReport r1 = cat.cascade().evaluate(cat.models()[1], scan);
+      THEN("Perfect Match picks the candidate with the lower error, the right one") {
+        INFO("plate_4h error " << r0.pm.error << ", ribbed_v4 error " << r1.pm.error);
+        CHECK(r0.pm.error < r1.pm.error);
+        CHECK(d.source == DecisionSource::kPm);
+        CHECK(d.class_index == 0);
+        CHECK(d.part_id == 101);
+        CHECK(d.probability == 0.40);
+        CHECK(d.second_class_index == 1);
+        CHECK(d.pm_error == Approx(r0.pm.error));
+        check_pose(d, truth);
+      }
+    }
+    WHEN("p1 is high but p2 too (0.72 / 0.10 > 0.06)") {
+      const ClassProbability svm[] = {{0, 0.72}, {1, 0.10}, {2, 0.10}, {3, 0.08}};
+      const Decision d = cat.cascade().decide(svm, cat.models(), scan, far_deadline());
+      THEN("Perfect Match decides") {
+        CHECK(d.source == DecisionSource::kPm);
+        CHECK(d.class_index == 0);
+      }
+    }
+    WHEN("the SVM is sure of the one-hole-different plate_5h") {
+      const ClassProbability svm[] = {{2, 0.92}, {0, 0.05}, {1, 0.02}, {3, 0.01}};
+      const Decision d = cat.cascade().decide(svm, cat.models(), scan, far_deadline());
+      THEN("plate_5h fails verification (extra material where its hole is) and the k-candidate match finds plate_4h") {
+        CHECK(d.source == DecisionSource::kPm);
+        CHECK(d.class_index == 0);
+        CHECK(d.part_id == 101);
+        check_pose(d, truth);
+      }
+    }
+    WHEN("neither of the SVM's two best classes is the part") {
+      const ClassProbability svm[] = {{1, 0.50}, {3, 0.45}, {0, 0.03}, {2, 0.02}};
+      const Decision d = cat.cascade().decide(svm, cat.models(), scan, far_deadline());
+      THEN("the decision is unknown: no class, no id, no pose") {
+        CHECK(d.source == DecisionSource::kUnknown);
+        CHECK(d.class_index == -1);
+        CHECK(d.part_id == 0);
+        CHECK_FALSE(d.pose_valid);
+        CHECK_FALSE(d.accepted());
+        CHECK(d.probability == 0.50);
+      }
+    }
+    WHEN("the deadline has already passed") {
+      const ClassProbability svm[] = {{0, 0.90}, {2, 0.05}, {1, 0.03}, {3, 0.02}};
+      const Decision d = cat.cascade().decide(svm, cat.models(), scan, Clock::now() - std::chrono::milliseconds(1));
+      THEN("the decision is a timeout, never a guess") {
+        CHECK(d.source == DecisionSource::kTimeout);
+        CHECK(d.class_index == -1);
+        CHECK(d.part_id == 0);
+        CHECK_FALSE(d.pose_valid);
+      }
+    }
+  }
+}
+
+SCENARIO("A scan lacking one hole's material is told from its one-hole sibling, whatever the SVM says",
+         "[cascade][policy]") {
+  GIVEN("four taught classes with learnt thresholds, and a plate_5h scan at another pose") {
+    Catalogue4& cat = catalogue4();
+    const auto scan = sample_part(part("plate_5h"), kTestPose, 601);
+    WHEN("the SVM is sure of plate_4h (which the scan is plate_4h plus a hole)") {
+      const ClassProbability svm[] = {{0, 0.93}, {2, 0.04}, {1, 0.02}, {3, 0.01}};
+      const Decision d = cat.cascade().decide(svm, cat.models(), scan, far_deadline());
+      const MatchReport wrong = cat.cascade().evaluate(cat.models()[0], scan);
+      THEN("plate_4h fails on the missing hole material although its error passes, and plate_5h is chosen") {
+        INFO("plate_4h on the plate_5h scan: error " << wrong.pm.error << " (max " << cat.models()[0].thresholds.max_error
+                                                      << "), missing " << wrong.missing_area_m2 * 1e6 << " mm^2 (max "
+                                                      << cat.models()[0].thresholds.max_missing_area_m2 * 1e6 << ")");
+        CHECK(wrong.pm.error <= cat.models()[0].thresholds.max_error);  // one-way matching is blind here
+        CHECK(wrong.missing_area_m2 > cat.models()[0].thresholds.max_missing_area_m2);
+        CHECK(d.source == DecisionSource::kPm);
+        CHECK(d.class_index == 2);
+        CHECK(d.part_id == 103);
+        check_pose(d, true_relative_pose(cat.taught(2), kTestPose));
+      }
+    }
+    WHEN("the SVM offers only plate_4h and a ribbed panel") {
+      const ClassProbability svm[] = {{0, 0.60}, {1, 0.30}, {2, 0.06}, {3, 0.04}};
+      const Decision d = cat.cascade().decide(svm, cat.models(), scan, far_deadline());
+      THEN("nothing passes: unknown rather than the wrong plate") {
+        CHECK(d.source == DecisionSource::kUnknown);
+        CHECK(d.class_index == -1);
+        CHECK(d.part_id == 0);
+      }
+    }
+  }
+  GIVEN("the same four classes and scans of ribbed_v3 and of a part that was never taught") {
+    Catalogue4& cat = catalogue4();
+    WHEN("the SVM is sure of ribbed_v4 for a ribbed_v3 scan") {
+      const auto scan = sample_part(part("ribbed_v3"), kTestPose, 602);
+      const ClassProbability svm[] = {{1, 0.90}, {3, 0.05}, {0, 0.03}, {2, 0.02}};
+      const Decision d = cat.cascade().decide(svm, cat.models(), scan, far_deadline());
+      THEN("ribbed_v3 is chosen") {
+        CHECK(d.source == DecisionSource::kPm);
+        CHECK(d.class_index == 3);
+      }
+    }
+    WHEN("the SVM is sure of plate_4h for a frame_window scan") {
+      const auto scan = sample_part(part("frame_window"), kTestPose, 603);
+      const ClassProbability svm[] = {{0, 0.95}, {2, 0.03}, {1, 0.01}, {3, 0.01}};
+      const Decision d = cat.cascade().decide(svm, cat.models(), scan, far_deadline());
+      THEN("the decision is unknown") {
+        CHECK(d.source == DecisionSource::kUnknown);
+        CHECK(d.class_index == -1);
+      }
+    }
+  }
+}
+
+TEST_CASE("decide() allocates nothing", "[cascade][alloc]") {
+  // Given a cascade and its templates, built at start-up
+  Catalogue4& cat = catalogue4();
+  const auto scan = sample_part(part("plate_5h"), kTestPose, 701);
+  const ClassProbability sure_wrong[] = {{0, 0.93}, {2, 0.04}, {1, 0.02}, {3, 0.01}};  // SVM path, fallback, PM
+  const ClassProbability unsure[] = {{1, 0.50}, {3, 0.45}, {0, 0.03}, {2, 0.02}};      // PM path, unknown
+  (void)cat.cascade().decide(sure_wrong, cat.models(), scan, far_deadline());           // warm-up
+  // When it decides along every path
+  g_allocations.store(0);
+  g_count_allocations.store(true);
+  const Decision a = cat.cascade().decide(sure_wrong, cat.models(), scan, far_deadline());
+  const Decision b = cat.cascade().decide(unsure, cat.models(), scan, far_deadline());
+  const Decision c = cat.cascade().decide(sure_wrong, cat.models(), scan, Clock::now() - std::chrono::seconds(1));
+  g_count_allocations.store(false);
+  // Then no allocation happened
+  CHECK(g_allocations.load() == 0);
+  CHECK(a.source == DecisionSource::kPm);
+  CHECK(b.source == DecisionSource::kUnknown);
+  CHECK(c.source == DecisionSource::kTimeout);
+}
+
