@@ -69,6 +69,20 @@ struct OutlineField {
   }
 };
 
+// The field over the raster box [x0, x1) x [y0, y1) (cells) of a raster with the given resolution and origin.
+[[nodiscard]] OutlineField outline_field(const float* edt, int x0, int y0, int x1, int y1, double resolution_m,
+                                         const Eigen::Vector2d& origin_m) {
+  return OutlineField{edt,
+                      x1 - x0,
+                      y1 - y0,
+                      static_cast<double>(x0),
+                      static_cast<double>(y0),
+                      1.0 / resolution_m,
+                      resolution_m,
+                      origin_m.x(),
+                      origin_m.y()};
+}
+
 [[nodiscard]] double ms_since(Clock::time_point start) {
   return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
 }
@@ -288,8 +302,8 @@ MatchReport Cascade::two_way_check(const TemplateModel& model, std::span<const S
   return check_prepared(model, scan, pose, nullptr);
 }
 
-MatchReport Cascade::check_prepared(const TemplateModel& model, std::span<const ScanPoint> scan,
-                                    const PlanarPose& pose, const TemplateThresholds* thresholds) {
+MatchReport Cascade::check_prepared(const TemplateModel& model, std::span<const ScanPoint> scan, const PlanarPose& pose,
+                                    const TemplateThresholds* thresholds) {
   const Roi rt = rasterise_template(model);
   MatchReport best = check_at(model.centroid_m, scan, pose, rt);
   // Passing at Perfect Match's pose already answers "is there an alignment at which they agree".
@@ -299,8 +313,7 @@ MatchReport Cascade::check_prepared(const TemplateModel& model, std::span<const 
     prepare_scan_outline(scan);
     outline_valid_ = true;
   }
-  if (!settled && params_.refine_iterations > 0 && !rt.empty() && outline_count_ > 0 &&
-      prepare_template_outline(rt)) {
+  if (!settled && params_.refine_iterations > 0 && !rt.empty() && outline_count_ > 0 && prepare_template_outline(rt)) {
     double rms_m = 0.0;
     const PlanarPose refined = refine_on_outline(model.centroid_m, pose, rms_m);
     best.outline_rms_m = rms_m;
@@ -318,8 +331,8 @@ MatchReport Cascade::check_prepared(const TemplateModel& model, std::span<const 
   return best;
 }
 
-MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const ScanPoint> scan,
-                              const PlanarPose& pose, const Roi& rt) {
+MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const ScanPoint> scan, const PlanarPose& pose,
+                              const Roi& rt) {
   MatchReport r;
   r.check_pose = pose;
   int outside = 0;
@@ -397,7 +410,9 @@ void Cascade::outline_mask(const std::vector<float>& lo, const std::vector<float
   // the box count as empty.
   const auto w = static_cast<std::size_t>(width_);
   const int n = roi.x1 - roi.x0;
-  auto row_of = [&](std::vector<std::uint8_t>& m, int y) { return m.data() + static_cast<std::size_t>(y) * w + roi.x0; };
+  auto row_of = [&](std::vector<std::uint8_t>& m, int y) {
+    return m.data() + static_cast<std::size_t>(y) * w + roi.x0;
+  };
   // rows: src -> tmp (dilate: any of 3, erode: all of 3), then columns: tmp -> dst. tmp lives in flags_ (free here:
   // the flags are all clear between checks and rewritten before use).
   auto filter3 = [&](std::vector<std::uint8_t>& src, std::vector<std::uint8_t>& dst, bool dilate) {
@@ -438,8 +453,8 @@ void Cascade::outline_mask(const std::vector<float>& lo, const std::vector<float
     const std::uint8_t* down = y + 1 < roi.y1 ? row_of(mask_a_, y + 1) : nullptr;
     std::uint8_t* d = row_of(mask_b_, y);
     for (int x = 0; x < n; ++x) {
-      const bool inner = x > 0 && x + 1 < n && up != nullptr && down != nullptr && mid[x - 1] != 0 &&
-                         mid[x + 1] != 0 && up[x] != 0 && down[x] != 0;
+      const bool inner = x > 0 && x + 1 < n && up != nullptr && down != nullptr && mid[x - 1] != 0 && mid[x + 1] != 0 &&
+                         up[x] != 0 && down[x] != 0;
       d[x] = mid[x] != 0 && !inner ? 1 : 0;
     }
   }
@@ -462,7 +477,8 @@ void Cascade::prepare_scan_outline(std::span<const ScanPoint> scan) {
     const double fx = (static_cast<double>(p.x) - raster_origin_m_.x()) * inv;
     const double fy = (static_cast<double>(p.y) - raster_origin_m_.y()) * inv;
     if (!(fx >= 0.0 && fy >= 0.0 && fx < width_ && fy < height_)) continue;
-    const std::size_t i = static_cast<std::size_t>(fy) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(fx);
+    const std::size_t i =
+        static_cast<std::size_t>(fy) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(fx);
     if (mask_b_[i] != 0) outline_[outline_count_++] = Eigen::Vector2d(p.x, p.y);
   }
   reset_scan(g);
@@ -478,8 +494,8 @@ bool Cascade::prepare_template_outline(const Roi& template_box) {
   std::size_t k = 0;
   for (int y = g.y0; y < g.y1; ++y) {
     for (int x = g.x0; x < g.x1; ++x, ++k) {
-      const std::uint8_t edge = mask_b_[static_cast<std::size_t>(y) * static_cast<std::size_t>(width_) +
-                                        static_cast<std::size_t>(x)];
+      const std::uint8_t edge =
+          mask_b_[static_cast<std::size_t>(y) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(x)];
       edt_in_[k] = edge;
       count += edge;
     }
@@ -494,9 +510,8 @@ bool Cascade::prepare_template_outline(const Roi& template_box) {
 
 double Cascade::outline_cost(const Eigen::Vector2d& centre_m, const PlanarPose& pose, double cutoff_m,
                              int* inliers) const {
-  const OutlineField field{edt_out_.data(), edt_box_.x1 - edt_box_.x0, edt_box_.y1 - edt_box_.y0,
-                           static_cast<double>(edt_box_.x0), static_cast<double>(edt_box_.y0), 1.0 / resolution_m_,
-                           resolution_m_, raster_origin_m_.x(), raster_origin_m_.y()};
+  const OutlineField field = outline_field(edt_out_.data(), edt_box_.x0, edt_box_.y0, edt_box_.x1, edt_box_.y1,
+                                             resolution_m_, raster_origin_m_);
   const double cos_t = std::cos(pose.theta_rad);
   const double sin_t = std::sin(pose.theta_rad);
   const Eigen::Vector2d o = centre_m + Eigen::Vector2d(pose.x_m, pose.y_m);
@@ -522,9 +537,8 @@ PlanarPose Cascade::refine_on_outline(const Eigen::Vector2d& centre_m, const Pla
   // Truncated least squares of the scan outline's distances to the template outline over (x, y, theta), the same
   // pose and point mapping as Perfect Match (p_t = c + R(-theta)(p - c - t)): Gauss-Newton with a cutoff that
   // shrinks from refine_cutoff_m to refine_final_cutoff_m over the first half of the iterations.
-  const OutlineField field{edt_out_.data(), edt_box_.x1 - edt_box_.x0, edt_box_.y1 - edt_box_.y0,
-                           static_cast<double>(edt_box_.x0), static_cast<double>(edt_box_.y0), 1.0 / resolution_m_,
-                           resolution_m_, raster_origin_m_.x(), raster_origin_m_.y()};
+  const OutlineField field = outline_field(edt_out_.data(), edt_box_.x0, edt_box_.y0, edt_box_.x1, edt_box_.y1,
+                                             resolution_m_, raster_origin_m_);
   const int iterations = params_.refine_iterations;
   const double first = std::max(params_.refine_cutoff_m, params_.refine_final_cutoff_m);
   const double last = params_.refine_final_cutoff_m;
@@ -582,8 +596,8 @@ PlanarPose Cascade::refine_on_outline(const Eigen::Vector2d& centre_m, const Pla
   const double cost = std::min(cost_refined, cost_start);
   const double outliers = static_cast<double>(outline_count_) - inliers_refined;
   rms_m = inliers_refined > 0
-              ? std::sqrt(std::max(0.0, (cost * static_cast<double>(outline_count_) - outliers * last * last) /
-                                            inliers_refined))
+              ? std::sqrt(std::max(
+                    0.0, (cost * static_cast<double>(outline_count_) - outliers * last * last) / inliers_refined))
               : 0.0;
   return refined;
 }

@@ -26,8 +26,9 @@ struct CascadeParams {
 
   // Two-way check (see Cascade). A template cell counts as seen when the scan has a surface within blob_window_m
   // (x-y, rounded to whole cells, at least one) whose depth is within depth_tolerance_m of the template's; the same
-  // the other way round for scan cells. The window absorbs the Perfect Match pose error (thesis table 6.12-6.13:
-  // <= 3 mm) and the scan's sampling (one profile per cell along x, so a rotated scan leaves single empty cells).
+  // the other way round for scan cells. The window absorbs the pose error (Perfect Match on simulated scans: < 1 mm;
+  // the outline pose below: ~2 mm along x) and the scan's sampling (one profile per cell along x, so a rotated scan
+  // leaves single empty cells). A hole of radius R leaves a blob of about pi (R - 1.2 (window + cell / 2))^2.
   double blob_window_m = 0.0044;
   double depth_tolerance_m = 0.005;
   // Perfect Match's pose can be millimetres off on a flat sheet (its cost there is mostly depth, sampled sparsely),
@@ -38,7 +39,7 @@ struct CascadeParams {
   // profile per 2.2 mm along x: up to ~2 mm in x), so Decision::pose stays Perfect Match's unless
   // decision_pose_from_outline. refine_iterations = 0 checks at Perfect Match's pose only.
   int refine_iterations = 12;
-  double refine_cutoff_m = 0.010;        // outline points farther than this are ignored in the first iterations ...
+  double refine_cutoff_m = 0.010;         // outline points farther than this are ignored in the first iterations ...
   double refine_final_cutoff_m = 0.0035;  // ... and farther than this in the last ones
   bool decision_pose_from_outline = false;
   // Before the depth comparison the scan's depth is levelled onto the template's by a robust plane fit
@@ -93,8 +94,8 @@ struct MatchReport {
   double depth_offset_m = 0.0;
   double depth_slope_x = 0.0;
   double depth_slope_y = 0.0;
-  PlanarPose check_pose{};       // the pose the reported check ran at (Perfect Match's or the outline pose)
-  double outline_rms_m = 0.0;    // outline distances within the final cutoff, at the outline pose
+  PlanarPose check_pose{};     // the pose the reported check ran at (Perfect Match's or the outline pose)
+  double outline_rms_m = 0.0;  // outline distances within the final cutoff, at the outline pose
   int template_cells = 0;
   int scan_cells = 0;
   [[nodiscard]] bool passes(const TemplateThresholds& t) const {
@@ -116,7 +117,14 @@ void surface_points_from_map(const DistanceMapView& map, std::vector<Eigen::Vect
 // Match for its pose (kSvm). Otherwise, or when that class fails verification, Perfect Match against the
 // pm_candidates most probable classes; the candidates are taken in order of increasing error and the first that
 // passes verification wins (kPm). None passes -> kUnknown. The deadline is checked before every Perfect Match;
-// when it has passed the decision is kTimeout. Never a guess.
+// when it has passed the decision is kTimeout. Never a guess. A candidate whose Perfect Match error is already over
+// its threshold is not checked (its report's areas, coverage and outliers are NaN).
+//
+// Decision fields: probability = the SVM's for the chosen class (its best class when unknown or timeout); pm_error,
+// pose, template_coverage, scan_outliers of the chosen candidate (unknown: pm_error, coverage and outliers of the
+// lowest-error candidate, for the log; no pose); second_class_index = the SVM's second (kSvm), the next-lowest
+// error candidate (kPm), the lowest-error candidate (kUnknown); pm_ms = Perfect Match plus checks; total_ms = all of
+// decide(). features_ms and svm_ms are the caller's to fill.
 //
 // Two-way check: one-way matching (scan -> template distances, eq. 2.56) cannot see a scan that lacks material the
 // template has (a 40 mm hole is ~1 % of a plate's points and each sits at most 20 mm from the template). In the
@@ -138,7 +146,8 @@ class Cascade {
   // Perfect Match from the centroid start plus the two-way check (training: the reports learn_thresholds() takes).
   [[nodiscard]] MatchReport evaluate(const TemplateModel& model, std::span<const ScanPoint> scan);
 
-  // The two-way check alone at a given pose (pm of the report left default). Exposed for tests and diagnostics.
+  // The two-way check alone, from a given pose (it also tries the outline pose; the report's pm is left default).
+  // Exposed for tests and diagnostics.
   [[nodiscard]] MatchReport two_way_check(const TemplateModel& model, std::span<const ScanPoint> scan,
                                           const PlanarPose& pose);
 
@@ -169,8 +178,7 @@ class Cascade {
   [[nodiscard]] bool prepare_template_outline(const Roi& template_box);
   [[nodiscard]] double outline_cost(const Eigen::Vector2d& centre_m, const PlanarPose& pose, double cutoff_m,
                                     int* inliers) const;
-  [[nodiscard]] PlanarPose refine_on_outline(const Eigen::Vector2d& centre_m, const PlanarPose& start,
-                                             double& rms_m);
+  [[nodiscard]] PlanarPose refine_on_outline(const Eigen::Vector2d& centre_m, const PlanarPose& start, double& rms_m);
   void outline_mask(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi);
   [[nodiscard]] Roi grow(const Roi& roi, int cells) const;
   [[nodiscard]] Roi rasterise_template(const TemplateModel& model);
@@ -206,8 +214,8 @@ class Cascade {
   Roi edt_box_{0, 0, 0, 0};
   std::vector<Eigen::Vector2d> outline_;  // scan points in the outline cells of its closed x-y mask, scan frame
   std::size_t outline_count_ = 0;
-  bool outline_valid_ = false;  // outline_ belongs to the current scan
-  std::vector<Candidate> candidates_;   // one per SVM class slot considered, sized for pm_candidates + 1
+  bool outline_valid_ = false;         // outline_ belongs to the current scan
+  std::vector<Candidate> candidates_;  // the pm_candidates most probable classes of a decision
 };
 
 }  // namespace cellsight::algo

@@ -16,9 +16,9 @@ namespace {
 
 // One RPROP parameter (x, y or theta): its step and the previous derivative.
 struct RpropState {
-  double step;
-  double step_min;
-  double step_max;
+  double step = 0.0;
+  double step_min = 0.0;
+  double step_max = 0.0;
   double previous_grad = 0.0;
 };
 
@@ -184,9 +184,9 @@ void PerfectMatcher::set_scan(std::span<const ScanPoint> points) {
   // Pick j of a class takes its point of rank floor(j * class size / picks): a fixed stride over the scan order
   // (frames along x, rows along the stripe), so the same scan always gives the same subset.
   struct Stride {
-    std::size_t size;   // points of the class
-    std::size_t picks;  // how many to take
-    std::size_t first;  // where its picks go in picked_
+    std::size_t size = 0;   // points of the class
+    std::size_t picks = 0;  // how many to take
+    std::size_t first = 0;  // where its picks go in picked_
     std::size_t rank = 0, picked = 0, next = 0;
   };
   Stride classes[2] = {{others, pick_others, pick_informative}, {informative, pick_informative, 0}};
@@ -250,7 +250,7 @@ PerfectMatchCost PerfectMatcher::cost(const DistanceMapView& map, const Eigen::V
     const double d = s.distance_m;
     const double d2 = d * d;
     const double w = lc2 / (lc2 + d2);
-    out.cost += d2 / (lc2 + d2);  // thesis eq. 2.56: 1 - w, without the cancellation for small d
+    out.cost += d2 / (lc2 + d2);             // thesis eq. 2.56: 1 - w, without the cancellation for small d
     out.error_sum += d2 / (error_lc2 + d2);  // = 1 - Lc^2 / (Lc^2 + d^2) with the error's Lc
     out.sum_d2_m2 += d2;
     const double de_dd = 2.0 * d * w * w / lc2;  // 2 Lc^2 d / (Lc^2 + d^2)^2, thesis eq. 2.57

@@ -23,9 +23,10 @@ struct PerfectMatchParams {
   double lc_m = 0.4;
   // Lc of the pose fit at the fine level (of the only level without coarse-to-fine); <= 0: lc_m. With Lc = 0.4 m the
   // cost is least squares for every d that occurs, so anything that does not move with the part pulls the pose:
-  // carrier straps left in the scan, mixed pixels at edges. Measured on reconstructed passes of the simulated cell
-  // (tests/bench/bench_perfect_match.cpp --reconstructed): worst errors 6.1 / 1.6 / 0.4 mm with Lc = 0.4 m,
-  // 0.4 / 0.2 / 0.4 mm with Lc = 10 mm (ribbed_v3 / plate_4h / bracket_l).
+  // stray points, mixed pixels at edges, carrier remnants. Measured on reconstructed passes of the simulated cell
+  // (tests/bench/bench_perfect_match.cpp --reconstructed, 5 passes each): worst errors 1.60 / 1.62 mm with
+  // Lc = 0.4 m, 0.50 / 0.21 mm with Lc = 10 mm (plate_4h / chamfered_plate; the four other parts alike either way);
+  // 5 and 20 mm give the same as 10 mm.
   double fit_lc_m = 0.01;
   double eta_plus = 1.2, eta_minus = 0.5;  // RPROP step growth / shrink (thesis eq. 2.67, 2.68)
   // Steps per parameter. A match has converged when every step has shrunk to its minimum: 10 um (and 1e-5 rad, 5 um
@@ -42,11 +43,11 @@ struct PerfectMatchParams {
   // in-plane shift. informative_fraction of max_points is spread evenly over those, the rest evenly over the others
   // (they keep the capture range for large offsets and the error meaningful for the cascade). Measured on six
   // catalogue parts, 1000 points: an even spread of all points leaves 1-2 % of them near an edge and gives
-  // 0.8-7.7 mm / 0.15-0.74 deg worst errors; this selection 0.16-0.5 mm / 0.015-0.07 deg, the same as using all
-  // ~120 000 points.
+  // 0.9-6.1 mm / 0.18-0.75 deg worst errors; this selection 0.2-0.6 mm / 0.01-0.07 deg, about what all ~120 000
+  // points give.
   double informative_fraction = 0.75;
   double feature_bin_m = 0.0044;  // two frame pitches of 2.2 mm, so no bin of a surface stays empty between frames
-  double relief_m = 0.003;
+  double relief_m = 0.004;
   int max_feature_bins = 1 << 18;  // scratch; a larger footprint gets coarser bins
   // Coarse-to-fine: at most coarse_iterations iterations on an evenly spread subset of at most coarse_points of the
   // points (a prefix of points()), handing over once its steps have shrunk to 1/8 of the initial ones, then all of
@@ -57,7 +58,7 @@ struct PerfectMatchParams {
 };
 
 struct PerfectMatchResult {
-  PlanarPose pose{};            // DESIGN.md "Pose": p_scan = c + R(theta)(p_template - c) + (x, y, 0)
+  PlanarPose pose{};  // DESIGN.md "Pose": p_scan = c + R(theta)(p_template - c) + (x, y, 0)
   // E / points: mean robust cost per used point, in [0, 1); 1 when there is nothing to match (no points, start not
   // finite). The used points over-represent edges and relief (informative_fraction), which is where two parts differ.
   double error = 1.0;

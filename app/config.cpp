@@ -187,19 +187,41 @@ void read_rest(YamlSection& root, Config& cfg) {
   {
     YamlSection s = root.section("perfect_match");
     s.number("lc_m", cfg.pm.lc_m, 1e-4, 10.0, "m");
+    s.number("fit_lc_m", cfg.pm.fit_lc_m, 0.0, 10.0, "m");
     s.number("eta_plus", cfg.pm.eta_plus, 1.0, 5.0, "");
     s.number("eta_minus", cfg.pm.eta_minus, 0.01, 1.0, "");
+    s.number("step_initial_m", cfg.pm.step_initial_m, 1e-9, 1.0, "m");
     s.number("step_min_m", cfg.pm.step_min_m, 1e-9, 1.0, "m");
     s.number("step_max_m", cfg.pm.step_max_m, 1e-9, 1.0, "m");
-    s.number("step_initial_m", cfg.pm.step_initial_m, 1e-9, 1.0, "m");
+    s.number("step_initial_rad", cfg.pm.step_initial_rad, 1e-9, 1.0, "rad");
+    s.number("step_min_rad", cfg.pm.step_min_rad, 1e-9, 1.0, "rad");
+    s.number("step_max_rad", cfg.pm.step_max_rad, 1e-9, 1.0, "rad");
     s.integer("max_iterations", cfg.pm.max_iterations, 1, 100000, "");
+    s.integer("max_points", cfg.pm.max_points, 10, 1000000, "points");
+    s.number("informative_fraction", cfg.pm.informative_fraction, 0.0, 1.0, "");
+    s.integer("coarse_points", cfg.pm.coarse_points, 0, 1000000, "points");
+    s.integer("coarse_iterations", cfg.pm.coarse_iterations, 0, 100000, "");
     s.finish();
+    if (cfg.pm.step_min_m > cfg.pm.step_initial_m || cfg.pm.step_initial_m > cfg.pm.step_max_m) {
+      s.error("step_initial_m", "must lie between perfect_match.step_min_m and perfect_match.step_max_m");
+    }
+    if (cfg.pm.step_min_rad > cfg.pm.step_initial_rad || cfg.pm.step_initial_rad > cfg.pm.step_max_rad) {
+      s.error("step_initial_rad", "must lie between perfect_match.step_min_rad and perfect_match.step_max_rad");
+    }
   }
   {
     YamlSection s = root.section("cascade");
     s.number("accept_p1", cfg.cascade.accept_p1, 0.0, 1.0, "");
     s.number("accept_p2_max", cfg.cascade.accept_p2_max, 0.0, 1.0, "");
     s.integer("pm_candidates", cfg.cascade.pm_candidates, 1, 64, "classes");
+    s.number("blob_window_m", cfg.cascade.blob_window_m, 0.0, 0.05, "m");
+    s.number("depth_tolerance_m", cfg.cascade.depth_tolerance_m, 1e-4, 0.1, "m");
+    s.integer("refine_iterations", cfg.cascade.refine_iterations, 0, 1000, "");
+    s.boolean("level_depth", cfg.cascade.level_depth);
+    s.number("error_factor", cfg.cascade.error_factor, 1.0, 100.0, "");
+    s.number("error_floor", cfg.cascade.error_floor, 0.0, 1.0, "");
+    s.number("area_factor", cfg.cascade.area_factor, 1.0, 100.0, "");
+    s.number("area_floor_m2", cfg.cascade.area_floor_m2, 0.0, 1.0, "m^2");
     s.finish();
   }
   {

@@ -4,6 +4,8 @@
 #include <Eigen/Core>
 #include <string>
 
+#include "algo/cascade.hpp"
+#include "algo/perfect_match.hpp"
 #include "algo/result.hpp"
 #include "drivers/sim/rig.hpp"
 #include "drivers/sim/sim_cell.hpp"
@@ -71,19 +73,10 @@ struct SvmConfig {
   std::int64_t seed = 1;
 };
 
-struct PerfectMatchConfig {
-  double lc_m = 0.4;  // thesis eq. 2.55
-  double eta_plus = 1.2, eta_minus = 0.5;
-  double step_min_m = 1e-6, step_max_m = 0.01;
-  double step_initial_m = 0.002;
-  int max_iterations = 100;
-};
-
-struct CascadeConfig {
-  double accept_p1 = 0.70;  // thesis 6.4.4
-  double accept_p2_max = 0.06;
-  int pm_candidates = 2;
-};
+// The recognition parameters are the algorithms' own structs, so their defaults (documented and measured there)
+// have one source; config/cellsight.yaml exposes the keys a maintenance engineer may need to tune.
+using PerfectMatchConfig = algo::PerfectMatchParams;  // algo/perfect_match.hpp
+using CascadeConfig = algo::CascadeParams;            // algo/cascade.hpp
 
 struct RuntimeConfig {
   int deadline_ms = 3000;  // support removal .. registers written, hard

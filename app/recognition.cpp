@@ -83,25 +83,9 @@ PrepareReport ScanPreparer::prepare(std::span<const algo::ScanPoint> raw) {
   return r;
 }
 
-algo::PerfectMatchParams perfect_match_params(const Config& config) {
-  algo::PerfectMatchParams p;
-  p.lc_m = config.pm.lc_m;
-  p.eta_plus = config.pm.eta_plus;
-  p.eta_minus = config.pm.eta_minus;
-  p.step_min_m = config.pm.step_min_m;
-  p.step_max_m = config.pm.step_max_m;
-  p.step_initial_m = config.pm.step_initial_m;
-  p.max_iterations = config.pm.max_iterations;
-  return p;
-}
+algo::PerfectMatchParams perfect_match_params(const Config& config) { return config.pm; }
 
-algo::CascadeParams cascade_params(const Config& config) {
-  algo::CascadeParams p;
-  p.accept_p1 = config.cascade.accept_p1;
-  p.accept_p2_max = config.cascade.accept_p2_max;
-  p.pm_candidates = config.cascade.pm_candidates;
-  return p;
-}
+algo::CascadeParams cascade_params(const Config& config) { return config.cascade; }
 
 LoadedTemplates open_templates(const Config& config, const ModelDb& db) {
   LoadedTemplates out;

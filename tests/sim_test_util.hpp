@@ -2,13 +2,16 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <cmath>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/core.hpp>
 #include <vector>
 
+#include "algo/scan.hpp"
 #include "algo/sensor_model.hpp"
 #include "drivers/sim/renderer.hpp"
 #include "drivers/sim/rig.hpp"
+#include "drivers/sim/scene.hpp"
 
 namespace cellsight::test {
 
@@ -85,6 +88,36 @@ inline double row_centre_of_gravity(const cv::Mat& image, int row, int threshold
     weighted += p[x] * static_cast<double>(x);
   }
   return weighted / sum;
+}
+
+// Points on the surface of a catalogue part hung with its part frame at `centre`: each facet sampled on a uv lattice
+// (spacing_m, offset by phase * spacing_m), column by column along u like a pass. Independent of the scanner, so a
+// matcher's truth is exact; another spacing or phase is another "scan" of the same surface.
+inline std::vector<algo::ScanPoint> lattice_surface_points(const sim::PartSpec& spec, const Eigen::Vector3d& centre,
+                                                           double spacing_m, double phase) {
+  std::vector<algo::ScanPoint> out;
+  const Eigen::Isometry3d place{Eigen::Translation3d(centre)};
+  for (sim::Facet f : sim::build_part(spec)) {
+    f.transform(place);
+    Eigen::Vector2d lo = f.outline.front();
+    Eigen::Vector2d hi = lo;
+    for (const auto& v : f.outline) {
+      lo = lo.cwiseMin(v);
+      hi = hi.cwiseMax(v);
+    }
+    const auto nu = static_cast<int>(std::ceil((hi.x() - lo.x()) / spacing_m));
+    const auto nv = static_cast<int>(std::ceil((hi.y() - lo.y()) / spacing_m));
+    for (int iu = 0; iu < nu; ++iu) {
+      for (int iv = 0; iv < nv; ++iv) {
+        const double u = lo.x() + (iu + phase) * spacing_m;
+        const double v = lo.y() + (iv + phase) * spacing_m;
+        if (!f.contains({u, v})) continue;
+        const Eigen::Vector3d p = f.at({u, v});
+        out.push_back({static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z()), 0, 0});
+      }
+    }
+  }
+  return out;
 }
 
 }  // namespace cellsight::test

@@ -85,8 +85,8 @@ namespace {
 
 constexpr double kDeg = std::numbers::pi / 180.0;
 constexpr double kHoleRadiusM = 0.020;  // plate_5h's centre hole (config/parts.yaml)
-const sim::PartPose kTaughtPose{0.004, -0.006, 0.6 * kDeg, -0.5 * kDeg};
-const sim::PartPose kTestPose{-0.019, 0.011, 2.3 * kDeg, 1.3 * kDeg};
+constexpr sim::PartPose kTaughtPose{0.004, -0.006, 0.6 * kDeg, -0.5 * kDeg};
+constexpr sim::PartPose kTestPose{-0.019, 0.011, 2.3 * kDeg, 1.3 * kDeg};
 
 // A grid that holds every test pose (+-30 mm, +-4 deg, swing +-2 deg) at the real 2.2 mm, but only the depth slab
 // the flat and ribbed parts occupy, so that a map builds in about a second under ASan.
@@ -147,8 +147,12 @@ std::vector<ScanPoint> sample_part(const sim::PartSpec& spec, const sim::PartPos
       v1 = std::max(v1, q.y());
     }
     const double pu = phase(rng) * kStepU, pv = phase(rng) * kStepV;
-    for (double u = u0 + pu; u < u1; u += kStepU) {
-      for (double v = v0 + pv; v < v1; v += kStepV) {
+    const int nu = static_cast<int>(std::ceil((u1 - u0 - pu) / kStepU));
+    const int nv = static_cast<int>(std::ceil((v1 - v0 - pv) / kStepV));
+    for (int iu = 0; iu < nu; ++iu) {
+      const double u = u0 + pu + iu * kStepU;
+      for (int iv = 0; iv < nv; ++iv) {
+        const double v = v0 + pv + iv * kStepV;
         if (!f.contains({u, v})) continue;
         const Eigen::Vector3d p = to_carrier * (f.at({u, v}) + noise(rng) * f.normal);
         out.push_back({static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z()), 0, 0});
@@ -225,10 +229,8 @@ PlanarPose true_relative_pose(const Template& taught, const sim::PartPose& scan)
 // small test grid holds them).
 const std::vector<sim::PartPose>& other_poses() {
   static const std::vector<sim::PartPose> poses = {
-      {0.021, -0.013, 3.1 * kDeg, 1.6 * kDeg},
-      {-0.027, 0.018, -3.7 * kDeg, -1.9 * kDeg},
-      {0.008, 0.026, 1.2 * kDeg, 0.7 * kDeg},
-      {-0.015, -0.024, -1.8 * kDeg, 1.1 * kDeg},
+      {0.021, -0.013, 3.1 * kDeg, 1.6 * kDeg},  {-0.027, 0.018, -3.7 * kDeg, -1.9 * kDeg},
+      {0.008, 0.026, 1.2 * kDeg, 0.7 * kDeg},   {-0.015, -0.024, -1.8 * kDeg, 1.1 * kDeg},
       {0.029, 0.004, -2.6 * kDeg, -0.4 * kDeg},
   };
   return poses;
@@ -355,7 +357,8 @@ SCENARIO("The two-way check sees one hole more or less in both directions and th
       for (std::size_t i = 0; i < other_poses().size(); ++i) {
         for (const Template* t : {t4, t5}) {
           const auto scan = sample_part(part(t->name), other_poses()[i], 100 + i);
-          const MatchReport r = cascade.two_way_check(model_of(*t, 0, 1), scan, true_relative_pose(*t, other_poses()[i]));
+          const MatchReport r =
+              cascade.two_way_check(model_of(*t, 0, 1), scan, true_relative_pose(*t, other_poses()[i]));
           INFO(t->name << " pose " << i << ": missing " << r.missing_area_m2 * 1e6 << " mm^2, extra "
                        << r.extra_area_m2 * 1e6 << " mm^2, depth slope " << r.depth_slope_x);
           worst = std::max({worst, r.missing_area_m2, r.extra_area_m2});
@@ -383,8 +386,10 @@ SCENARIO("The two-way check sees one pressed rib more or less, which a flat x-y 
     WHEN("each scan is checked against the other template at the true pose") {
       const auto scan3 = sample_part(part("ribbed_v3"), kTestPose, 41);
       const auto scan4 = sample_part(part("ribbed_v4"), kTestPose, 42);
-      const MatchReport v3_on_v4 = cascade.two_way_check(model_of(*t4, 0, 1), scan3, true_relative_pose(*t4, kTestPose));
-      const MatchReport v4_on_v3 = cascade.two_way_check(model_of(*t3, 0, 1), scan4, true_relative_pose(*t3, kTestPose));
+      const MatchReport v3_on_v4 =
+          cascade.two_way_check(model_of(*t4, 0, 1), scan3, true_relative_pose(*t4, kTestPose));
+      const MatchReport v4_on_v3 =
+          cascade.two_way_check(model_of(*t3, 0, 1), scan4, true_relative_pose(*t3, kTestPose));
       THEN("both directions show a rib-sized blob of missing and of extra surface") {
         INFO("v3 scan on v4: missing " << v3_on_v4.missing_area_m2 * 1e6 << " extra " << v3_on_v4.extra_area_m2 * 1e6
                                        << "; v4 scan on v3: missing " << v4_on_v3.missing_area_m2 * 1e6 << " extra "
@@ -410,8 +415,10 @@ SCENARIO("The two-way check sees one pressed rib more or less, which a flat x-y 
       for (std::size_t i = 0; i < other_poses().size(); ++i) {
         for (const Template* t : {t4, t3}) {
           const auto scan = sample_part(part(t->name), other_poses()[i], 200 + i);
-          const MatchReport r = cascade.two_way_check(model_of(*t, 0, 1), scan, true_relative_pose(*t, other_poses()[i]));
-          INFO(t->name << " pose " << i << ": missing " << r.missing_area_m2 * 1e6 << " extra " << r.extra_area_m2 * 1e6);
+          const MatchReport r =
+              cascade.two_way_check(model_of(*t, 0, 1), scan, true_relative_pose(*t, other_poses()[i]));
+          INFO(t->name << " pose " << i << ": missing " << r.missing_area_m2 * 1e6 << " extra "
+                       << r.extra_area_m2 * 1e6);
           CHECK(r.missing_area_m2 < 0.1 * rib_top_m2);
           CHECK(r.extra_area_m2 < 0.1 * rib_top_m2);
         }
@@ -452,7 +459,8 @@ SCENARIO("The check aligns the outlines when the pose it is given is millimetres
   }
 }
 
-// ---- The decision table ----------------------------------------------------------------------------------------------
+// ---- The decision table
+// ----------------------------------------------------------------------------------------------
 
 namespace {
 
@@ -595,9 +603,10 @@ SCENARIO("A scan lacking one hole's material is told from its one-hole sibling, 
       const Decision d = cat.cascade().decide(svm, cat.models(), scan, far_deadline());
       const MatchReport wrong = cat.cascade().evaluate(cat.models()[0], scan);
       THEN("plate_4h fails on the missing hole material although its error passes, and plate_5h is chosen") {
-        INFO("plate_4h on the plate_5h scan: error " << wrong.pm.error << " (max " << cat.models()[0].thresholds.max_error
-                                                      << "), missing " << wrong.missing_area_m2 * 1e6 << " mm^2 (max "
-                                                      << cat.models()[0].thresholds.max_missing_area_m2 * 1e6 << ")");
+        INFO("plate_4h on the plate_5h scan: error "
+             << wrong.pm.error << " (max " << cat.models()[0].thresholds.max_error << "), missing "
+             << wrong.missing_area_m2 * 1e6 << " mm^2 (max " << cat.models()[0].thresholds.max_missing_area_m2 * 1e6
+             << ")");
         CHECK(wrong.pm.error <= cat.models()[0].thresholds.max_error);  // one-way matching is blind here
         CHECK(wrong.missing_area_m2 > cat.models()[0].thresholds.max_missing_area_m2);
         CHECK(d.source == DecisionSource::kPm);
@@ -645,7 +654,7 @@ TEST_CASE("decide() allocates nothing", "[cascade][alloc]") {
   const auto scan = sample_part(part("plate_5h"), kTestPose, 701);
   const ClassProbability sure_wrong[] = {{0, 0.93}, {2, 0.04}, {1, 0.02}, {3, 0.01}};  // SVM path, fallback, PM
   const ClassProbability unsure[] = {{1, 0.50}, {3, 0.45}, {0, 0.03}, {2, 0.02}};      // PM path, unknown
-  (void)cat.cascade().decide(sure_wrong, cat.models(), scan, far_deadline());           // warm-up
+  (void)cat.cascade().decide(sure_wrong, cat.models(), scan, far_deadline());          // warm-up
   // When it decides along every path
   g_allocations.store(0);
   g_count_allocations.store(true);
@@ -659,4 +668,3 @@ TEST_CASE("decide() allocates nothing", "[cascade][alloc]") {
   CHECK(b.source == DecisionSource::kUnknown);
   CHECK(c.source == DecisionSource::kTimeout);
 }
-

@@ -86,8 +86,31 @@ TEST_CASE("Given the shipped config file, when it is loaded, then it is valid an
   CHECK(cfg->camera.exposure_us == d.camera.exposure_us);
   CHECK(cfg->modbus.port == d.modbus.port);
   CHECK(cfg->pm.lc_m == d.pm.lc_m);
+  CHECK(cfg->pm.fit_lc_m == d.pm.fit_lc_m);
+  CHECK(cfg->pm.eta_plus == d.pm.eta_plus);
+  CHECK(cfg->pm.eta_minus == d.pm.eta_minus);
+  CHECK(cfg->pm.step_initial_m == d.pm.step_initial_m);
+  CHECK(cfg->pm.step_min_m == d.pm.step_min_m);
+  CHECK(cfg->pm.step_max_m == d.pm.step_max_m);
+  CHECK(cfg->pm.step_initial_rad == d.pm.step_initial_rad);
+  CHECK(cfg->pm.step_min_rad == d.pm.step_min_rad);
+  CHECK(cfg->pm.step_max_rad == d.pm.step_max_rad);
+  CHECK(cfg->pm.max_iterations == d.pm.max_iterations);
+  CHECK(cfg->pm.max_points == d.pm.max_points);
+  CHECK(cfg->pm.informative_fraction == d.pm.informative_fraction);
+  CHECK(cfg->pm.coarse_points == d.pm.coarse_points);
+  CHECK(cfg->pm.coarse_iterations == d.pm.coarse_iterations);
   CHECK(cfg->cascade.accept_p1 == d.cascade.accept_p1);
   CHECK(cfg->cascade.accept_p2_max == d.cascade.accept_p2_max);
+  CHECK(cfg->cascade.pm_candidates == d.cascade.pm_candidates);
+  CHECK(cfg->cascade.blob_window_m == d.cascade.blob_window_m);
+  CHECK(cfg->cascade.depth_tolerance_m == d.cascade.depth_tolerance_m);
+  CHECK(cfg->cascade.refine_iterations == d.cascade.refine_iterations);
+  CHECK(cfg->cascade.level_depth == d.cascade.level_depth);
+  CHECK(cfg->cascade.error_factor == d.cascade.error_factor);
+  CHECK(cfg->cascade.error_floor == d.cascade.error_floor);
+  CHECK(cfg->cascade.area_factor == d.cascade.area_factor);
+  CHECK(cfg->cascade.area_floor_m2 == d.cascade.area_floor_m2);
   CHECK(cfg->svm.sa_start_temperature == d.svm.sa_start_temperature);
   CHECK(cfg->runtime.deadline_ms == d.runtime.deadline_ms);
   CHECK(cfg->catalogue_path == fs::path(kShippedCatalogue).lexically_normal().string());
@@ -123,6 +146,9 @@ TEST_CASE("Given inconsistent limits, when the config is loaded, then the relati
         std::string::npos);
   CHECK(load_error("exposure:\n  width_min_px: 6\n  width_max_px: 3\n").find("must be below exposure.width_max_px") !=
         std::string::npos);
+  CHECK(load_error("perfect_match:\n  step_min_m: 0.01\n  step_initial_m: 0.001\n")
+            .find("perfect_match.step_initial_m: must lie between perfect_match.step_min_m and "
+                  "perfect_match.step_max_m") != std::string::npos);
 }
 
 TEST_CASE("Given broken YAML or a missing file, when the config is loaded, then the error says where") {

@@ -19,27 +19,28 @@
 #include "algo/perfect_match.hpp"
 #include "app/catalogue.hpp"
 #include "drivers/sim/scene.hpp"
+#include "tests/sim_test_util.hpp"
 
-// Allocation counter for the "match() allocates nothing" check: counts only while armed. The deletes are kept out of
-// line so that GCC does not pair an inlined free() with the new-expression (-Wmismatched-new-delete).
+// Allocation counter for the "match() allocates nothing" check: counts only while armed. new and delete are kept out of
+// line so that GCC does not pair an inlined malloc() or free() with the new-expression (-Wmismatched-new-delete).
 namespace {
 std::atomic<bool> g_count_allocations{false};
 std::atomic<long> g_allocations{0};
 }  // namespace
 
-void* operator new(std::size_t size) {
+[[gnu::noinline]] void* operator new(std::size_t size) {
   if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1, std::memory_order_relaxed);
   if (void* p = std::malloc(size == 0 ? 1 : size)) return p;
   throw std::bad_alloc();
 }
-void* operator new[](std::size_t size) {
+[[gnu::noinline]] void* operator new[](std::size_t size) {
   return operator new(size);
 }
-void* operator new(std::size_t size, const std::nothrow_t&) noexcept {
+[[gnu::noinline]] void* operator new(std::size_t size, const std::nothrow_t&) noexcept {
   if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1, std::memory_order_relaxed);
   return std::malloc(size == 0 ? 1 : size);
 }
-void* operator new[](std::size_t size, const std::nothrow_t& tag) noexcept {
+[[gnu::noinline]] void* operator new[](std::size_t size, const std::nothrow_t& tag) noexcept {
   return operator new(size, tag);
 }
 [[gnu::noinline]] void operator delete(void* p, const std::nothrow_t&) noexcept {
@@ -64,10 +65,10 @@ void* operator new[](std::size_t size, const std::nothrow_t& tag) noexcept {
 namespace {
 
 using namespace cellsight;
-using algo::PerfectMatchCost;
 using algo::DistanceMap;
 using algo::GradientMethod;
 using algo::GridDims;
+using algo::PerfectMatchCost;
 using algo::PerfectMatcher;
 using algo::PerfectMatchParams;
 using algo::PerfectMatchResult;
@@ -89,7 +90,7 @@ class AllocationGuard {
 constexpr double kResolutionM = 0.0022;  // the thesis grid's cell
 constexpr double kDeg = std::numbers::pi / 180.0;
 // Where the tests hang a part (carrier frame): its part-frame origin (centre of width x height).
-const Eigen::Vector3d kPartCentreM{0.325, 0.6, 0.1};
+constexpr double kPartCentreM[3] = {0.325, 0.6, 0.1};
 
 const std::vector<sim::PartSpec>& catalogue() {
   static const std::vector<sim::PartSpec> parts = [] {
@@ -100,39 +101,22 @@ const std::vector<sim::PartSpec>& catalogue() {
   return parts;
 }
 
-// Points on the surface of a catalogue part hung at kPartCentreM: each facet sampled on a uv lattice (spacing_m,
-// offset by phase * spacing_m), column by column along u like a pass. Independent of the scanner, so the truth the
-// matcher must find is exact; another spacing or phase is another "scan" of the same surface.
+// Points on the surface of a catalogue part hung at kPartCentreM (test::lattice_surface_points).
 std::vector<ScanPoint> part_points(const std::string& name, double spacing_m = 0.0015, double phase = 0.5) {
   const sim::PartSpec* spec = nullptr;
   for (const auto& p : catalogue()) {
     if (p.name == name) spec = &p;
   }
   REQUIRE(spec != nullptr);
-  std::vector<ScanPoint> out;
-  const Eigen::Isometry3d place{Eigen::Translation3d(kPartCentreM)};
-  for (sim::Facet f : sim::build_part(*spec)) {
-    f.transform(place);
-    Eigen::Vector2d lo = f.outline.front();
-    Eigen::Vector2d hi = lo;
-    for (const auto& v : f.outline) {
-      lo = lo.cwiseMin(v);
-      hi = hi.cwiseMax(v);
-    }
-    for (double u = lo.x() + phase * spacing_m; u < hi.x(); u += spacing_m) {
-      for (double v = lo.y() + phase * spacing_m; v < hi.y(); v += spacing_m) {
-        if (!f.contains({u, v})) continue;
-        const Eigen::Vector3d p = f.at({u, v});
-        out.push_back({static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z()), 0, 0});
-      }
-    }
-  }
+  std::vector<ScanPoint> out = test::lattice_surface_points(
+      *spec, Eigen::Vector3d(kPartCentreM[0], kPartCentreM[1], kPartCentreM[2]), spacing_m, phase);
   REQUIRE(out.size() > 1000);
   return out;
 }
 
 // DESIGN.md "Pose": p_scan = c + R_z(theta)(p_template - c) + (x, y, 0).
-std::vector<ScanPoint> displaced(const std::vector<ScanPoint>& points, const Eigen::Vector2d& c, const PlanarPose& pose) {
+std::vector<ScanPoint> displaced(const std::vector<ScanPoint>& points, const Eigen::Vector2d& c,
+                                 const PlanarPose& pose) {
   const double cs = std::cos(pose.theta_rad);
   const double sn = std::sin(pose.theta_rad);
   std::vector<ScanPoint> out = points;
@@ -166,7 +150,8 @@ Template build_template(const std::vector<ScanPoint>& points, GradientMethod met
   }
   Template t;
   // Cropped from the thesis grid (origin 0, 2.2 mm cells): the cells lie where the full grid's would.
-  t.origin_m = ((lo - Eigen::Vector3d(margin_m, margin_m, 0.01)) / kResolutionM).array().floor().matrix() * kResolutionM;
+  t.origin_m =
+      ((lo - Eigen::Vector3d(margin_m, margin_m, 0.01)) / kResolutionM).array().floor().matrix() * kResolutionM;
   const Eigen::Vector3d size = hi + Eigen::Vector3d(margin_m, margin_m, 0.01) - t.origin_m;
   t.dims = {static_cast<int>(std::ceil(size.x() / kResolutionM)), static_cast<int>(std::ceil(size.y() / kResolutionM)),
             static_cast<int>(std::ceil(size.z() / kResolutionM)), kResolutionM};
@@ -199,14 +184,13 @@ std::vector<PlanarPose> random_poses(int count, std::uint32_t seed) {
   std::uniform_real_distribution<double> xy(-0.05, 0.05);
   std::uniform_real_distribution<double> th(-5.0 * kDeg, 5.0 * kDeg);
   std::vector<PlanarPose> poses;
+  poses.reserve(static_cast<std::size_t>(count) + 2);
   for (int i = 0; i < count; ++i) poses.push_back({xy(rng), xy(rng), th(rng)});
   // The extremes too: corners of the pose box.
   poses.push_back({0.05, -0.05, 5.0 * kDeg});
   poses.push_back({-0.05, 0.05, -5.0 * kDeg});
   return poses;
 }
-
-
 
 struct Accuracy {
   double max_mm = 0.0, mean_mm = 0.0, max_deg = 0.0, mean_deg = 0.0;
@@ -307,10 +291,19 @@ constexpr double kPartLeverM = 0.3;   // a part's points lie up to ~0.4 m from i
 
 }  // namespace
 
+// Pose accuracy. The distance map is the exact transform of a binary 2.2 mm occupancy, so it knows every surface only
+// to the cell it lies in: the map's optimum is off the truth by a sub-cell amount that depends on where the grid falls
+// (measured for bracket_l's own points: 0.48-1.05 mm as the part moves by quarter cells against the grid; all 140 000
+// points instead of 1000 give the same offset, so it is the map's, not the optimiser's). The bounds below are in
+// cells: a third of a cell (0.73 mm) at worst and 0.4 mm on average for parts whose edges and relief cross the cells
+// at many phases, half a cell for parts of straight axis-parallel edges and faces; 0.1 deg throughout.
+constexpr double kThirdCellMm = kResolutionM * 1e3 / 3.0;
+constexpr double kHalfCellMm = kResolutionM * 1e3 / 2.0;
+
 SCENARIO("Perfect Match recovers known displacements of a part against the part's own template",
          "[perfect_match][accuracy]") {
   // ribbed_v3: asymmetric rib pattern; chamfered_plate: slanted edges and a slot; louvred_panel: flaps bent out of
-  // the sheet; perforated_fine: 165 holes. Their edges and relief cross the grid cells at many sub-cell phases.
+  // the sheet; perforated_fine: 165 holes.
   for (const char* name : {"ribbed_v3", "chamfered_plate", "louvred_panel", "perforated_fine"}) {
     GIVEN("the template of " << name << " and its own points displaced by 10 poses in +-50 mm, +-5 deg") {
       const Template& t = cached_template(name);
@@ -318,18 +311,20 @@ SCENARIO("Perfect Match recovers known displacements of a part against the part'
       const auto poses = random_poses(8, 7);
       WHEN("matched from the centroid alignment") {
         const Accuracy a = recover(t, points, poses, Start::kCentroid);
-        THEN("every pose is found to 0.5 mm and 0.1 deg within the iteration cap") {
+        THEN("every pose is found to a third of a cell (0.4 mm on average) and 0.1 deg within the iteration cap") {
           INFO(describe(a));
-          CHECK(a.max_mm <= 0.5);
+          CHECK(a.max_mm <= kThirdCellMm);
+          CHECK(a.mean_mm <= 0.4);
           CHECK(a.max_deg <= 0.1);
           CHECK(a.max_iterations <= PerfectMatchParams{}.max_iterations);
         }
       }
       WHEN("matched from pose 0, so that the whole offset is Perfect Match's to find") {
         const Accuracy a = recover(t, points, poses, Start::kZero);
-        THEN("every pose is found to 0.5 mm and 0.1 deg") {
+        THEN("every pose is found to a third of a cell (0.4 mm on average) and 0.1 deg") {
           INFO(describe(a));
-          CHECK(a.max_mm <= 0.5);
+          CHECK(a.max_mm <= kThirdCellMm);
+          CHECK(a.mean_mm <= 0.4);
           CHECK(a.max_deg <= 0.1);
         }
       }
@@ -345,9 +340,10 @@ SCENARIO("Another sampling of the same surface, as a second scan gives, is match
       const auto other = part_points(name, 0.0012, 0.23);
       WHEN("the scan is displaced by 10 poses and matched from the centroid alignment") {
         const Accuracy a = recover(t, other, random_poses(8, 11), Start::kCentroid);
-        THEN("every pose is found to 0.5 mm and 0.1 deg") {
+        THEN("every pose is found to a third of a cell (0.4 mm on average) and 0.1 deg") {
           INFO(describe(a));
-          CHECK(a.max_mm <= 0.5);
+          CHECK(a.max_mm <= kThirdCellMm);
+          CHECK(a.mean_mm <= 0.4);
           CHECK(a.max_deg <= 0.1);
         }
       }
@@ -357,11 +353,8 @@ SCENARIO("Another sampling of the same surface, as a second scan gives, is match
 
 SCENARIO("A part of straight axis-parallel edges and faces is matched to within half a cell",
          "[perfect_match][accuracy]") {
-  // The binary occupancy knows a surface only to the cell it lies in: every point of an axis-parallel edge or face
-  // (plate_4h's outline, bracket_l's flange across y) shares one sub-cell phase, so its error does not average out
-  // and the map's optimum sits up to half a cell (1.1 mm) off. Measured for bracket_l's own points: 0.48-1.05 mm as
-  // the part is moved by quarter cells against the grid; not a matter of the optimiser (all 140 000 points instead
-  // of 1000 give the same offset).
+  // Every point of an axis-parallel edge or face (plate_4h's outline, bracket_l's flange across y) shares one
+  // sub-cell phase, so the map's offset does not average out.
   for (const char* name : {"plate_4h", "bracket_l"}) {
     GIVEN("the template of " << name) {
       const Template& t = cached_template(name);
@@ -371,7 +364,7 @@ SCENARIO("A part of straight axis-parallel edges and faces is matched to within 
                                      random_poses(8, own ? 7 : 11), Start::kCentroid);
           THEN("every pose is found to half a cell and 0.1 deg") {
             INFO(describe(a));
-            CHECK(a.max_mm <= 0.5 * kResolutionM * 1e3);
+            CHECK(a.max_mm <= kHalfCellMm);
             CHECK(a.max_deg <= 0.1);
           }
         }
@@ -399,8 +392,8 @@ SCENARIO("The cost and its gradient equal the analytic values of a field with a 
       const double r = radius(rng);
       const double a = angle(rng);
       template_frame.push_back({static_cast<float>(m.pole_m.x() + r * std::cos(a)),
-                                static_cast<float>(m.pole_m.y() + r * std::sin(a)), static_cast<float>(height(rng)),
-                                0, 0});
+                                static_cast<float>(m.pole_m.y() + r * std::sin(a)), static_cast<float>(height(rng)), 0,
+                                0});
     }
     PerfectMatcher pm(params);
     pm.set_scan(displaced(template_frame, c, pose));
@@ -408,8 +401,8 @@ SCENARIO("The cost and its gradient equal the analytic values of a field with a 
     const auto analytic = [&](const PlanarPose& q, double lc_m) {
       double e = 0.0;
       for (const Eigen::Vector3f& p : pm.points()) {
-        const Eigen::Vector2d v = Eigen::Rotation2Dd(-q.theta_rad) *
-                                  (p.head<2>().cast<double>() - c - Eigen::Vector2d(q.x_m, q.y_m));
+        const Eigen::Vector2d v =
+            Eigen::Rotation2Dd(-q.theta_rad) * (p.head<2>().cast<double>() - c - Eigen::Vector2d(q.x_m, q.y_m));
         const double d = (c + v - m.pole_m).norm();
         e += 1.0 - lc_m * lc_m / (lc_m * lc_m + d * d);
       }
@@ -422,7 +415,8 @@ SCENARIO("The cost and its gradient equal the analytic values of a field with a 
         const PlanarPose& q = poses[i];
         const PerfectMatchCost got = pm.cost(m.map.view(), c, q, pm.points().size());
         const Eigen::Vector3d fd = central_difference(fit_cost, q, 1e-6, 1e-6);
-        THEN("at pose " << i << " costs (fit's and error's Lc) and gradient agree with the analytic ones to 1 % and 2 %") {
+        THEN("at pose " << i
+                        << " costs (fit's and error's Lc) and gradient agree with the analytic ones to 1 % and 2 %") {
           const Eigen::Vector3d g(got.grad[0], got.grad[1], got.grad[2]);
           INFO("cost " << got.cost << " vs " << fit_cost(q) << "; error sum " << got.error_sum << " vs "
                        << analytic(q, params.lc_m) << "; grad " << g.transpose() << " vs " << fd.transpose());
@@ -476,8 +470,8 @@ SCENARIO("A scan of another shape gives a clearly higher error than the part's o
           pm.set_scan(displaced(part_points(other, 0.0012, 0.23), t.centroid_m, pose));
           const PerfectMatchResult r = pm.match(t.view, t.centroid_m, pm.centroid_start(t.centroid_m));
           THEN(other << "'s error is at least 5 times the own scan's") {
-            INFO("own " << self.error << " (rms " << self.rms_distance_m * 1e3 << " mm), " << other << " "
-                        << r.error << " (rms " << r.rms_distance_m * 1e3 << " mm)");
+            INFO("own " << self.error << " (rms " << self.rms_distance_m * 1e3 << " mm), " << other << " " << r.error
+                        << " (rms " << r.rms_distance_m * 1e3 << " mm)");
             CHECK(r.error >= 5.0 * self.error);
             CHECK(r.rms_distance_m > self.rms_distance_m);
           }
@@ -501,7 +495,16 @@ SCENARIO("match() and set_scan() allocate nothing", "[perfect_match][alloc]") {
         r = pm.match(t.view, t.centroid_m, pm.centroid_start(t.centroid_m));
         count = guard.count();
       }
-      THEN("no allocation happened and the match did its work") {
+      THEN("no allocation happened (the counter does count one) and the match did its work") {
+        long probe = 0;
+        {
+          AllocationGuard guard;
+          static void* volatile sink = nullptr;  // escapes, so the pair cannot be elided
+          sink = ::operator new(16);
+          ::operator delete(sink);
+          probe = guard.count();
+        }
+        CHECK(probe == 1);
         CHECK(count == 0);
         CHECK(r.points == PerfectMatchParams{}.max_points);
         CHECK(r.iterations > 0);
@@ -518,8 +521,13 @@ constexpr double kSheetX0 = 0.1, kSheetY0 = 0.2, kSheetW = 0.4, kSheetH = 0.6;
 std::vector<ScanPoint> sheet(bool with_rib) {
   std::vector<ScanPoint> out;
   const double cx = kSheetX0 + 0.5 * kSheetW;
-  for (double x = kSheetX0 + 0.00075; x < kSheetX0 + kSheetW; x += 0.0015) {
-    for (double y = kSheetY0 + 0.00075; y < kSheetY0 + kSheetH; y += 0.0015) {
+  constexpr double kSpacingM = 0.0015;
+  const auto nx = static_cast<int>(kSheetW / kSpacingM);
+  const auto ny = static_cast<int>(kSheetH / kSpacingM);
+  for (int ix = 0; ix < nx; ++ix) {
+    for (int iy = 0; iy < ny; ++iy) {
+      const double x = kSheetX0 + (ix + 0.5) * kSpacingM;
+      const double y = kSheetY0 + (iy + 0.5) * kSpacingM;
       const double a = std::abs(x - cx);
       const double z = 0.1 + (with_rib && a < 0.02 ? 0.02 * (1.0 - a / 0.02) : 0.0);
       out.push_back({static_cast<float>(x), static_cast<float>(y), static_cast<float>(z), 0, 0});
@@ -547,6 +555,7 @@ SCENARIO("The scan is down-sampled to edge and relief points plus an even spread
       THEN("max_points of its own points are used, 3/4 of them near the outline and the rest over the inside") {
         REQUIRE(used.size() == static_cast<std::size_t>(PerfectMatchParams{}.max_points));
         std::vector<std::array<float, 3>> sorted;
+        sorted.reserve(points.size());
         for (const ScanPoint& p : points) sorted.push_back({p.x, p.y, p.z});
         std::sort(sorted.begin(), sorted.end());
         int near_outline = 0;
@@ -663,8 +672,7 @@ SCENARIO("The iteration cap bounds a match, and one level finds what two levels 
     WHEN("matched from a start pose that is not a number") {
       PerfectMatcher pm;
       pm.set_scan(scan);
-      const PerfectMatchResult r =
-          pm.match(t.view, t.centroid_m, {std::numeric_limits<double>::quiet_NaN(), 0.0, 0.0});
+      const PerfectMatchResult r = pm.match(t.view, t.centroid_m, {std::numeric_limits<double>::quiet_NaN(), 0.0, 0.0});
       THEN("nothing is matched and the error is the worst") {
         CHECK(r.iterations == 0);
         CHECK(r.error == 1.0);
@@ -712,7 +720,7 @@ SCENARIO("Points off the part's surface do not pull the pose", "[perfect_match][
       const Accuracy least_squares = recover(t, points, poses, Start::kCentroid, thesis);
       THEN("the robust fit stays within half a cell and 0.1 deg, with less than half the error of Lc = 0.4 m") {
         INFO("robust: " << describe(robust) << "; Lc 0.4 m: " << describe(least_squares));
-        CHECK(robust.max_mm <= 0.5 * kResolutionM * 1e3);
+        CHECK(robust.max_mm <= kHalfCellMm);
         CHECK(robust.mean_mm <= 0.5);
         CHECK(robust.max_deg <= 0.1);
         CHECK(2.0 * robust.max_mm <= least_squares.max_mm);

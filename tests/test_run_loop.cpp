@@ -820,7 +820,8 @@ TEST_CASE(
   REQUIRE(
       wait_until([&] { return plc.error_code() == static_cast<std::uint16_t>(ErrorCode::kCameraTimeout); }, 30'000));
   CHECK((plc.status() & map::kStatusError) != 0);
-  CHECK(loop.state() == LoopState::kFault);
+  // ERROR goes out first (before the aborted part's "bad scan" result), the state follows within the step.
+  CHECK(wait_until([&] { return loop.state() == LoopState::kFault; }, 1000));
   CHECK(loop.stats().aborted_scans == 1);
   // While the camera stays silent the cell stays in fault and the PLC is told so.
   std::this_thread::sleep_for(milliseconds(300));

@@ -14,6 +14,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <exception>
 #include <map>
 #include <memory>
 #include <numbers>
@@ -66,7 +67,10 @@ double max_of(const std::vector<double>& v) {
 class Scanner {
  public:
   Scanner(const app::Config& cfg, sim::SimCell& cell, bool truth)
-      : cfg_(cfg), cell_(cell), truth_(truth), builder_(app::scan_builder_params(cfg), test::true_calibration(cell.rig())) {}
+      : cfg_(cfg),
+        cell_(cell),
+        truth_(truth),
+        builder_(app::scan_builder_params(cfg), test::true_calibration(cell.rig())) {}
 
   bool scan(const sim::PassSpec& pass, algo::ScanBuffer& out) {
     out.clear();
@@ -119,7 +123,9 @@ struct Taught {
 
 }  // namespace
 
-int main(int argc, char** argv) {
+namespace {
+
+int run(int argc, char** argv) {
   bool truth = false;
   int n_train = 10, n_test = 3, runs = 3;
   for (int i = 1; i < argc; ++i) {
@@ -179,14 +185,15 @@ int main(int argc, char** argv) {
     return true;
   };
 
-  const std::vector<std::string> names = {"plate_4h",     "plate_5h",   "slotted_plate", "ribbed_v4",
-                                          "ribbed_v3",    "ribbed_h5",  "louvred_panel", "bracket_l",
-                                          "channel_u",    "tray",       "frame_window",  "chamfered_plate"};
-  std::printf("bench_cascade: %zu classes, grid %d x %d x %d at %.1f mm, scans from %s; %d training and %d test "
-              "scans per class\n",
-              names.size(), spec.nx, spec.ny, spec.nz, spec.resolution_m * 1e3,
-              truth ? "the renderer's truth points" : "reconstruction (stripe + triangulation, true calibration)",
-              n_train, n_test);
+  const std::vector<std::string> names = {"plate_4h",  "plate_5h",  "slotted_plate", "ribbed_v4",
+                                          "ribbed_v3", "ribbed_h5", "louvred_panel", "bracket_l",
+                                          "channel_u", "tray",      "frame_window",  "chamfered_plate"};
+  std::printf(
+      "bench_cascade: %zu classes, grid %d x %d x %d at %.1f mm, scans from %s; %d training and %d test "
+      "scans per class\n",
+      names.size(), spec.nx, spec.ny, spec.nz, spec.resolution_m * 1e3,
+      truth ? "the renderer's truth points" : "reconstruction (stripe + triangulation, true calibration)", n_train,
+      n_test);
 
   // --- teach: template (first scan) -> distance map; training and test scans ----------------------------------------
   const Clock::time_point t_teach = Clock::now();
@@ -270,7 +277,8 @@ int main(int argc, char** argv) {
                 cov, th.max_error, th.max_missing_area_m2 * 1e6, th.max_extra_area_m2 * 1e6);
   }
 
-  // --- siblings: scans of one class against the other's template ------------------------------------------------------
+  // --- siblings: scans of one class against the other's template
+  // ------------------------------------------------------
   std::printf("\nsibling scans against the other template (min over the test scans; fails when above its max)\n");
   std::printf("%-28s %10s %10s %10s %8s\n", "scan -> template", "PM error", "miss mm2", "extra mm2", "passes");
   const std::pair<int, int> pairs[] = {{0, 1}, {1, 0}, {3, 4}, {4, 3}};
@@ -284,13 +292,14 @@ int main(int argc, char** argv) {
       ex = std::min(ex, r.extra_area_m2);
       passes += r.passes(models[static_cast<std::size_t>(to)].thresholds) ? 1 : 0;
     }
-    const std::string label = taught[static_cast<std::size_t>(from)]->name + " -> " +
-                              taught[static_cast<std::size_t>(to)]->name;
+    const std::string label =
+        taught[static_cast<std::size_t>(from)]->name + " -> " + taught[static_cast<std::size_t>(to)]->name;
     std::printf("%-28s %10.2e %10.0f %10.0f %5d/%zu\n", label.c_str(), e, mi * 1e6, ex * 1e6, passes,
                 taught[static_cast<std::size_t>(from)]->test.size());
   }
 
-  // --- SVM on the training features ------------------------------------------------------------------------------------
+  // --- SVM on the training features
+  // ------------------------------------------------------------------------------------
   std::vector<algo::FeatureVector> x;
   std::vector<int> y;
   std::vector<algo::ClassInfo> classes;
@@ -305,8 +314,8 @@ int main(int argc, char** argv) {
   const algo::Scaler scaler = algo::Scaler::fit(x);
   algo::FeatureMask mask;
   mask.set();
-  auto svm = algo::SvmModel::train(x, y, classes, mask, scaler, algo::SvmHyper{algo::KernelType::kRbf, 4.0, 1.0, 3, 0.0},
-                                   1);
+  auto svm =
+      algo::SvmModel::train(x, y, classes, mask, scaler, algo::SvmHyper{algo::KernelType::kRbf, 4.0, 1.0, 3, 0.0}, 1);
   if (!svm) {
     std::fprintf(stderr, "%s\n", svm.error().message.c_str());
     return 1;
@@ -409,4 +418,15 @@ int main(int argc, char** argv) {
   std::printf("  one candidate: Perfect Match (set_scan + match) %7.2f %8.2f\n", median(t_pm), max_of(t_pm));
   std::printf("  one candidate: two-way check (both poses)       %7.2f %8.2f\n", median(t_check), max_of(t_check));
   return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  try {
+    return run(argc, argv);
+  } catch (const std::exception& e) {  // allocation failure on a small machine (12 maps of 157 MiB)
+    std::fprintf(stderr, "bench_cascade: %s\n", e.what());
+    return 1;
+  }
 }

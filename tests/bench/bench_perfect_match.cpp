@@ -57,32 +57,14 @@ double median(std::vector<double> v) {
   return v[v.size() / 2];
 }
 
-// Points on the surface of a catalogue part hung with its part frame at `centre`: each facet on a uv lattice.
 std::vector<ScanPoint> surface_points(const sim::PartSpec& spec, const Eigen::Vector3d& centre, double spacing_m,
                                       double phase) {
-  std::vector<ScanPoint> out;
-  const Eigen::Isometry3d place{Eigen::Translation3d(centre)};
-  for (sim::Facet f : sim::build_part(spec)) {
-    f.transform(place);
-    Eigen::Vector2d lo = f.outline.front();
-    Eigen::Vector2d hi = lo;
-    for (const auto& v : f.outline) {
-      lo = lo.cwiseMin(v);
-      hi = hi.cwiseMax(v);
-    }
-    for (double u = lo.x() + phase * spacing_m; u < hi.x(); u += spacing_m) {
-      for (double v = lo.y() + phase * spacing_m; v < hi.y(); v += spacing_m) {
-        if (!f.contains({u, v})) continue;
-        const Eigen::Vector3d p = f.at({u, v});
-        out.push_back({static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z()), 0, 0});
-      }
-    }
-  }
-  return out;
+  return test::lattice_surface_points(spec, centre, spacing_m, phase);
 }
 
 // DESIGN.md "Pose": p_scan = c + R_z(theta)(p_template - c) + (x, y, 0).
-std::vector<ScanPoint> displaced(const std::vector<ScanPoint>& points, const Eigen::Vector2d& c, const PlanarPose& pose) {
+std::vector<ScanPoint> displaced(const std::vector<ScanPoint>& points, const Eigen::Vector2d& c,
+                                 const PlanarPose& pose) {
   const double cs = std::cos(pose.theta_rad);
   const double sn = std::sin(pose.theta_rad);
   std::vector<ScanPoint> out = points;
@@ -151,11 +133,12 @@ void print(const char* part, const Variant& v, const Stats& s) {
   };
   const auto mx = [](const std::vector<double>& x) { return x.empty() ? 0.0 : *std::max_element(x.begin(), x.end()); };
   const auto mn = [](const std::vector<double>& x) { return x.empty() ? 0.0 : *std::min_element(x.begin(), x.end()); };
-  std::printf("  %-16s %-26s pts %4d  it %5.1f conv %2d/%zu  match median %5.2f min %5.2f max %5.2f ms  per 100 it "
-              "median %5.2f min %5.2f ms  set_scan %5.2f ms  xy max %.3f mean %.3f mm  theta max %.4f mean %.4f deg\n",
-              part, v.name, s.points, s.iterations, s.converged, s.match_ms.size(), median(s.match_ms), mn(s.match_ms),
-              mx(s.match_ms), median(s.ms_per_100_iterations), mn(s.ms_per_100_iterations), median(s.set_scan_ms),
-              mx(s.xy_mm), mean(s.xy_mm), mx(s.theta_deg), mean(s.theta_deg));
+  std::printf(
+      "  %-16s %-26s pts %4d  it %5.1f conv %2d/%zu  match median %5.2f min %5.2f max %5.2f ms  per 100 it "
+      "median %5.2f min %5.2f ms  set_scan %5.2f ms  xy max %.3f mean %.3f mm  theta max %.4f mean %.4f deg\n",
+      part, v.name, s.points, s.iterations, s.converged, s.match_ms.size(), median(s.match_ms), mn(s.match_ms),
+      mx(s.match_ms), median(s.ms_per_100_iterations), mn(s.ms_per_100_iterations), median(s.set_scan_ms), mx(s.xy_mm),
+      mean(s.xy_mm), mx(s.theta_deg), mean(s.theta_deg));
 }
 
 std::vector<Variant> variants() {
@@ -220,10 +203,11 @@ void diagnose(const app::TemplateModel& model, const Case& c) {
   }
   const double n = static_cast<double>(pm.points().size());
   if (n5 > 0) far /= n5;
-  std::printf("    truth (%+.1f, %+.1f mm, %+.2f deg): used points beyond 2 / 5 / 20 mm: %.1f / %.1f / %.1f %%, "
-              "mean of those beyond 5 mm (%.3f, %.3f, %.3f) m\n",
-              c.truth.x_m * 1e3, c.truth.y_m * 1e3, c.truth.theta_rad / kDeg, 100.0 * n2 / n, 100.0 * n5 / n,
-              100.0 * n20 / n, far.x(), far.y(), far.z());
+  std::printf(
+      "    truth (%+.1f, %+.1f mm, %+.2f deg): used points beyond 2 / 5 / 20 mm: %.1f / %.1f / %.1f %%, "
+      "mean of those beyond 5 mm (%.3f, %.3f, %.3f) m\n",
+      c.truth.x_m * 1e3, c.truth.y_m * 1e3, c.truth.theta_rad / kDeg, 100.0 * n2 / n, 100.0 * n5 / n, 100.0 * n20 / n,
+      far.x(), far.y(), far.z());
 }
 
 // One pass of the simulated cell: the renderer's truth points, or the reconstruction with the true calibration.
@@ -314,8 +298,8 @@ int main(int argc, char** argv) {
   bool reconstructed = false;
   bool swing = false;
   bool surface = true;
-  std::vector<std::string> names = {"plate_4h", "ribbed_v3", "bracket_l", "chamfered_plate", "louvred_panel",
-                                    "perforated_fine"};
+  std::vector<std::string> names = {"plate_4h",        "ribbed_v3",     "bracket_l",
+                                    "chamfered_plate", "louvred_panel", "perforated_fine"};
   for (int i = 1; i < argc; ++i) {
     if (std::strcmp(argv[i], "--poses") == 0 && i + 1 < argc) {
       n_poses = std::max(1, std::atoi(argv[++i]));
@@ -364,17 +348,19 @@ int main(int argc, char** argv) {
   spec.nz = cfg->grid.nz;
   spec.resolution_m = cfg->grid.resolution_m;
   const std::vector<Variant> vars = variants();
-  std::printf("bench_perfect_match: grid %d x %d x %d at %.1f mm, %d poses per part (x, y in +-50 mm, theta in +-5 "
-              "deg), start: centroid alignment, best of %d runs per match\n",
-              spec.nx, spec.ny, spec.nz, spec.resolution_m * 1e3, n_poses, kRepeats);
+  std::printf(
+      "bench_perfect_match: grid %d x %d x %d at %.1f mm, %d poses per part (x, y in +-50 mm, theta in +-5 "
+      "deg), start: centroid alignment, best of %d runs per match\n",
+      spec.nx, spec.ny, spec.nz, spec.resolution_m * 1e3, n_poses, kRepeats);
 
   // --- surface samplings: template from one lattice, scans from another, displaced by known poses ------------------
   const Eigen::Vector3d centre(0.325, 0.6, 0.1);
   if (surface) std::printf("\nsurface points (template lattice 1.5 mm, scan lattice 1.2 mm with another phase):\n");
   for (algo::GradientMethod method : {algo::GradientMethod::kSobelAveraged, algo::GradientMethod::kCentralDifference}) {
     if (!surface) break;
-    std::printf(" gradient maps: %s\n",
-                method == algo::GradientMethod::kSobelAveraged ? "Sobel averaged (eq. 2.47-2.53)" : "central difference");
+    std::printf(" gradient maps: %s\n", method == algo::GradientMethod::kSobelAveraged
+                                            ? "Sobel averaged (eq. 2.47-2.53)"
+                                            : "central difference");
     for (const std::string& name : names) {
       const sim::PartSpec* part = nullptr;
       for (const auto& p : *catalogue) {
