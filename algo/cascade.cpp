@@ -97,15 +97,21 @@ TemplateThresholds learn_thresholds(std::span<const MatchReport> own_class, cons
   double max_error = 0.0;
   double max_missing = 0.0;
   double max_extra = 0.0;
+  double max_uncovered = 0.0;
+  double max_outliers = 0.0;
   for (const MatchReport& r : own_class) {
     max_error = std::max(max_error, r.pm.error);
     max_missing = std::max(max_missing, r.missing_area_m2);
     max_extra = std::max(max_extra, r.extra_area_m2);
+    max_uncovered = std::max(max_uncovered, 1.0 - r.coverage);
+    max_outliers = std::max(max_outliers, r.scan_outliers);
   }
   TemplateThresholds t;
   t.max_error = max_error * params.error_factor + params.error_floor;
   t.max_missing_area_m2 = max_missing * params.area_factor + params.area_floor_m2;
   t.max_extra_area_m2 = max_extra * params.area_factor + params.area_floor_m2;
+  t.max_uncovered = std::min(1.0, max_uncovered * params.share_factor + params.share_floor);
+  t.max_outliers = std::min(1.0, max_outliers * params.share_factor + params.share_floor);
   return t;
 }
 
@@ -192,6 +198,8 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
     d.pose = params_.decision_pose_from_outline ? c.report.check_pose : c.report.pm.pose;
     d.template_coverage = c.report.coverage;
     d.scan_outliers = c.report.scan_outliers;
+    d.missing_area_m2 = c.report.missing_area_m2;
+    d.extra_area_m2 = c.report.extra_area_m2;
   };
   auto timeout = [&]() -> Decision {
     d.source = DecisionSource::kTimeout;
@@ -249,6 +257,8 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
     d.pm_error = best_any->report.pm.error;
     d.template_coverage = best_any->report.coverage;
     d.scan_outliers = best_any->report.scan_outliers;
+    d.missing_area_m2 = best_any->report.missing_area_m2;
+    d.extra_area_m2 = best_any->report.extra_area_m2;
     d.second_class_index = best_any->class_index;
   }
   return finish();
@@ -307,8 +317,7 @@ MatchReport Cascade::check_prepared(const TemplateModel& model, std::span<const 
   const Roi rt = rasterise_template(model);
   MatchReport best = check_at(model.centroid_m, scan, pose, rt);
   // Passing at Perfect Match's pose already answers "is there an alignment at which they agree".
-  const bool settled = thresholds != nullptr && best.missing_area_m2 <= thresholds->max_missing_area_m2 &&
-                       best.extra_area_m2 <= thresholds->max_extra_area_m2;
+  const bool settled = thresholds != nullptr && best.check_passes(*thresholds);
   if (!settled && params_.refine_iterations > 0 && !outline_valid_) {
     prepare_scan_outline(scan);
     outline_valid_ = true;

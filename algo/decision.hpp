@@ -56,6 +56,8 @@ struct Decision {
   PlanarPose pose{};
   double template_coverage = std::numeric_limits<double>::quiet_NaN();  // two-way check: template seen in scan
   double scan_outliers = std::numeric_limits<double>::quiet_NaN();      // two-way check: scan off the template
+  double missing_area_m2 = std::numeric_limits<double>::quiet_NaN();    // two-way check: largest blob the scan lacks
+  double extra_area_m2 = std::numeric_limits<double>::quiet_NaN();      // ... and largest the template lacks
   int second_class_index = -1;  // runner-up (for logs and the eval report)
   double features_ms = 0.0, svm_ms = 0.0, pm_ms = 0.0, total_ms = 0.0;
   [[nodiscard]] bool accepted() const { return source == DecisionSource::kSvm || source == DecisionSource::kPm; }

@@ -1,6 +1,7 @@
 // Perfect Match (thesis 2.7.3): robust cost of a scan against a template's distance map and its RPROP minimisation.
 #include "algo/perfect_match.hpp"
 
+#include <Eigen/Cholesky>
 #include <algorithm>
 #include <cmath>
 #include <cstddef>
@@ -47,6 +48,12 @@ constexpr int kMinEdgeNeighbours = 2;
 // When the coarse level hands over, its steps may have shrunk to their minimum: the fine level restarts them at
 // this fraction of the initial step (the coarse pose is close, but not within a step minimum).
 constexpr double kFineRestartStepFraction = 0.125;
+// depth_plane(): a point enters when its nearest surface lies above or below it (|dd/dz| >= 0.6, x-y gradient
+// <= 0.5), at least 30 such points, and the normal equations are well conditioned.
+constexpr double kLevelMinDepthGradient = 0.6;
+constexpr double kLevelMaxSideGradient = 0.5;
+constexpr int kLevelMinPoints = 30;
+constexpr double kLevelMinRcond = 1e-9;
 
 }  // namespace
 
@@ -220,7 +227,8 @@ PlanarPose PerfectMatcher::centroid_start(const Eigen::Vector2d& template_centro
 }
 
 PerfectMatchCost PerfectMatcher::cost(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
-                                      const PlanarPose& pose, std::size_t count, double fit_lc_m) const {
+                                      const PlanarPose& pose, std::size_t count, double fit_lc_m,
+                                      const DepthPlane& depth) const {
   count = std::min(count, used_);
   const double lc2 = fit_lc_m > 0.0 ? fit_lc_m * fit_lc_m : params_.lc_m * params_.lc_m;
   const double error_lc2 = params_.lc_m * params_.lc_m;
@@ -246,7 +254,9 @@ PerfectMatchCost PerfectMatcher::cost(const DistanceMapView& map, const Eigen::V
     const double qy = static_cast<double>(p.y()) - oy;
     const double rx = cos_t * qx + sin_t * qy;
     const double ry = -sin_t * qx + cos_t * qy;
-    const MapSample s = map.sample(cx + rx, cy + ry, static_cast<double>(p.z()));
+    // The levelling plane is held fixed within a pass: its (small) dependence on the pose is not in the gradient.
+    const double z = static_cast<double>(p.z()) - (depth.offset_m + depth.slope_x * rx + depth.slope_y * ry);
+    const MapSample s = map.sample(cx + rx, cy + ry, z);
     const double d = s.distance_m;
     const double d2 = d * d;
     const double w = lc2 / (lc2 + d2);
@@ -264,6 +274,59 @@ PerfectMatchCost PerfectMatcher::cost(const DistanceMapView& map, const Eigen::V
   out.grad[1] = -(sin_t * sum_gx + cos_t * sum_gy);
   out.grad[2] = sum_gt;
   return out;
+}
+
+DepthPlane PerfectMatcher::depth_plane(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
+                                       const PlanarPose& pose, const DepthPlane& prior) const {
+  DepthPlane plane;
+  const double h = map.dims().resolution_m;
+  if (!(h > 0.0) || used_ == 0) return plane;
+  const double cos_t = std::cos(pose.theta_rad);
+  const double sin_t = std::sin(pose.theta_rad);
+  const double cx = template_centroid_m.x();
+  const double cy = template_centroid_m.y();
+  const double ox = cx + pose.x_m;
+  const double oy = cy + pose.y_m;
+  Eigen::Vector3d fit = Eigen::Vector3d::Zero();
+  bool have_fit = false;
+  for (const double clip_fraction : {1.0, 0.4, 0.15}) {
+    const double clip = clip_fraction * params_.level_clip_m;
+    Eigen::Matrix3d a = Eigen::Matrix3d::Zero();
+    Eigen::Vector3d b = Eigen::Vector3d::Zero();
+    int n = 0;
+    for (std::size_t i = 0; i < used_; ++i) {
+      const Eigen::Vector3f& p = points_[i];
+      const double qx = static_cast<double>(p.x()) - ox;
+      const double qy = static_cast<double>(p.y()) - oy;
+      const double rx = cos_t * qx + sin_t * qy;
+      const double ry = -sin_t * qx + cos_t * qy;
+      const double z = static_cast<double>(p.z()) - (prior.offset_m + prior.slope_x * rx + prior.slope_y * ry);
+      const MapSample s0 = map.sample(cx + rx, cy + ry, z);
+      if (!(s0.distance_m <= params_.level_clip_m) || std::hypot(s0.grad_x, s0.grad_y) > kLevelMaxSideGradient) {
+        continue;
+      }
+      const double dz = (map.sample(cx + rx, cy + ry, z + h).distance_m -
+                         map.sample(cx + rx, cy + ry, z - h).distance_m) / (2.0 * h);
+      if (!(std::abs(dz) >= kLevelMinDepthGradient)) continue;
+      const double e = dz > 0.0 ? s0.distance_m : -s0.distance_m;  // > 0: the scan point lies above the surface
+      if (have_fit && !(std::abs(e - (fit[0] + fit[1] * rx + fit[2] * ry)) <= clip)) continue;
+      const Eigen::Vector3d v(1.0, rx, ry);
+      a += v * v.transpose();
+      b += v * e;
+      ++n;
+    }
+    if (n < kLevelMinPoints) break;
+    const Eigen::LDLT<Eigen::Matrix3d> ldlt(a);
+    if (ldlt.info() != Eigen::Success || !(ldlt.rcond() > kLevelMinRcond)) break;
+    fit = ldlt.solve(b);
+    have_fit = true;
+    plane.points = n;
+  }
+  if (!have_fit || !fit.allFinite()) return prior;
+  plane.offset_m = prior.offset_m + fit[0];
+  plane.slope_x = prior.slope_x + fit[1];
+  plane.slope_y = prior.slope_y + fit[2];
+  return plane;
 }
 
 PerfectMatchResult PerfectMatcher::match(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
@@ -291,13 +354,27 @@ PerfectMatchResult PerfectMatcher::match(const DistanceMapView& map, const Eigen
   double best_d2 = 0.0;
   bool have_best = false;
   int evaluations = 0;
-  for (int level = coarse ? 0 : 1; level < 2; ++level) {
-    const bool fine = level == 1;
+  // Levels: 0 = coarse, 1.. = the fine passes (one without levelling).
+  const int fine_passes = std::max(params_.level_passes, 1);
+  DepthPlane depth;
+  for (int level = coarse ? 0 : 1; level <= fine_passes; ++level) {
+    const bool fine = level >= 1;
     const std::size_t count = fine ? used_ : coarse_used_;
-    const int budget = fine ? params_.max_iterations - evaluations : coarse_budget;
+    // The fine passes share what the coarse level left; the last takes the rest.
+    const int remaining = params_.max_iterations - evaluations;
+    const int budget = fine ? (level == fine_passes ? remaining : remaining / (fine_passes - level + 1)) : coarse_budget;
     // The coarse level's wide bowl (lc_m) for capture, the fine level's robust one (fit_lc_m) for the pose.
     const double fit_lc = fine ? params_.fit_lc_m : params_.lc_m;
-    if (fine && coarse) {
+    if (fine && budget <= 0 && have_best) break;  // the cap is spent: keep the last pass's best
+    if (fine && params_.level_passes > 0) {
+      // Levelled at the best pose so far; the pass's costs are another function, so the best restarts with it.
+      const PlanarPose at = have_best ? PlanarPose{best_pose[0], best_pose[1], best_pose[2]}
+                                      : PlanarPose{pose[0], pose[1], pose[2]};
+      depth = depth_plane(map, template_centroid_m, at, depth);
+      if (have_best) std::copy(best_pose, best_pose + 3, pose);
+      have_best = false;
+    }
+    if (fine && (coarse || level > 1)) {
       // The cost of all points is another function: its derivatives do not continue the coarse ones.
       for (int k = 0; k < 3; ++k) {
         state[k].previous_grad = 0.0;
@@ -306,7 +383,7 @@ PerfectMatchResult PerfectMatcher::match(const DistanceMapView& map, const Eigen
       }
     }
     for (int i = 0; i < budget; ++i) {
-      const PerfectMatchCost c = cost(map, template_centroid_m, {pose[0], pose[1], pose[2]}, count, fit_lc);
+      const PerfectMatchCost c = cost(map, template_centroid_m, {pose[0], pose[1], pose[2]}, count, fit_lc, depth);
       ++evaluations;
       if (fine && (!have_best || c.cost < best_cost)) {
         have_best = true;
@@ -334,6 +411,7 @@ PerfectMatchResult PerfectMatcher::match(const DistanceMapView& map, const Eigen
   result.error = best_error / n;
   result.rms_distance_m = std::sqrt(best_d2 / n);
   result.iterations = evaluations;
+  result.depth = depth;
   return result;
 }
 

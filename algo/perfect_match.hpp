@@ -55,6 +55,25 @@ struct PerfectMatchParams {
   // as one level, 35-40 % less time per match (a 250-point iteration costs a quarter of a 1000-point one).
   int coarse_points = 250;
   int coarse_iterations = 70;
+  // Depth levelling of the fine level. The planar pose (x, y, theta) does not model the part's swing about the
+  // hook's vertical axis (+-2 deg in the simulated cell: up to 8 mm of depth at the edge of a 450 mm part) nor a
+  // change of hook height, and on inclined relief (louvres, flanges, beads) a depth error can be traded for an
+  // in-plane shift or turn, which biases the pose (measured on louvred_panel: theta off by 0.65 deg median). So the
+  // fine level runs level_passes times; before each pass the depth offset of the scan from the template,
+  // z_scan - z_template ~ a + b X + c Y (X, Y template frame about c), is fitted robustly at the current pose from
+  // the used points that lie above or below a surface (see depth_plane()), and the template is then sampled at
+  // z - (a + b X + c Y). level_passes <= 0: no levelling (the thesis's cost).
+  int level_passes = 2;
+  double level_clip_m = 0.008;  // points farther than this from the template surface do not enter the fit
+};
+
+// Depth offset of a scan from a template (see PerfectMatchParams::level_passes): z_scan - z_template =
+// offset_m + slope_x X + slope_y Y, X, Y template-frame x-y about the template centroid.
+struct DepthPlane {
+  double offset_m = 0.0;
+  double slope_x = 0.0;
+  double slope_y = 0.0;
+  int points = 0;  // points the fit used (0: no fit, the plane is zero)
 };
 
 struct PerfectMatchResult {
@@ -66,6 +85,7 @@ struct PerfectMatchResult {
   int iterations = 0;           // cost evaluations (= RPROP iterations) run
   int points = 0;               // scan points used (at the finest level)
   bool converged = false;       // steps fell under their minimum before the iteration cap
+  DepthPlane depth{};           // the depth levelling of the last fine pass
 };
 
 // Cost of one pose and its gradient (thesis eq. 2.56, 2.57-2.66); what match() minimises, public for tests.
@@ -104,12 +124,28 @@ class PerfectMatcher {
 
   // Cost and gradient of the first `count` used points at `pose` (count is clamped to the used points), fitted with
   // `fit_lc_m` (<= 0: lc_m); error_sum always with lc_m. Default: the fine level's Lc.
+  // `depth` levels the scan (the template is sampled at z - depth(X, Y)).
   [[nodiscard]] PerfectMatchCost cost(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
-                                      const PlanarPose& pose, std::size_t count, double fit_lc_m) const;
+                                      const PlanarPose& pose, std::size_t count, double fit_lc_m,
+                                      const DepthPlane& depth) const;
+  [[nodiscard]] PerfectMatchCost cost(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
+                                      const PlanarPose& pose, std::size_t count, double fit_lc_m) const {
+    return cost(map, template_centroid_m, pose, count, fit_lc_m, DepthPlane{});
+  }
   [[nodiscard]] PerfectMatchCost cost(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
                                       const PlanarPose& pose, std::size_t count) const {
     return cost(map, template_centroid_m, pose, count, params_.fit_lc_m);
   }
+
+  // The depth offset of the used points from the template at `pose`. The map holds distances, not signed depths, so
+  // a point's offset is its distance d with the sign of the distance's change along z (sampled at z +- one cell):
+  // a point above or below a sheet has |dd/dz| ~ 1 and a small x-y gradient; points beside an edge (the nearest
+  // surface sideways) or farther than level_clip_m are left out. Least squares of the plane, refitted twice on the
+  // points within a shrinking band around it. Fewer than 30 points or a degenerate spread: the zero plane.
+  // `prior`: a plane found before (the previous pass's); the fit is of what remains after it, so points that were
+  // beyond level_clip_m before levelling (the edges of a strongly swung part) enter once the prior has levelled them.
+  [[nodiscard]] DepthPlane depth_plane(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
+                                       const PlanarPose& pose, const DepthPlane& prior = DepthPlane{}) const;
 
   // Start by centroid alignment: x, y = scan centroid - template centroid, theta 0.
   [[nodiscard]] PlanarPose centroid_start(const Eigen::Vector2d& template_centroid_m) const;

@@ -73,7 +73,10 @@ std::string decision_json(const std::string& scan, const algo::Decision& d, std:
   } else {
     o << "null";
   }
-  o << ", \"ms\": " << json_number(d.total_ms) << "}";
+  // The two-way check of the chosen class (of the closest candidate when unknown), for diagnosis.
+  o << ", \"coverage\": " << json_number(d.template_coverage) << ", \"outliers\": " << json_number(d.scan_outliers)
+    << ", \"missing_mm2\": " << json_number(d.missing_area_m2 * 1e6)
+    << ", \"extra_mm2\": " << json_number(d.extra_area_m2 * 1e6) << ", \"ms\": " << json_number(d.total_ms) << "}";
   return o.str();
 }
 

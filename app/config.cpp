@@ -201,6 +201,8 @@ void read_rest(YamlSection& root, Config& cfg) {
     s.number("informative_fraction", cfg.pm.informative_fraction, 0.0, 1.0, "");
     s.integer("coarse_points", cfg.pm.coarse_points, 0, 1000000, "points");
     s.integer("coarse_iterations", cfg.pm.coarse_iterations, 0, 100000, "");
+    s.integer("level_passes", cfg.pm.level_passes, 0, 10, "");
+    s.number("level_clip_m", cfg.pm.level_clip_m, 1e-4, 0.1, "m");
     s.finish();
     if (cfg.pm.step_min_m > cfg.pm.step_initial_m || cfg.pm.step_initial_m > cfg.pm.step_max_m) {
       s.error("step_initial_m", "must lie between perfect_match.step_min_m and perfect_match.step_max_m");
@@ -222,6 +224,8 @@ void read_rest(YamlSection& root, Config& cfg) {
     s.number("error_floor", cfg.cascade.error_floor, 0.0, 1.0, "");
     s.number("area_factor", cfg.cascade.area_factor, 1.0, 100.0, "");
     s.number("area_floor_m2", cfg.cascade.area_floor_m2, 0.0, 1.0, "m^2");
+    s.number("share_factor", cfg.cascade.share_factor, 1.0, 100.0, "");
+    s.number("share_floor", cfg.cascade.share_floor, 0.0, 1.0, "");
     s.finish();
   }
   {

@@ -88,7 +88,9 @@ std::string manifest_text(const Manifest& m) {
     t << "    thresholds: {learnt: " << (p.thresholds.learnt ? "true" : "false")
       << ", max_error: " << num(p.thresholds.max_error)
       << ", max_missing_area_m2: " << num(p.thresholds.max_missing_area_m2)
-      << ", max_extra_area_m2: " << num(p.thresholds.max_extra_area_m2) << "}\n";
+      << ", max_extra_area_m2: " << num(p.thresholds.max_extra_area_m2)
+      << ", max_uncovered: " << num(p.thresholds.max_uncovered) << ", max_outliers: " << num(p.thresholds.max_outliers)
+      << "}\n";
     t << "    scans:" << (p.scans.empty() ? " []" : "") << "\n";
     for (const ScanEntry& s : p.scans) {
       t << "      - {file: " << quoted(s.file) << ", crc32: \"" << hex32(s.crc32) << "\", source: " << quoted(s.source)
@@ -194,9 +196,16 @@ Expected<Manifest> parse_manifest(const std::string& path, const std::string& by
     {
       YamlSection t = p.section("thresholds");
       t.boolean("learnt", e.thresholds.learnt);
+      // Learnt limits are used as they stand: none may be left to a default. Limits from a version that learnt fewer
+      // of them count as not learnt, so the database says 'run cellsight train' instead of refusing to open.
+      for (const char* key : {"max_error", "max_missing_area_m2", "max_extra_area_m2", "max_uncovered", "max_outliers"}) {
+        if (!t.has(key)) e.thresholds.learnt = false;
+      }
       t.number("max_error", e.thresholds.max_error, 0.0, 1.0, "");
       t.number("max_missing_area_m2", e.thresholds.max_missing_area_m2, 0.0, 100.0, "m2");
       t.number("max_extra_area_m2", e.thresholds.max_extra_area_m2, 0.0, 100.0, "m2");
+      t.number("max_uncovered", e.thresholds.max_uncovered, 0.0, 1.0, "");
+      t.number("max_outliers", e.thresholds.max_outliers, 0.0, 1.0, "");
       t.finish();
     }
     for (YamlSection s : p.list("scans")) {

@@ -21,6 +21,8 @@ struct PartThresholds {
   double max_error = 0.0;            // per-point Perfect Match cost
   double max_missing_area_m2 = 0.0;  // largest template region absent from a scan
   double max_extra_area_m2 = 0.0;    // largest scan region where the template has nothing
+  double max_uncovered = 0.0;        // share of the template absent from a scan, all regions together
+  double max_outliers = 0.0;         // share of a scan where the template has nothing
 };
 
 struct ScanEntry {

@@ -1,6 +1,8 @@
 // `cellsight teach` and `cellsight parts`: store scans of a part type, build its template, manage the database.
 #include "app/teach_mode.hpp"
 
+#include <unistd.h>
+
 #include <atomic>
 #include <cstdio>
 #include <filesystem>
@@ -48,6 +50,7 @@ Expected<std::vector<TaughtScan>> acquire_sim_scans(const Config& config, const 
   std::atomic<int> done{0};
   std::mutex mutex;
   std::string first_error;
+  const bool terminal = ::isatty(::fileno(stdout)) != 0;
   const auto worker = [&] {
     for (int i = next++; i < count; i = next++) {
       {
@@ -68,7 +71,11 @@ Expected<std::vector<TaughtScan>> acquire_sim_scans(const Config& config, const 
       }
       scans[static_cast<std::size_t>(i)] = {std::move(*points), "sim seed " + std::to_string(options.seed)};
       const int n = ++done;
-      std::printf("\r  scanned %d / %d", n, count);
+      if (terminal) {
+        std::printf("\r  scanned %d / %d", n, count);
+      } else if (n % 10 == 0 || n == count) {
+        std::printf("  scanned %d / %d\n", n, count);  // a log file or journald gets whole lines, not redraws
+      }
       std::fflush(stdout);
     }
   };
@@ -77,7 +84,7 @@ Expected<std::vector<TaughtScan>> acquire_sim_scans(const Config& config, const 
   for (int t = 1; t < std::min(threads, count); ++t) pool.emplace_back(worker);
   worker();
   for (auto& t : pool) t.join();
-  std::printf("\n");
+  if (terminal) std::printf("\n");
   if (!first_error.empty()) return make_error(first_error);
   return scans;
 }
@@ -108,8 +115,9 @@ void print_part(const ModelDb& db, const PartEntry& p, bool detail) {
     std::printf("  template     %s: %s\n", p.template_file.c_str(), info.error().message.c_str());
   }
   if (p.thresholds.learnt) {
-    std::printf("  accepts      PM error <= %.3g, missing <= %.0f mm2, extra <= %.0f mm2\n", p.thresholds.max_error,
-                p.thresholds.max_missing_area_m2 * 1e6, p.thresholds.max_extra_area_m2 * 1e6);
+    std::printf("  accepts      PM error <= %.3g, missing <= %.0f mm2 (%.2f %% in all), extra <= %.0f mm2 (%.2f %% in all)\n",
+                p.thresholds.max_error, p.thresholds.max_missing_area_m2 * 1e6, p.thresholds.max_uncovered * 100.0,
+                p.thresholds.max_extra_area_m2 * 1e6, p.thresholds.max_outliers * 100.0);
   }
   for (const ScanEntry& s : p.scans) std::printf("  scan         %s  (%s)\n", s.file.c_str(), s.source.c_str());
 }

@@ -241,7 +241,7 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
   std::vector<PartThresholds> thresholds;
   for (const auto& own : taught->own_matches) {
     const algo::TemplateThresholds t = algo::learn_thresholds(own, cascade_params(config));
-    thresholds.push_back({true, t.max_error, t.max_missing_area_m2, t.max_extra_area_m2});
+    thresholds.push_back({true, t.max_error, t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered, t.max_outliers});
   }
 
   // Atomic update: the new model under a new name, then the manifest that points at it, then the old one goes.

@@ -8,6 +8,7 @@
 #include <catch2/catch.hpp>
 #include <chrono>
 #include <cmath>
+#include <limits>
 #include <cstdlib>
 #include <map>
 #include <memory>
@@ -294,6 +295,8 @@ TEST_CASE("learn_thresholds takes the own-class maxima times the factor plus the
   p.error_floor = 1e-4;
   p.area_factor = 1.5;
   p.area_floor_m2 = 100e-6;
+  p.share_factor = 2.0;
+  p.share_floor = 0.002;
   std::vector<MatchReport> reports(3);
   reports[0].pm.error = 3e-4;
   reports[0].missing_area_m2 = 20e-6;
@@ -304,13 +307,37 @@ TEST_CASE("learn_thresholds takes the own-class maxima times the factor plus the
   reports[2].pm.error = 1e-4;
   reports[2].missing_area_m2 = 30e-6;
   reports[2].extra_area_m2 = 0.0;
+  for (std::size_t i = 0; i < reports.size(); ++i) {
+    reports[i].coverage = 1.0 - 1e-4 * static_cast<double>(i);  // uncovered 0, 1e-4, 2e-4
+    reports[i].scan_outliers = 3e-4 / static_cast<double>(i + 1);
+  }
   const algo::TemplateThresholds t = algo::learn_thresholds(reports, p);
   CHECK(t.max_error == Approx(5e-4 * 2.0 + 1e-4));
   CHECK(t.max_missing_area_m2 == Approx(30e-6 * 1.5 + 100e-6));
   CHECK(t.max_extra_area_m2 == Approx(40e-6 * 1.5 + 100e-6));
+  CHECK(t.max_uncovered == Approx(2e-4 * 2.0 + 0.002));
+  CHECK(t.max_outliers == Approx(3e-4 * 2.0 + 0.002));
+  // A report meets them at the limits and fails just beyond any one of them.
+  MatchReport at;
+  at.pm.error = t.max_error;
+  at.missing_area_m2 = t.max_missing_area_m2;
+  at.extra_area_m2 = t.max_extra_area_m2;
+  at.coverage = 1.0 - t.max_uncovered * 0.999;
+  at.scan_outliers = t.max_outliers;
+  CHECK(at.passes(t));
+  MatchReport spread = at;
+  spread.coverage = 1.0 - t.max_uncovered * 1.01;  // many small blobs, none large
+  CHECK_FALSE(spread.passes(t));
+  MatchReport outlying = at;
+  outlying.scan_outliers = t.max_outliers * 1.01;
+  CHECK_FALSE(outlying.passes(t));
+  MatchReport unchecked = at;
+  unchecked.coverage = std::numeric_limits<double>::quiet_NaN();
+  CHECK_FALSE(unchecked.passes(t));
   const algo::TemplateThresholds empty = algo::learn_thresholds({}, p);
   CHECK(empty.max_error == Approx(1e-4));
   CHECK(empty.max_missing_area_m2 == Approx(100e-6));
+  CHECK(empty.max_uncovered == Approx(0.002));
 }
 
 SCENARIO("The two-way check sees one hole more or less in both directions and the same part at other poses passes",

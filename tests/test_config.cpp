@@ -100,6 +100,8 @@ TEST_CASE("Given the shipped config file, when it is loaded, then it is valid an
   CHECK(cfg->pm.informative_fraction == d.pm.informative_fraction);
   CHECK(cfg->pm.coarse_points == d.pm.coarse_points);
   CHECK(cfg->pm.coarse_iterations == d.pm.coarse_iterations);
+  CHECK(cfg->pm.level_passes == d.pm.level_passes);
+  CHECK(cfg->pm.level_clip_m == d.pm.level_clip_m);
   CHECK(cfg->cascade.accept_p1 == d.cascade.accept_p1);
   CHECK(cfg->cascade.accept_p2_max == d.cascade.accept_p2_max);
   CHECK(cfg->cascade.pm_candidates == d.cascade.pm_candidates);
@@ -111,6 +113,8 @@ TEST_CASE("Given the shipped config file, when it is loaded, then it is valid an
   CHECK(cfg->cascade.error_floor == d.cascade.error_floor);
   CHECK(cfg->cascade.area_factor == d.cascade.area_factor);
   CHECK(cfg->cascade.area_floor_m2 == d.cascade.area_floor_m2);
+  CHECK(cfg->cascade.share_factor == d.cascade.share_factor);
+  CHECK(cfg->cascade.share_floor == d.cascade.share_floor);
   CHECK(cfg->svm.sa_start_temperature == d.svm.sa_start_temperature);
   CHECK(cfg->runtime.deadline_ms == d.runtime.deadline_ms);
   CHECK(cfg->catalogue_path == fs::path(kShippedCatalogue).lexically_normal().string());
