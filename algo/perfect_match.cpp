@@ -48,6 +48,21 @@ constexpr int kMinEdgeNeighbours = 2;
 // When the coarse level hands over, its steps may have shrunk to their minimum: the fine level restarts them at
 // this fraction of the initial step (the coarse pose is close, but not within a step minimum).
 constexpr double kFineRestartStepFraction = 0.125;
+
+// A scan point in the template frame: p_t = c + R(-theta)(p_scan - c - t) (inverse of eq. 2.55 with DESIGN.md's
+// centre c); r = p_t - c, and the levelled depth z - depth(r).
+struct TemplateFrame {
+  double cos_t, sin_t, ox, oy;
+  TemplateFrame(const Eigen::Vector2d& c, const PlanarPose& pose)
+      : cos_t(std::cos(pose.theta_rad)), sin_t(std::sin(pose.theta_rad)), ox(c.x() + pose.x_m), oy(c.y() + pose.y_m) {}
+  void map(const Eigen::Vector3f& p, const DepthPlane& depth, double& rx, double& ry, double& z) const {
+    const double qx = static_cast<double>(p.x()) - ox;
+    const double qy = static_cast<double>(p.y()) - oy;
+    rx = cos_t * qx + sin_t * qy;
+    ry = -sin_t * qx + cos_t * qy;
+    z = static_cast<double>(p.z()) - (depth.offset_m + depth.slope_x * rx + depth.slope_y * ry);
+  }
+};
 // depth_plane(): a point enters when its nearest surface lies above or below it (|dd/dz| >= 0.6, x-y gradient
 // <= 0.5), at least 30 such points, and the normal equations are well conditioned.
 constexpr double kLevelMinDepthGradient = 0.6;
@@ -232,12 +247,8 @@ PerfectMatchCost PerfectMatcher::cost(const DistanceMapView& map, const Eigen::V
   count = std::min(count, used_);
   const double lc2 = fit_lc_m > 0.0 ? fit_lc_m * fit_lc_m : params_.lc_m * params_.lc_m;
   const double error_lc2 = params_.lc_m * params_.lc_m;
-  const double cos_t = std::cos(pose.theta_rad);
-  const double sin_t = std::sin(pose.theta_rad);
   const double cx = template_centroid_m.x();
   const double cy = template_centroid_m.y();
-  const double ox = cx + pose.x_m;
-  const double oy = cy + pose.y_m;
 
   // Each scan point goes back into the template frame, p_t = c + R(-theta)(p_scan - c - t) (inverse of eq. 2.55
   // with DESIGN.md's centre c), where the template's map is sampled. With r = p_t - c:
@@ -248,14 +259,11 @@ PerfectMatchCost PerfectMatcher::cost(const DistanceMapView& map, const Eigen::V
   double sum_gx = 0.0;
   double sum_gy = 0.0;
   double sum_gt = 0.0;
+  const TemplateFrame frame(template_centroid_m, pose);
   for (std::size_t i = 0; i < count; ++i) {
-    const Eigen::Vector3f& p = points_[i];
-    const double qx = static_cast<double>(p.x()) - ox;
-    const double qy = static_cast<double>(p.y()) - oy;
-    const double rx = cos_t * qx + sin_t * qy;
-    const double ry = -sin_t * qx + cos_t * qy;
     // The levelling plane is held fixed within a pass: its (small) dependence on the pose is not in the gradient.
-    const double z = static_cast<double>(p.z()) - (depth.offset_m + depth.slope_x * rx + depth.slope_y * ry);
+    double rx = 0.0, ry = 0.0, z = 0.0;
+    frame.map(points_[i], depth, rx, ry, z);
     const MapSample s = map.sample(cx + rx, cy + ry, z);
     const double d = s.distance_m;
     const double d2 = d * d;
@@ -270,8 +278,8 @@ PerfectMatchCost PerfectMatcher::cost(const DistanceMapView& map, const Eigen::V
     sum_gy += gy;
     sum_gt += gx * ry - gy * rx;
   }
-  out.grad[0] = -(cos_t * sum_gx - sin_t * sum_gy);
-  out.grad[1] = -(sin_t * sum_gx + cos_t * sum_gy);
+  out.grad[0] = -(frame.cos_t * sum_gx - frame.sin_t * sum_gy);
+  out.grad[1] = -(frame.sin_t * sum_gx + frame.cos_t * sum_gy);
   out.grad[2] = sum_gt;
   return out;
 }
@@ -281,12 +289,9 @@ DepthPlane PerfectMatcher::depth_plane(const DistanceMapView& map, const Eigen::
   DepthPlane plane;
   const double h = map.dims().resolution_m;
   if (!(h > 0.0) || used_ == 0) return plane;
-  const double cos_t = std::cos(pose.theta_rad);
-  const double sin_t = std::sin(pose.theta_rad);
   const double cx = template_centroid_m.x();
   const double cy = template_centroid_m.y();
-  const double ox = cx + pose.x_m;
-  const double oy = cy + pose.y_m;
+  const TemplateFrame frame(template_centroid_m, pose);
   Eigen::Vector3d fit = Eigen::Vector3d::Zero();
   bool have_fit = false;
   for (const double clip_fraction : {1.0, 0.4, 0.15}) {
@@ -295,12 +300,8 @@ DepthPlane PerfectMatcher::depth_plane(const DistanceMapView& map, const Eigen::
     Eigen::Vector3d b = Eigen::Vector3d::Zero();
     int n = 0;
     for (std::size_t i = 0; i < used_; ++i) {
-      const Eigen::Vector3f& p = points_[i];
-      const double qx = static_cast<double>(p.x()) - ox;
-      const double qy = static_cast<double>(p.y()) - oy;
-      const double rx = cos_t * qx + sin_t * qy;
-      const double ry = -sin_t * qx + cos_t * qy;
-      const double z = static_cast<double>(p.z()) - (prior.offset_m + prior.slope_x * rx + prior.slope_y * ry);
+      double rx = 0.0, ry = 0.0, z = 0.0;
+      frame.map(points_[i], prior, rx, ry, z);
       const MapSample s0 = map.sample(cx + rx, cy + ry, z);
       if (!(s0.distance_m <= params_.level_clip_m) || std::hypot(s0.grad_x, s0.grad_y) > kLevelMaxSideGradient) {
         continue;
