@@ -4,7 +4,8 @@
 #   1. calibrates the simulated sensor (camera, laser, conveyor, carrier plane) as a technician would,
 #   2. teaches the catalogue (COUNT simulated passes per part) into a model database,
 #   3. trains the recogniser (features, simulated annealing + k-fold CV, SVM, template thresholds),
-#   4. runs the production loop for PARTS parts with the Modbus server up (127.0.0.1:1502), one log line per part.
+#   4. runs the production loop for PARTS parts with the Modbus server up (127.0.0.1:1502), one log line per part,
+#      while a PLC program (tests/modbus_plc_client.py, pymodbus) takes every result by the handshake.
 # A database that is already taught and trained is reused (delete out/demo to start over).
 #
 # usage: scripts/demo.sh [PARTS] [COUNT]      (defaults: 20 parts, 12 teach passes per part type)
@@ -43,5 +44,20 @@ if ! "$BIN" --models "$MODELS" parts list >/dev/null 2>&1 || "$BIN" --models "$M
 fi
 "$BIN" --models "$MODELS" parts list
 
-echo "== 4. running the cell for $PARTS parts (Modbus TCP on 127.0.0.1:1502; try: mbpoll -m tcp -p 1502 -a 1 -r 201 -c 27 -1 127.0.0.1)"
-"$BIN" --models "$MODELS" run --sim --parts "$PARTS" --calibration "$CAL"
+echo "== 4. running the cell for $PARTS parts, with a PLC program (tests/modbus_plc_client.py) taking every result"
+echo "   over Modbus TCP 127.0.0.1:1502 by the RESULT_VALID / RESULT_ACK handshake (the cell: log lines; the PLC: JSON)"
+"$BIN" --models "$MODELS" run --sim --parts "$PARTS" --wait-plc --calibration "$CAL" &
+CELL=$!
+trap 'kill "$CELL" 2>/dev/null || true' EXIT
+for _ in $(seq 100); do  # until the Modbus server listens
+  (exec 3<>/dev/tcp/127.0.0.1/1502) 2>/dev/null && break
+  kill -0 "$CELL" 2>/dev/null || break
+  sleep 0.1
+done
+PLC=0
+/usr/bin/python3 tests/modbus_plc_client.py --host 127.0.0.1 --port 1502 --count "$PARTS" --timeout 600 || PLC=$?
+CELL_EXIT=0
+wait "$CELL" || CELL_EXIT=$?
+trap - EXIT
+echo "== done: cell exit $CELL_EXIT, PLC exit $PLC"
+[ "$CELL_EXIT" -eq 0 ] && [ "$PLC" -eq 0 ]
