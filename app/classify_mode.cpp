@@ -197,29 +197,26 @@ Status generate_sim_scans(const Config& config, const ModelDb& db, const std::ve
     }
     const Eigen::Vector3d c0 = cell->nominal_centre(*spec);
     fs::create_directories(fs::path(dir) / part, ec);
-    for (int k = 0; k < count; ++k) {
-      const std::uint64_t seed = first_seed + static_cast<std::uint64_t>(k);
-      ScanOptions options;
-      options.sim = true;
-      options.part = part;
-      options.seed = seed;
-      options.calibration_path = calibration_path;
-      ScanSummary summary;
-      auto points = acquire_scan(config, options, summary);
-      if (!points) return make_error(part + " seed " + std::to_string(seed) + ": " + points.error().message);
-      const std::string rel = part + "/s" + std::to_string(seed) + ".ply";
-      if (auto ok = write_file_atomic(dir + "/" + rel, algo::write_ply_binary(*points)); !ok) return ok;
-      if (template_pose) {
-        const algo::PlanarPose p = relative_pose(cell->random_pass(part, seed)->pose, *template_pose, c0.head<2>(), centroid);
-        char line[256];
-        std::snprintf(line, sizeof line, "%s,%.9f,%.9f,%.9f\n", rel.c_str(), p.x_m, p.y_m, p.theta_rad * kRadToDeg);
-        truth += line;
-      }
-      std::printf("\r  generated %s %d / %d   ", part.c_str(), k + 1, count);
-      std::fflush(stdout);
-    }
+    // The passes of one part on all cores (each an independent acquisition); truth lines kept in seed order.
+    std::vector<std::string> lines(static_cast<std::size_t>(count));
+    auto ok = acquire_sim_passes(
+        config, part, count, first_seed, calibration_path, "generated " + part,
+        [&](int index, std::uint64_t seed, std::vector<algo::ScanPoint>&& points) -> Status {
+          const std::string rel = part + "/s" + std::to_string(seed) + ".ply";
+          if (auto written = write_file_atomic(dir + "/" + rel, algo::write_ply_binary(points)); !written) return written;
+          if (template_pose) {
+            const algo::PlanarPose p =
+                relative_pose(cell->random_pass(part, seed)->pose, *template_pose, c0.head<2>(), centroid);
+            char line[256];
+            std::snprintf(line, sizeof line, "%s,%.9f,%.9f,%.9f\n", rel.c_str(), p.x_m, p.y_m,
+                          p.theta_rad * kRadToDeg);
+            lines[static_cast<std::size_t>(index)] = line;
+          }
+          return {};
+        });
+    if (!ok) return ok;
+    for (const std::string& line : lines) truth += line;
   }
-  std::printf("\n");
   return write_file_atomic(dir + "/truth.csv", truth);
 }
 

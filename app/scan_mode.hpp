@@ -1,6 +1,8 @@
 // `cellsight scan`: one acquisition -> point cloud (PLY), on the simulated cell or the real one.
 #pragma once
 
+#include <cstdint>
+#include <functional>
 #include <string>
 #include <vector>
 #include <optional>
@@ -45,5 +47,14 @@ struct ScanSummary {
 // One acquisition with the calibrated sensor -> PLY written atomically. Never uses the simulator's true rig for
 // reconstruction: the calibration file is required.
 [[nodiscard]] Expected<ScanSummary> run_scan(const Config& config, const ScanOptions& options);
+
+// Acquires passes of `part` on the simulated cell, seeds first_seed .. first_seed + count - 1, on all cores, and hands
+// each to take(index, seed, points), one call at a time (under a lock), in completion order. Progress "  <label> n /
+// count" on stdout: redrawn in place on a terminal, otherwise a line every 10th and the last (log files, journald).
+// The first failure (of an acquisition or of take) stops the others and is returned.
+using PassConsumer = std::function<Status(int index, std::uint64_t seed, std::vector<algo::ScanPoint>&& points)>;
+[[nodiscard]] Status acquire_sim_passes(const Config& config, const std::string& part, int count,
+                                        std::uint64_t first_seed, const std::string& calibration_path,
+                                        const std::string& label, const PassConsumer& take);
 
 }  // namespace cellsight::app

@@ -1,13 +1,8 @@
 // `cellsight teach` and `cellsight parts`: store scans of a part type, build its template, manage the database.
 #include "app/teach_mode.hpp"
 
-#include <unistd.h>
-
-#include <atomic>
 #include <cstdio>
 #include <filesystem>
-#include <mutex>
-#include <thread>
 
 #include "algo/ply.hpp"
 #include "app/atomic_file.hpp"
@@ -46,46 +41,13 @@ std::string scan_file_name(const std::string& part, std::size_t index) {
 Expected<std::vector<TaughtScan>> acquire_sim_scans(const Config& config, const std::string& part, int count,
                                                     std::uint64_t first_seed, const std::string& calibration_path) {
   std::vector<TaughtScan> scans(static_cast<std::size_t>(count));
-  std::atomic<int> next{0};
-  std::atomic<int> done{0};
-  std::mutex mutex;
-  std::string first_error;
-  const bool terminal = ::isatty(::fileno(stdout)) != 0;
-  const auto worker = [&] {
-    for (int i = next++; i < count; i = next++) {
-      {
-        const std::lock_guard<std::mutex> lock(mutex);
-        if (!first_error.empty()) return;
-      }
-      ScanOptions options;
-      options.sim = true;
-      options.part = part;
-      options.seed = first_seed + static_cast<std::uint64_t>(i);
-      options.calibration_path = calibration_path;
-      ScanSummary summary;
-      auto points = acquire_scan(config, options, summary);
-      if (!points) {
-        const std::lock_guard<std::mutex> lock(mutex);
-        if (first_error.empty()) first_error = "seed " + std::to_string(options.seed) + ": " + points.error().message;
-        return;
-      }
-      scans[static_cast<std::size_t>(i)] = {std::move(*points), "sim seed " + std::to_string(options.seed)};
-      const int n = ++done;
-      if (terminal) {
-        std::printf("\r  scanned %d / %d", n, count);
-      } else if (n % 10 == 0 || n == count) {
-        std::printf("  scanned %d / %d\n", n, count);  // a log file or journald gets whole lines, not redraws
-      }
-      std::fflush(stdout);
-    }
-  };
-  const int threads = static_cast<int>(std::max(1U, std::thread::hardware_concurrency()));
-  std::vector<std::thread> pool;
-  for (int t = 1; t < std::min(threads, count); ++t) pool.emplace_back(worker);
-  worker();
-  for (auto& t : pool) t.join();
-  if (terminal) std::printf("\n");
-  if (!first_error.empty()) return make_error(first_error);
+  auto ok = acquire_sim_passes(config, part, count, first_seed, calibration_path, "scanned",
+                               [&](int index, std::uint64_t seed, std::vector<algo::ScanPoint>&& points) -> Status {
+                                 scans[static_cast<std::size_t>(index)] = {std::move(points),
+                                                                           "sim seed " + std::to_string(seed)};
+                                 return {};
+                               });
+  if (!ok) return ok.error();
   return scans;
 }
 

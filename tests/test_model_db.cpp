@@ -5,6 +5,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <array>
 #include <cstdio>
 #include <filesystem>
@@ -157,6 +158,30 @@ TEST_CASE("teach then train then classify a small database through the executabl
   const Run unknown = cell.run("classify --json " + stranger.string());
   INFO(unknown.output);
   CHECK(unknown.output.find("\"class\": null") != std::string::npos);
+
+  // eval --sim: new passes (seeds never taught) of a taught and an untaught part, written as PLY files with the
+  // truth of the taught one relative to its template, then evaluated from the files.
+  const fs::path eval_dir = cell.dir / "eval";
+  const Run eval = cell.run("eval --sim --count 2 --parts plate_5h,channel_u --scans " + eval_dir.string());
+  INFO(eval.output);
+  REQUIRE(eval.exit_code == 0);
+  CHECK(fs::exists(eval_dir / "plate_5h" / "s100001.ply"));
+  CHECK(fs::exists(eval_dir / "channel_u" / "s100002.ply"));
+  const std::string truth_csv = read_all(eval_dir / "truth.csv");
+  CHECK(truth_csv.rfind("file,x_m,y_m,theta_deg\nplate_5h/s100001.ply,", 0) == 0);
+  CHECK(std::count(truth_csv.begin(), truth_csv.end(), '\n') == 3);  // header + the taught part's two passes
+  CHECK(eval.output.find("(2 of taught parts, 2 of parts not taught)") != std::string::npos);
+  CHECK(eval.output.find("not taught   2 of 2 came out unknown") != std::string::npos);
+  CHECK(eval.output.find("wrong ids    0") != std::string::npos);
+  // Poses against the composed truth: within two cells of this test's coarse 4.4 mm grid.
+  const auto at = eval.output.find("pose xy");
+  REQUIRE(at != std::string::npos);
+  double mean_mm = -1, p95_mm = -1, max_mm = -1;
+  REQUIRE(std::sscanf(eval.output.c_str() + at, "pose xy mean %lf p95 %lf max %lf", &mean_mm, &p95_mm, &max_mm) == 3);
+  CHECK(max_mm >= 0.0);
+  CHECK(max_mm <= 8.8);
+  // An existing non-empty folder is never overwritten.
+  CHECK(cell.run("eval --sim --count 1 --parts plate_5h --scans " + eval_dir.string()).exit_code == 2);
 
   // A corrupt template disables its part only: the others keep working.
   const std::string manifest_before = read_all(cell.models + "/manifest.yaml");
