@@ -15,6 +15,7 @@
 #include "app/atomic_file.hpp"
 #include "app/calibration_file.hpp"
 #include "app/cli.hpp"
+#include "app/local_time.hpp"
 #include "app/yaml_reader.hpp"
 #include "drivers/sim/board.hpp"
 #include "drivers/sim/random.hpp"
@@ -56,15 +57,6 @@ std::string first_line(const std::string& text) {
   if (nl == std::string::npos) return text;
   const auto more = std::count(text.begin() + static_cast<std::ptrdiff_t>(nl), text.end(), '\n');
   return text.substr(0, nl) + " (and " + std::to_string(more) + " more problem" + (more == 1 ? "" : "s") + ")";
-}
-
-std::string now_text() {
-  const std::time_t now = std::time(nullptr);
-  std::tm local{};
-  localtime_r(&now, &local);
-  char buf[32];
-  std::strftime(buf, sizeof buf, "%Y-%m-%d %H:%M:%S", &local);
-  return buf;
 }
 
 std::string fmt(const char* format, double a, double b = 0.0, double c = 0.0, double d = 0.0, double e = 0.0) {
@@ -249,7 +241,7 @@ Expected<std::string> camera_step(const fs::path& dir, CalibrationRecord& record
   if (!pose) return make_error(ref_file + ": " + pose.error().message);
 
   record.has_camera = true;
-  record.camera_date = now_text();
+  record.camera_date = local_time_text();
   record.camera_views = static_cast<int>(views.size());
   record.sensor.intrinsics = intrinsics->intrinsics;
   record.sensor.camera_pose = pose->camera_pose;
@@ -320,7 +312,7 @@ Expected<std::string> laser_step(const fs::path& dir, CalibrationRecord& record)
   if (!plane) return plane.error();
 
   record.has_laser = true;
-  record.laser_date = now_text();
+  record.laser_date = local_time_text();
   record.sensor.laser_normal = plane->normal;
   record.sensor.laser_offset_m = plane->offset_m;
   record.sensor.laser_residual_mm = plane->residual_rms_mm;
@@ -380,7 +372,7 @@ Expected<std::string> conveyor_step(const fs::path& dir, CalibrationRecord& reco
   if (!scale) return scale.error();
 
   record.has_conveyor = true;
-  record.conveyor_date = now_text();
+  record.conveyor_date = local_time_text();
   record.sensor.mm_per_count = scale->mm_per_count;
   record.conveyor_angle_deg = scale->angle_to_x_deg;
 

@@ -13,6 +13,7 @@
 #include <sstream>
 
 #include "app/atomic_file.hpp"
+#include "app/local_time.hpp"
 #include "app/yaml_reader.hpp"
 
 namespace cellsight::app {
@@ -72,15 +73,6 @@ std::size_t checksum_line_start(const std::string& text) {
     if (pos == 0 || text[pos - 1] == '\n') found = pos;
   }
   return found;
-}
-
-std::string backup_stamp() {
-  const std::time_t now = std::time(nullptr);
-  std::tm local{};
-  localtime_r(&now, &local);
-  char buf[32];
-  std::strftime(buf, sizeof buf, "%Y%m%d-%H%M%S", &local);
-  return buf;
 }
 
 void read_camera(YamlSection s, CalibrationRecord& r) {
@@ -292,7 +284,7 @@ Expected<std::string> save_calibration(const std::string& path, const Calibratio
   if (fs::exists(path, ec)) {
     auto old = read_bytes(path);
     if (!old) return make_error(old.error().message + " (needed for the backup; nothing was changed)");
-    const std::string stem = path + "." + backup_stamp();
+    const std::string stem = path + "." + local_time_text("%Y%m%d-%H%M%S");
     backup = stem + ".bak";
     for (int n = 2; fs::exists(backup, ec); ++n) backup = stem + "-" + std::to_string(n) + ".bak";
     if (auto ok = write_file_atomic(backup, *old); !ok) {

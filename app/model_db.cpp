@@ -15,6 +15,7 @@
 
 #include "algo/features.hpp"
 #include "app/atomic_file.hpp"
+#include "app/local_time.hpp"
 #include "app/yaml_reader.hpp"
 
 namespace cellsight::app {
@@ -290,15 +291,6 @@ bool valid_part_name(std::string_view name) {
     if (!ok) return false;
   }
   return true;
-}
-
-std::string local_time_text() {
-  const std::time_t now = std::time(nullptr);
-  std::tm local{};
-  localtime_r(&now, &local);
-  char buf[32];
-  std::strftime(buf, sizeof buf, "%Y-%m-%d %H:%M:%S", &local);
-  return buf;
 }
 
 Expected<ModelDb> ModelDb::open(const std::string& dir, const algo::GridSpec& grid, bool create) {

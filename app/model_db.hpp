@@ -99,7 +99,4 @@ class ModelDb {
 // Part names become file names: letters, digits, '_' and '-' only, 1..64 characters.
 [[nodiscard]] bool valid_part_name(std::string_view name);
 
-// Local time "YYYY-MM-DD HH:MM:SS".
-[[nodiscard]] std::string local_time_text();
-
 }  // namespace cellsight::app

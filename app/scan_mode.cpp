@@ -19,6 +19,7 @@
 #include "app/atomic_file.hpp"
 #include "app/calibration_file.hpp"
 #include "app/devices.hpp"
+#include "app/local_time.hpp"
 #include "app/sim_mode.hpp"
 #include "drivers/log.hpp"
 
@@ -173,10 +174,7 @@ int run_calibrate_support(const std::vector<std::string>& args, const Config& co
   record.support = fit->plane;
   record.support_rms_mm = fit->rms_m * 1e3;
   record.support_points = fit->inliers;
-  const std::time_t now = std::time(nullptr);
-  char stamp[32];
-  std::strftime(stamp, sizeof stamp, "%Y-%m-%d %H:%M:%S", std::localtime(&now));
-  record.support_date = stamp;
+  record.support_date = local_time_text();
   auto saved = save_calibration(calibration_path, record);
   if (!saved) {
     std::fprintf(stderr, "cellsight calibrate support: %s\n", saved.error().message.c_str());

@@ -8,6 +8,7 @@
 #include "app/atomic_file.hpp"
 #include "app/calibration_file.hpp"
 #include "app/cli.hpp"
+#include "app/local_time.hpp"
 #include "app/mode_args.hpp"
 #include "app/recognition.hpp"
 #include "app/scan_mode.hpp"

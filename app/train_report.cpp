@@ -15,6 +15,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "app/atomic_file.hpp"
+#include "app/local_time.hpp"
 
 namespace cellsight::app {
 namespace {
@@ -74,15 +75,6 @@ std::string human_duration(double seconds) {
   return fmt("%lld h %02lld min", whole / 3600, (whole % 3600) / 60);
 }
 
-std::string now_text() {
-  const std::time_t now = std::time(nullptr);
-  std::tm local{};
-  localtime_r(&now, &local);
-  char text[32];
-  std::strftime(text, sizeof text, "%Y-%m-%d %H:%M:%S", &local);
-  return text;
-}
-
 // "2025-01-31 14:05:09" -> "report-2025-01-31_140509"
 std::string subfolder_name(const std::string& date) {
   std::string name = "report-";
@@ -96,19 +88,29 @@ std::string subfolder_name(const std::string& date) {
   return name;
 }
 
-// Appends `words` joined by ", " as lines no longer than kWrapColumn, each starting with `indent`.
-void append_wrapped(std::string& out, const std::vector<std::string>& words, const std::string& indent) {
-  std::string line = indent;
-  for (std::size_t i = 0; i < words.size(); ++i) {
-    const std::string word = words[i] + (i + 1 < words.size() ? "," : "");
-    if (line.size() > indent.size() && line.size() + 1 + word.size() > kWrapColumn) {
+// Appends `words` wrapped at kWrapColumn, separated by spaces: the first line starts with `lead`, the others with as
+// many spaces. Nothing when there are no words.
+void append_words(std::string& out, const std::string& lead, const std::vector<std::string>& words) {
+  const std::size_t start = lead.size();
+  std::string line = lead;
+  for (const std::string& word : words) {
+    if (word.empty()) continue;
+    if (line.size() > start && line.size() + 1 + word.size() > kWrapColumn) {
       out += line + "\n";
-      line = indent;
+      line.assign(start, ' ');
     }
-    if (line.size() > indent.size()) line += ' ';
+    if (line.size() > start) line += ' ';
     line += word;
   }
-  if (line.size() > indent.size()) out += line + "\n";
+  if (line.size() > start) out += line + "\n";
+}
+
+// Appends `words` joined by ", " as lines no longer than kWrapColumn, each starting with `indent`.
+void append_wrapped(std::string& out, const std::vector<std::string>& words, const std::string& indent) {
+  std::vector<std::string> listed;
+  listed.reserve(words.size());
+  for (std::size_t i = 0; i < words.size(); ++i) listed.push_back(words[i] + (i + 1 < words.size() ? "," : ""));
+  append_words(out, indent, listed);
 }
 
 int row_sum(const std::vector<int>& row) {
@@ -182,22 +184,14 @@ std::string test_split_text(const algo::TrainingReport& report) {
 
 // Appends `text` wrapped at kWrapColumn: the first line starts with `lead`, the others are indented to match.
 void append_paragraph(std::string& out, const std::string& lead, const std::string& text) {
-  const std::string indent(lead.size(), ' ');
-  std::string line = lead;
+  std::vector<std::string> words;
   std::size_t pos = 0;
   while (pos < text.size()) {
     const std::size_t space = text.find(' ', pos);
-    const std::string word = text.substr(pos, space == std::string::npos ? std::string::npos : space - pos);
+    words.push_back(text.substr(pos, space == std::string::npos ? std::string::npos : space - pos));
     pos = space == std::string::npos ? text.size() : space + 1;
-    if (word.empty()) continue;
-    if (line.size() > indent.size() && line.size() + 1 + word.size() > kWrapColumn) {
-      out += line + "\n";
-      line = indent;
-    }
-    if (line.size() > indent.size()) line += ' ';
-    line += word;
   }
-  if (line.size() > indent.size()) out += line + "\n";
+  append_words(out, lead, words);
 }
 
 void append_advice(std::string& s, const algo::TrainingReport& report, const TrainReportContext& context,
@@ -279,7 +273,7 @@ std::string training_summary_text(const algo::TrainingReport& report, const Trai
     return "cellsight training report\n\nThe report is inconsistent: " + ok.error().message + "\n";
   }
   const algo::ClassifierReport& svm = report.svm;
-  const std::string date = context.date.empty() ? now_text() : context.date;
+  const std::string date = context.date.empty() ? local_time_text() : context.date;
   const std::size_t k = report.class_names.size();
   std::string s;
   s += "cellsight training report\n=========================\n";
@@ -444,7 +438,7 @@ std::string training_report_yaml(const algo::TrainingReport& report, const Train
       "columns the predicted class, both in the order of `classes`");
   out << YAML::BeginMap;
   out << YAML::Key << "format_version" << YAML::Value << kReportFormatVersion;
-  out << YAML::Key << "date" << YAML::Value << (context.date.empty() ? now_text() : context.date);
+  out << YAML::Key << "date" << YAML::Value << (context.date.empty() ? local_time_text() : context.date);
   out << YAML::Key << "model_db" << YAML::Value << context.model_db_path;
   out << YAML::Key << "dataset" << YAML::Value << context.dataset;
   out << YAML::Key << "feature_version" << YAML::Value << context.feature_version;
@@ -896,7 +890,7 @@ Expected<std::string> write_training_report(const std::string& dir, const algo::
                                             const TrainReportContext& context) {
   if (Status s = validate_report(report); !s) return s.error();
   TrainReportContext ctx = context;
-  if (ctx.date.empty()) ctx.date = now_text();
+  if (ctx.date.empty()) ctx.date = local_time_text();
   auto target = resolve_target(dir, ctx);
   if (!target) return target.error();
   auto staged = StagedDirectory::create(*target);

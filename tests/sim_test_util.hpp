@@ -7,6 +7,7 @@
 #include <opencv2/core.hpp>
 #include <vector>
 
+#include "algo/decision.hpp"
 #include "algo/scan.hpp"
 #include "algo/sensor_model.hpp"
 #include "drivers/sim/renderer.hpp"
@@ -116,6 +117,21 @@ inline std::vector<algo::ScanPoint> lattice_surface_points(const sim::PartSpec& 
         out.push_back({static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z()), 0, 0});
       }
     }
+  }
+  return out;
+}
+
+// DESIGN.md "Pose": p_scan = c + R_z(theta)(p_template - c) + (x, y, 0).
+inline std::vector<algo::ScanPoint> displaced_points(const std::vector<algo::ScanPoint>& points,
+                                                     const Eigen::Vector2d& c, const algo::PlanarPose& pose) {
+  const double cs = std::cos(pose.theta_rad);
+  const double sn = std::sin(pose.theta_rad);
+  std::vector<algo::ScanPoint> out = points;
+  for (algo::ScanPoint& p : out) {
+    const double dx = p.x - c.x();
+    const double dy = p.y - c.y();
+    p.x = static_cast<float>(c.x() + cs * dx - sn * dy + pose.x_m);
+    p.y = static_cast<float>(c.y() + sn * dx + cs * dy + pose.y_m);
   }
   return out;
 }

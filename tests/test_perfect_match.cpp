@@ -114,19 +114,9 @@ std::vector<ScanPoint> part_points(const std::string& name, double spacing_m = 0
   return out;
 }
 
-// DESIGN.md "Pose": p_scan = c + R_z(theta)(p_template - c) + (x, y, 0).
 std::vector<ScanPoint> displaced(const std::vector<ScanPoint>& points, const Eigen::Vector2d& c,
                                  const PlanarPose& pose) {
-  const double cs = std::cos(pose.theta_rad);
-  const double sn = std::sin(pose.theta_rad);
-  std::vector<ScanPoint> out = points;
-  for (ScanPoint& p : out) {
-    const double dx = p.x - c.x();
-    const double dy = p.y - c.y();
-    p.x = static_cast<float>(c.x() + cs * dx - sn * dy + pose.x_m);
-    p.y = static_cast<float>(c.y() + sn * dx + cs * dy + pose.y_m);
-  }
-  return out;
+  return test::displaced_points(points, c, pose);
 }
 
 // A template as teach makes it (algo::build_distance_map of the binary occupancy): the part's points in the thesis

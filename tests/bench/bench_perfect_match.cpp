@@ -62,19 +62,9 @@ std::vector<ScanPoint> surface_points(const sim::PartSpec& spec, const Eigen::Ve
   return test::lattice_surface_points(spec, centre, spacing_m, phase);
 }
 
-// DESIGN.md "Pose": p_scan = c + R_z(theta)(p_template - c) + (x, y, 0).
 std::vector<ScanPoint> displaced(const std::vector<ScanPoint>& points, const Eigen::Vector2d& c,
                                  const PlanarPose& pose) {
-  const double cs = std::cos(pose.theta_rad);
-  const double sn = std::sin(pose.theta_rad);
-  std::vector<ScanPoint> out = points;
-  for (ScanPoint& p : out) {
-    const double dx = p.x - c.x();
-    const double dy = p.y - c.y();
-    p.x = static_cast<float>(c.x() + cs * dx - sn * dy + pose.x_m);
-    p.y = static_cast<float>(c.y() + sn * dx + cs * dy + pose.y_m);
-  }
-  return out;
+  return test::displaced_points(points, c, pose);
 }
 
 struct Case {
