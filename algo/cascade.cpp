@@ -3,6 +3,7 @@
 
 #include <Eigen/Cholesky>
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <limits>
 #include <numbers>
@@ -17,6 +18,7 @@ constexpr float kEmptyLo = std::numeric_limits<float>::infinity();
 constexpr float kEmptyHi = -std::numeric_limits<float>::infinity();
 constexpr std::uint8_t kMissing = 1;
 constexpr std::uint8_t kExtra = 2;
+constexpr std::uint8_t kVisited = 4;  // blob_evidence: the cell belongs to the blob being filled
 // Scan points leave the grid's x-y box when the pose turns and shifts them back into the template frame; the thesis'
 // pose range is +-50 mm and +-5 deg (6.5), so 0.1 m of margin keeps every plausible point on the raster.
 constexpr double kRasterMarginM = 0.1;
@@ -37,6 +39,8 @@ constexpr double kDamping = 1e-3;
 // The check runs a second time, at the outline pose, when that differs from Perfect Match's by more than this.
 constexpr double kRecheckShiftM = 0.0005;
 constexpr double kRecheckTurnRad = 0.05 * std::numbers::pi / 180.0;
+// A check that fails a threshold by more than this factor at Perfect Match's pose is not retried at the outline pose.
+constexpr double kGrossFailure = 4.0;
 
 [[nodiscard]] int raster_margin_cells(const GridSpec& grid) {
   return static_cast<int>(std::ceil(kRasterMarginM / grid.resolution_m));
@@ -93,26 +97,151 @@ struct OutlineField {
 
 }  // namespace
 
-TemplateThresholds learn_thresholds(std::span<const MatchReport> own_class, const CascadeParams& params) {
-  double max_error = 0.0;
-  double max_missing = 0.0;
-  double max_extra = 0.0;
-  double max_uncovered = 0.0;
-  double max_outliers = 0.0;
-  for (const MatchReport& r : own_class) {
-    max_error = std::max(max_error, r.pm.error);
-    max_missing = std::max(max_missing, r.missing_area_m2);
-    max_extra = std::max(max_extra, r.extra_area_m2);
-    max_uncovered = std::max(max_uncovered, 1.0 - r.coverage);
-    max_outliers = std::max(max_outliers, r.scan_outliers);
+namespace {
+
+// The five gated figures of a report, in TemplateThresholds order.
+constexpr int kFigures = 5;
+[[nodiscard]] std::array<double, kFigures> figures_of(const MatchReport& r) {
+  return {r.pm.error, r.missing_area_m2, r.extra_area_m2, 1.0 - r.coverage, r.scan_outliers};
+}
+[[nodiscard]] std::array<double, kFigures> limits_of(const TemplateThresholds& t) {
+  return {t.max_error, t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered, t.max_outliers};
+}
+void set_limit(TemplateThresholds& t, int figure, double v) {
+  switch (figure) {
+    case 0:
+      t.max_error = v;
+      break;
+    case 1:
+      t.max_missing_area_m2 = v;
+      break;
+    case 2:
+      t.max_extra_area_m2 = v;
+      break;
+    case 3:
+      t.max_uncovered = v;
+      break;
+    default:
+      t.max_outliers = v;
+      break;
   }
-  TemplateThresholds t;
-  t.max_error = max_error * params.error_factor + params.error_floor;
-  t.max_missing_area_m2 = max_missing * params.area_factor + params.area_floor_m2;
-  t.max_extra_area_m2 = max_extra * params.area_factor + params.area_floor_m2;
-  t.max_uncovered = std::min(1.0, max_uncovered * params.share_factor + params.share_floor);
-  t.max_outliers = std::min(1.0, max_outliers * params.share_factor + params.share_floor);
-  return t;
+}
+constexpr RejectReason kFigureReason[kFigures] = {RejectReason::kPmError, RejectReason::kMissingArea,
+                                                  RejectReason::kExtraArea, RejectReason::kUncovered,
+                                                  RejectReason::kOutliers};
+
+[[nodiscard]] double median_of(std::vector<double> v) {
+  if (v.empty()) return 0.0;
+  const auto mid = v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2);
+  std::nth_element(v.begin(), mid, v.end());
+  return *mid;
+}
+
+}  // namespace
+
+RejectReason first_failed_gate(const MatchReport& report, const TemplateThresholds& t, double& value, double& limit) {
+  const auto f = figures_of(report);
+  const auto l = limits_of(t);
+  for (int i = 0; i < kFigures; ++i) {
+    if (!(f[static_cast<std::size_t>(i)] <= l[static_cast<std::size_t>(i)])) {  // NaN fails
+      value = f[static_cast<std::size_t>(i)];
+      limit = l[static_cast<std::size_t>(i)];
+      return kFigureReason[i];
+    }
+  }
+  value = limit = std::numeric_limits<double>::quiet_NaN();
+  return RejectReason::kNone;
+}
+
+bool near_pass(const MatchReport& report, const TemplateThresholds& t, double factor) {
+  const auto f = figures_of(report);
+  const auto l = limits_of(t);
+  for (int i = 0; i < kFigures; ++i) {
+    if (!(f[static_cast<std::size_t>(i)] <= factor * l[static_cast<std::size_t>(i)])) return false;
+  }
+  return true;
+}
+
+ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::span<const MatchReport> other_classes,
+                                   const CascadeParams& params) {
+  ThresholdLearning out;
+  const double factor[kFigures] = {params.error_factor, params.area_factor, params.area_factor, params.share_factor,
+                                   params.share_factor};
+  const double floor[kFigures] = {params.error_floor, params.area_floor_m2, params.area_floor_m2, params.share_floor,
+                                  params.share_floor};
+  // 1. Robust agreement: per figure the median and the MAD of the own class; a scan above median + k sigma on any
+  //    figure disagrees. Sigma never goes below a quarter of the floor, so scans that are all alike do not flag the
+  //    one that is a hair above them.
+  std::vector<char> disagrees(own_class.size(), 0);
+  for (int f = 0; f < kFigures; ++f) {
+    std::vector<double> v;
+    for (const MatchReport& r : own_class) {
+      const double x = figures_of(r)[static_cast<std::size_t>(f)];
+      if (std::isfinite(x)) v.push_back(x);
+    }
+    if (v.size() < 3) continue;  // too few to tell who disagrees
+    const double med = median_of(v);
+    for (double& x : v) x = std::abs(x - med);
+    const double sigma = std::max(1.4826 * median_of(v), 0.25 * floor[f]);
+    const double cut = med + params.robust_k * sigma;
+    for (std::size_t i = 0; i < own_class.size(); ++i) {
+      const double x = figures_of(own_class[i])[static_cast<std::size_t>(f)];
+      if (!(x <= cut)) disagrees[i] = 1;
+    }
+  }
+  // Never flag the majority: with half or more disagreeing the "others" are no reference.
+  std::size_t flagged = 0;
+  for (char d : disagrees) flagged += d != 0 ? 1U : 0U;
+  if (2 * flagged >= own_class.size()) std::fill(disagrees.begin(), disagrees.end(), 0);
+  // 2. max * factor + floor over the scans that agree.
+  std::array<double, kFigures> own_max{};
+  for (std::size_t i = 0; i < own_class.size(); ++i) {
+    if (disagrees[i] != 0) {
+      out.flagged.push_back(static_cast<int>(i));
+      continue;
+    }
+    const auto x = figures_of(own_class[i]);
+    for (int f = 0; f < kFigures; ++f) {
+      if (std::isfinite(x[static_cast<std::size_t>(f)])) {
+        own_max[static_cast<std::size_t>(f)] = std::max(own_max[static_cast<std::size_t>(f)], x[static_cast<std::size_t>(f)]);
+      }
+    }
+  }
+  for (int f = 0; f < kFigures; ++f) {
+    double v = own_max[static_cast<std::size_t>(f)] * factor[f] + floor[f];
+    if (f >= 3) v = std::min(1.0, v);
+    set_limit(out.thresholds, f, v);
+  }
+  // 3. Margin to the runner-up: an other-class scan that would pass is pushed out by the figure on which it stands
+  //    farthest above the own class (relative to the limit), whose limit goes halfway between the own maximum and
+  //    that scan. A scan no figure separates (all at or below the own maxima) stays: the pair is reported.
+  for (const MatchReport& r : other_classes) {
+    const auto x = figures_of(r);
+    auto l = limits_of(out.thresholds);
+    bool passes = true;
+    for (int f = 0; f < kFigures; ++f) passes = passes && x[static_cast<std::size_t>(f)] <= l[static_cast<std::size_t>(f)];
+    if (!passes) {
+      ++out.other_scans_rejected;
+      continue;
+    }
+    int best = -1;
+    double best_gap = 0.0;
+    for (int f = 0; f < kFigures; ++f) {
+      const double own = own_max[static_cast<std::size_t>(f)];
+      const double gap = (x[static_cast<std::size_t>(f)] - own) / std::max(l[static_cast<std::size_t>(f)], 1e-12);
+      if (std::isfinite(gap) && gap > best_gap) {
+        best_gap = gap;
+        best = f;
+      }
+    }
+    if (best < 0) {
+      ++out.other_scans_inseparable;
+      continue;
+    }
+    set_limit(out.thresholds, best, 0.5 * (own_max[static_cast<std::size_t>(best)] + x[static_cast<std::size_t>(best)]));
+    ++out.other_scans_rejected;
+  }
+  return out;
 }
 
 void surface_points_from_map(const DistanceMapView& map, std::vector<Eigen::Vector3f>& out) {
@@ -159,6 +288,7 @@ Cascade::Cascade(const CascadeParams& params, const PerfectMatchParams& pm_param
   edt_out_.assign(cells, 0.0F);
   outline_.assign(cells, Eigen::Vector2d::Zero());
   candidates_.resize(static_cast<std::size_t>(params_.pm_candidates));
+  blob_cells_.assign(cells, 0);
 }
 
 // --- decision ------------------------------------------------------------------------------------------------------
@@ -180,19 +310,52 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
   for (std::size_t i = 0; i < k; ++i) {
     candidates_[i] = Candidate{};
     candidates_[i].class_index = svm_best_first[i].class_index;
+    candidates_[i].probability = svm_best_first[i].probability;
   }
-  auto svm_probability = [&](int class_index) {
-    for (const ClassProbability& p : svm_best_first) {
-      if (p.class_index == class_index) return p.probability;
+  auto template_of = [&](int ci) -> const TemplateModel* {
+    if (ci < 0 || static_cast<std::size_t>(ci) >= templates_by_class.size()) return nullptr;
+    const TemplateModel& t = templates_by_class[static_cast<std::size_t>(ci)];
+    return t.map.cells() != nullptr ? &t : nullptr;
+  };
+  // The outcome list (rank order) as far as the search went; filled at the end.
+  auto report_candidates = [&](const Candidate* winner, bool ambiguous) {
+    const std::size_t n = std::min<std::size_t>(k, kMaxReportedCandidates);
+    d.candidate_count = static_cast<int>(n);
+    for (std::size_t i = 0; i < n; ++i) {
+      const Candidate& c = candidates_[i];
+      CandidateOutcome& o = d.candidates[i];
+      o = CandidateOutcome{};
+      o.class_index = c.class_index;
+      o.probability = c.probability;
+      o.verified = c.evaluated;
+      o.passed = c.passed;
+      o.ms = c.ms;
+      if (!c.evaluated) {
+        o.rejected_by = RejectReason::kNotVerified;
+        continue;
+      }
+      o.pm_error = c.report.pm.error;
+      o.missing_area_m2 = c.report.missing_area_m2;
+      o.extra_area_m2 = c.report.extra_area_m2;
+      o.evidence_m2 = c.report.evidence_m2;
+      const TemplateModel* t = template_of(c.class_index);
+      if (t == nullptr) {
+        o.rejected_by = RejectReason::kNoTemplate;
+      } else if (!c.passed) {
+        o.rejected_by = first_failed_gate(c.report, t->thresholds, o.value, o.limit);
+      } else if (&c != winner && (ambiguous || winner != nullptr)) {
+        o.rejected_by = RejectReason::kAmbiguous;
+        o.value = c.report.evidence_m2;
+        o.limit = winner != nullptr ? winner->report.evidence_m2 : std::numeric_limits<double>::quiet_NaN();
+      }
     }
-    return 0.0;
   };
   auto accept = [&](const Candidate& c, DecisionSource source) {
     const TemplateModel& t = templates_by_class[static_cast<std::size_t>(c.class_index)];
     d.source = source;
     d.class_index = c.class_index;
     d.part_id = t.part_id;
-    d.probability = svm_probability(c.class_index);
+    d.probability = c.probability;
     d.pm_error = c.report.pm.error;
     d.pose_valid = true;
     d.pose = params_.decision_pose_from_outline ? c.report.check_pose : c.report.pm.pose;
@@ -202,6 +365,7 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
     d.extra_area_m2 = c.report.extra_area_m2;
   };
   auto timeout = [&]() -> Decision {
+    report_candidates(nullptr, false);
     d.source = DecisionSource::kTimeout;
     d.class_index = -1;
     d.part_id = 0;
@@ -213,53 +377,125 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
   matcher_.set_scan(scan_without_carrier);
   outline_valid_ = false;  // taken from this scan when a check first needs it
 
-  // Thesis 6.4.4: a sure SVM decides the class; Perfect Match only measures the pose (and verifies).
-  const double p1 = svm_best_first[0].probability;
-  const double p2 = svm_best_first.size() > 1 ? svm_best_first[1].probability : 0.0;
-  if (p1 >= params_.accept_p1 && p2 <= params_.accept_p2_max) {
-    if (!evaluate_candidate(templates_by_class, scan_without_carrier, deadline, candidates_[0])) return timeout();
-    d.pm_ms = candidates_[0].ms;
-    if (candidates_[0].passed) {
-      accept(candidates_[0], DecisionSource::kSvm);
-      d.second_class_index = svm_best_first.size() > 1 ? svm_best_first[1].class_index : -1;
-      return finish();
+  // Phase 1: verify in rank order until one passes. Phase 2: verify what could also pass: the passing class's
+  // look-alikes (TemplateModel::confusable, learnt at training) and any candidate nearly as probable (stop_ratio);
+  // a look-alike that passes brings its own. All within the candidate limit and the budget.
+  const Clock::time_point budget_end =
+      start + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double, std::milli>(params_.verify_budget_ms));
+  auto over_budget = [&]() { return d.verified_count > 0 && Clock::now() >= budget_end; };
+  bool complete = true;  // every candidate the policy asked for was verified
+  auto verify = [&](std::size_t j) -> bool {
+    if (!evaluate_candidate(templates_by_class, scan_without_carrier, deadline, candidates_[j])) return false;
+    ++d.verified_count;
+    d.pm_ms += candidates_[j].ms;
+    return true;
+  };
+  std::size_t first_pass = k;
+  for (std::size_t j = 0; j < k; ++j) {
+    if (over_budget()) {
+      complete = false;
+      break;
+    }
+    if (!verify(j)) return timeout();
+    if (candidates_[j].passed) {
+      first_pass = j;
+      break;
     }
   }
+  if (first_pass < k) {
+    double best_p = candidates_[first_pass].probability;
+    bool grew = true;  // a newly passing look-alike brings its own look-alikes
+    while (grew && complete) {
+      grew = false;
+      for (std::size_t j = 0; j < k && complete; ++j) {
+        if (candidates_[j].evaluated) continue;
+        bool wanted = candidates_[j].probability >= params_.stop_ratio * best_p && params_.stop_ratio > 0.0;
+        for (std::size_t q = 0; q < k && !wanted; ++q) {
+          if (!candidates_[q].passed) continue;
+          const TemplateModel* t = template_of(candidates_[q].class_index);
+          if (t == nullptr) continue;
+          wanted = std::find(t->confusable.begin(), t->confusable.end(), candidates_[j].class_index) !=
+                   t->confusable.end();
+        }
+        if (!wanted) continue;
+        if (over_budget()) {
+          complete = false;
+          break;
+        }
+        if (!verify(j)) return timeout();
+        if (candidates_[j].passed) {
+          best_p = std::max(best_p, candidates_[j].probability);
+          grew = true;
+        }
+      }
+    }
+  }
+  const bool settled = complete;
 
-  // Unsure, or the sure class failed verification: Perfect Match over the k most probable classes.
-  for (std::size_t i = 0; i < k; ++i) {
-    if (candidates_[i].evaluated) continue;
-    if (!evaluate_candidate(templates_by_class, scan_without_carrier, deadline, candidates_[i])) return timeout();
+  // Among the passing candidates the least evidence wins, with a clear margin over the runner-up.
+  const Candidate* best = nullptr;
+  const Candidate* runner = nullptr;
+  const Candidate* top_verified = nullptr;
+  for (std::size_t j = 0; j < k; ++j) {
+    const Candidate& c = candidates_[j];
+    if (!c.evaluated) continue;
+    if (top_verified == nullptr) top_verified = &c;
+    if (!c.passed) continue;
+    if (best == nullptr || c.report.evidence_m2 < best->report.evidence_m2) {
+      runner = best;
+      best = &c;
+    } else if (runner == nullptr || c.report.evidence_m2 < runner->report.evidence_m2) {
+      runner = &c;
+    }
   }
-  d.pm_ms = 0.0;
-  for (std::size_t i = 0; i < k; ++i) d.pm_ms += candidates_[i].ms;
-
-  // Lowest error first; the first that passes its template's thresholds wins.
-  const Candidate* best_passed = nullptr;
-  const Candidate* best_any = nullptr;
-  for (std::size_t i = 0; i < k; ++i) {
-    const Candidate& c = candidates_[i];
-    if (best_any == nullptr || c.report.pm.error < best_any->report.pm.error) best_any = &c;
-    if (c.passed && (best_passed == nullptr || c.report.pm.error < best_passed->report.pm.error)) best_passed = &c;
+  bool clear = best != nullptr;
+  if (best != nullptr && runner != nullptr) {
+    const double b = best->report.evidence_m2;
+    const double r = runner->report.evidence_m2;
+    clear = b <= params_.margin_ratio * r && r - b >= params_.margin_floor_m2;
   }
-  const Candidate* chosen = best_passed != nullptr ? best_passed : best_any;
-  const Candidate* runner_up = nullptr;
-  for (std::size_t i = 0; i < k; ++i) {
-    const Candidate& c = candidates_[i];
-    if (&c == chosen) continue;
-    if (runner_up == nullptr || c.report.pm.error < runner_up->report.pm.error) runner_up = &c;
+  if (best != nullptr && clear && settled) {
+    const double p1 = svm_best_first[0].probability;
+    const double p2 = svm_best_first.size() > 1 ? svm_best_first[1].probability : 0.0;
+    const bool svm_sure = p1 >= params_.accept_p1 && p2 <= params_.accept_p2_max &&
+                          best->class_index == svm_best_first[0].class_index;
+    accept(*best, svm_sure ? DecisionSource::kSvm : DecisionSource::kPm);
+    const Candidate* second = nullptr;
+    for (std::size_t j = 0; j < k && second == nullptr; ++j) {
+      if (candidates_[j].evaluated && &candidates_[j] != best) second = &candidates_[j];
+    }
+    // No other candidate verified: the SVM's runner-up (for the log).
+    if (second == nullptr) {
+      for (const ClassProbability& c : svm_best_first) {
+        if (c.class_index != best->class_index) {
+          d.second_class_index = c.class_index;
+          break;
+        }
+      }
+    } else {
+      d.second_class_index = second->class_index;
+    }
+    report_candidates(best, false);
+    return finish();
   }
-  if (best_passed != nullptr) {
-    accept(*best_passed, DecisionSource::kPm);
-    d.second_class_index = runner_up != nullptr ? runner_up->class_index : -1;
-  } else if (best_any != nullptr) {
-    // Unknown: the closest candidate's figures stay for the log, but no class, id or pose.
-    d.pm_error = best_any->report.pm.error;
-    d.template_coverage = best_any->report.coverage;
-    d.scan_outliers = best_any->report.scan_outliers;
-    d.missing_area_m2 = best_any->report.missing_area_m2;
-    d.extra_area_m2 = best_any->report.extra_area_m2;
-    d.second_class_index = best_any->class_index;
+  // Unknown: the figures of the most probable verified candidate (or the ambiguous winner) stay for the log.
+  report_candidates(nullptr, best != nullptr);
+  const Candidate* shown = best != nullptr ? best : top_verified;
+  if (best != nullptr) {
+    d.unknown_reason = clear ? RejectReason::kNotVerified : RejectReason::kAmbiguous;
+  } else if (top_verified != nullptr) {
+    double v = 0.0, l = 0.0;
+    const TemplateModel* t = template_of(top_verified->class_index);
+    d.unknown_reason =
+        t == nullptr ? RejectReason::kNoTemplate : first_failed_gate(top_verified->report, t->thresholds, v, l);
+  }
+  if (shown != nullptr) {
+    d.pm_error = shown->report.pm.error;
+    d.template_coverage = shown->report.coverage;
+    d.scan_outliers = shown->report.scan_outliers;
+    d.missing_area_m2 = shown->report.missing_area_m2;
+    d.extra_area_m2 = shown->report.extra_area_m2;
+    d.second_class_index = shown->class_index;
   }
   return finish();
 }
@@ -317,7 +553,14 @@ MatchReport Cascade::check_prepared(const TemplateModel& model, std::span<const 
   const Roi rt = rasterise_template(model);
   MatchReport best = check_at(model.centroid_m, scan, pose, rt);
   // Passing at Perfect Match's pose already answers "is there an alignment at which they agree".
-  const bool settled = thresholds != nullptr && best.check_passes(*thresholds);
+  // So does failing it by far: a few millimetres of pose do not turn a missing louvre field into a match (the
+  // outline alignment would only double the cost of rejecting an unrelated candidate).
+  const bool gross = thresholds != nullptr &&
+                     (best.missing_area_m2 > kGrossFailure * thresholds->max_missing_area_m2 ||
+                      best.extra_area_m2 > kGrossFailure * thresholds->max_extra_area_m2 ||
+                      1.0 - best.coverage > kGrossFailure * thresholds->max_uncovered ||
+                      best.scan_outliers > kGrossFailure * thresholds->max_outliers);
+  const bool settled = thresholds != nullptr && (gross || best.check_passes(*thresholds));
   if (!settled && params_.refine_iterations > 0 && !outline_valid_) {
     prepare_scan_outline(scan);
     outline_valid_ = true;
@@ -352,8 +595,11 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
   if (rt.empty() && rs.empty()) roi = {0, 0, 0, 0};
 
   int template_cells = 0, scan_cells = 0, missing_cells = 0, extra_cells = 0;
+  double missing_weighted = 0.0, extra_weighted = 0.0;
   if (!roi.empty()) {
     if (params_.level_depth) level_scan_depth(roi, centre_m, r);
+    // The template's closed region (mask_a_): where a blob's boundary touches the other side (blob_evidence).
+    outline_mask(t_lo_, t_hi_, roi);
     const auto tol = static_cast<float>(params_.depth_tolerance_m);
 
     // Missing: template cells with no compatible scan depth within the window.
@@ -389,19 +635,26 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
       }
     }
     const double cell_area_m2 = resolution_m_ * resolution_m_;
-    r.missing_area_m2 = largest_blob(roi, kMissing) * cell_area_m2;
-    r.extra_area_m2 = largest_blob(roi, kExtra) * cell_area_m2;
+    const BlobEvidence missing = blob_evidence(roi, kMissing, false);
+    const BlobEvidence extra = blob_evidence(roi, kExtra, true);
+    r.missing_area_m2 = missing.largest_cells * cell_area_m2;
+    r.extra_area_m2 = extra.largest_cells * cell_area_m2;
+    missing_weighted = missing.total_cells;
+    extra_weighted = extra.total_cells;
     reset_scan(roi);
   }
+  (void)missing_cells;
+  (void)extra_cells;
   r.template_cells = template_cells;
   r.scan_cells = scan_cells;
-  r.coverage = template_cells > 0 ? static_cast<double>(template_cells - missing_cells) / template_cells : 0.0;
+  r.coverage = template_cells > 0 ? std::max(0.0, 1.0 - missing_weighted / template_cells) : 0.0;
   const int scan_total = scan_cells + outside;
-  r.scan_outliers = scan_total > 0 ? static_cast<double>(extra_cells + outside) / scan_total : 0.0;
+  r.scan_outliers = scan_total > 0 ? std::min(1.0, (extra_weighted + outside) / scan_total) : 0.0;
   if (outside > 0) {
     // Points beyond the raster have no template anywhere near; they count as one more extra blob.
     r.extra_area_m2 = std::max(r.extra_area_m2, outside * resolution_m_ * resolution_m_);
   }
+  r.evidence_m2 = r.missing_area_m2 + r.extra_area_m2;
   return r;
 }
 
@@ -767,38 +1020,81 @@ void Cascade::window_range(const std::vector<float>& lo, const std::vector<float
   }
 }
 
-int Cascade::largest_blob(const Roi& roi, std::uint8_t bit) {
-  // 4-connected flood fill; a cell's bit is cleared when it is pushed, so the stack never holds a cell twice and
-  // the flags are all clear again afterwards.
+Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, bool extra) {
+  // 4-connected flood fill (a cell's bit is cleared when it is pushed, so the stack never holds a cell twice and the
+  // flags are clear again afterwards), and per blob: its area, second moments
+  // (elongation) and boundary edges, of which "contact" edges lead to what a thin artefact touches only at its ends:
+  // for a missing blob (template cells the scan lacks) a cell outside the closed template (a glare band crossing the
+  // part ends there; a hole the scan has is enclosed by seen template, an edge strip lies along the outside); for an
+  // extra blob (scan cells the template lacks) a scan cell the template explains (a chain or a hook hangs from the
+  // part by one end; a covered template hole is surrounded by it, a wider part's strip lies along it).
   const int w = width_;
-  int largest = 0;
+  BlobEvidence out;
   for (int y = roi.y0; y < roi.y1; ++y) {
     for (int x = roi.x0; x < roi.x1; ++x) {
       const std::int32_t seed = y * w + x;
       if ((flags_[static_cast<std::size_t>(seed)] & bit) == 0) continue;
-      flags_[static_cast<std::size_t>(seed)] &= static_cast<std::uint8_t>(~bit);
+      flags_[static_cast<std::size_t>(seed)] =
+          static_cast<std::uint8_t>((flags_[static_cast<std::size_t>(seed)] & ~bit) | kVisited);
       std::size_t top = 0;
+      std::size_t count = 0;
       stack_[top++] = seed;
-      int area = 0;
+      double sx = 0, sy = 0, sxx = 0, sxy = 0, syy = 0;
+      int boundary = 0, contact = 0;
       while (top > 0) {
         const std::int32_t c = stack_[--top];
-        ++area;
+        blob_cells_[count++] = c;
         const int cx = c % w;
         const int cy = c / w;
+        sx += cx;
+        sy += cy;
+        sxx += static_cast<double>(cx) * cx;
+        sxy += static_cast<double>(cx) * cy;
+        syy += static_cast<double>(cy) * cy;
         const std::int32_t neighbours[4] = {c - 1, c + 1, c - w, c + w};
         const bool inside[4] = {cx > roi.x0, cx + 1 < roi.x1, cy > roi.y0, cy + 1 < roi.y1};
         for (int k = 0; k < 4; ++k) {
-          if (!inside[k]) continue;
-          std::uint8_t& f = flags_[static_cast<std::size_t>(neighbours[k])];
-          if ((f & bit) == 0) continue;
-          f &= static_cast<std::uint8_t>(~bit);
-          stack_[top++] = neighbours[k];
+          if (!inside[k]) {
+            ++boundary;
+            contact += extra ? 0 : 1;  // beyond the box: outside the template, and no scan material
+            continue;
+          }
+          const auto n = static_cast<std::size_t>(neighbours[k]);
+          std::uint8_t& f = flags_[n];
+          if ((f & bit) != 0) {
+            f = static_cast<std::uint8_t>((f & ~bit) | kVisited);
+            stack_[top++] = neighbours[k];
+            continue;
+          }
+          if ((f & kVisited) != 0) continue;  // in this blob already
+          ++boundary;
+          const bool touches = extra ? s_lo_[n] <= s_hi_[n] : mask_a_[n] == 0;
+          if (touches) ++contact;
         }
       }
-      largest = std::max(largest, area);
+      for (std::size_t j = 0; j < count; ++j) {
+        flags_[static_cast<std::size_t>(blob_cells_[j])] &= static_cast<std::uint8_t>(~kVisited);
+      }
+      const double area = static_cast<double>(count);
+      double weight = 1.0;
+      if (count >= 3 && contact > 0 && boundary > 0) {
+        const double mx = sx / area, my = sy / area;
+        const double cxx = sxx / area - mx * mx + 1.0 / 12.0;  // + a cell's own extent
+        const double cyy = syy / area - my * my + 1.0 / 12.0;
+        const double cxy = sxy / area - mx * my;
+        const double tr = 0.5 * (cxx + cyy);
+        const double det = std::sqrt(std::max(0.0, 0.25 * (cxx - cyy) * (cxx - cyy) + cxy * cxy));
+        const double elongation = std::sqrt((tr + det) / std::max(tr - det, 1.0 / 12.0));
+        const double contact_share = static_cast<double>(contact) / boundary;
+        if (elongation >= params_.band_elongation && contact_share <= params_.band_contact_max) {
+          weight = params_.weak_evidence_weight;
+        }
+      }
+      out.largest_cells = std::max(out.largest_cells, weight * area);
+      out.total_cells += weight * area;
     }
   }
-  return largest;
+  return out;
 }
 
 void Cascade::reset_scan(const Roi& roi) {

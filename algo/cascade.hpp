@@ -18,11 +18,23 @@
 namespace cellsight::algo {
 
 struct CascadeParams {
-  // Thesis 6.4.4: the SVM alone decides the class when p1 >= accept_p1 and p2 <= accept_p2_max; otherwise Perfect
-  // Match chooses among the pm_candidates most probable classes (k = 2 in the thesis).
+  // Candidate policy (issue 10; the thesis's 6.4.4 verified only the SVM's best k = 2). Candidates are verified in
+  // the SVM's rank order, at most pm_candidates of them and while verify_budget_ms lasts (the first always), until
+  // one passes. Then what could also pass is verified before anything is accepted: the passing class's look-alikes
+  // (TemplateModel::confusable) and every candidate at least stop_ratio times as probable (0 = none). When several
+  // pass, the one with the least evidence against it wins only with a clear margin (see margin_ratio); otherwise the
+  // scan is unknown. accept_p1 / accept_p2_max only label a decision "svm" (the SVM alone was sure, thesis 6.4.4):
+  // every class, however sure the SVM is, is verified.
   double accept_p1 = 0.70;
   double accept_p2_max = 0.06;
-  int pm_candidates = 2;
+  int pm_candidates = 16;
+  double verify_budget_ms = 60.0;
+  double stop_ratio = 0.5;
+  // Two passing candidates: the winner's evidence (MatchReport::evidence_m2) must be at most margin_ratio times the
+  // runner-up's and smaller by at least margin_floor_m2; else "ambiguous" (unknown). Near twins differ by a hole or a
+  // rib: hundreds of mm^2 against the tens a matching template leaves.
+  double margin_ratio = 0.5;
+  double margin_floor_m2 = 100e-6;
 
   // Two-way check (see Cascade). A template cell counts as seen when the scan has a surface within blob_window_m
   // (x-y, rounded to whole cells, at least one) whose depth is within depth_tolerance_m of the template's; the same
@@ -66,6 +78,18 @@ struct CascadeParams {
   // shares on the 12-part simulated catalogue stay below 0.05 % (acceptance run, README); 0.3 % sits well between.
   double share_factor = 1.5;
   double share_floor = 0.003;
+  // Evidence is judged by its shape. A blob of missing or extra cells that is a thin band (elongation >=
+  // band_elongation) touching the outside (missing) or the matched scan (extra) only at its ends (share of its boundary
+  // <= band_contact_max) is what glare, a dropout line, a chain or a hook leave: it counts with weak_evidence_weight
+  // (0: missing data is no evidence against a part; a band wide enough to matter is not thin). An enclosed blob (a
+  // hole the template lacks, a template hole covered) and a blob along an edge (a wider or narrower part) count fully.
+  double weak_evidence_weight = 0.0;
+  double band_elongation = 3.0;
+  double band_contact_max = 0.35;
+  // learn_thresholds(): an own-class scan whose figure lies more than robust_k robust standard deviations (1.4826
+  // MAD) above the median disagrees with the others (glare, a stray edge, a wrong part taught): it is flagged and
+  // does not widen the thresholds.
+  double robust_k = 4.0;
 };
 
 // What a template must meet for its class to be accepted; learnt per template at training (learn_thresholds).
@@ -88,6 +112,9 @@ struct TemplateModel {
   // cells (surface_points_from_map() recovers those from a stored map).
   std::span<const Eigen::Vector3f> surface_points;
   TemplateThresholds thresholds;
+  // Classes whose scans came near passing this template at training, or whose template this class's scans came near
+  // passing (learn_confusable): when this class passes, they are verified too before anything is accepted.
+  std::span<const int> confusable;
 };
 
 // Perfect Match plus the two-way check of one scan against one template.
@@ -106,6 +133,8 @@ struct MatchReport {
   double outline_rms_m = 0.0;  // outline distances within the final cutoff, at the outline pose
   int template_cells = 0;
   int scan_cells = 0;
+  // Weighted evidence against the template: the largest weighted missing plus extra blob (see CascadeParams).
+  double evidence_m2 = 0.0;
   // The two-way check's part of the thresholds. Written so that NaN fails.
   [[nodiscard]] bool check_passes(const TemplateThresholds& t) const {
     return missing_area_m2 <= t.max_missing_area_m2 && extra_area_m2 <= t.max_extra_area_m2 &&
@@ -114,27 +143,53 @@ struct MatchReport {
   [[nodiscard]] bool passes(const TemplateThresholds& t) const { return pm.error <= t.max_error && check_passes(t); }
 };
 
-// Training time: thresholds of one template from the reports of its own class's training scans against it
-// (max * factor + floor, see CascadeParams). An empty span gives the floors.
-[[nodiscard]] TemplateThresholds learn_thresholds(std::span<const MatchReport> own_class, const CascadeParams& params);
+// Training time: whether another class's report against a template came near passing it (every figure within
+// `factor` times its threshold): such classes are the template's look-alikes (TemplateModel::confusable).
+[[nodiscard]] bool near_pass(const MatchReport& report, const TemplateThresholds& t, double factor);
+
+// Training time: thresholds of one template from the reports of its own class's scans against it. Own-class scans
+// that disagree with the others (robust_k, see CascadeParams) are flagged and left out; the rest give max * factor +
+// floor. Then every other class's scan that would still pass is pushed out: the figure that separates it best from
+// the own class is lowered to halfway between them (a margin to the runner-up). An empty span gives the floors.
+struct ThresholdLearning {
+  TemplateThresholds thresholds;
+  std::vector<int> flagged;          // indices into own_class of scans that disagree with the others
+  int other_scans_rejected = 0;      // other-class scans the thresholds reject
+  int other_scans_inseparable = 0;   // other-class scans no figure tells from the own class
+};
+[[nodiscard]] ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class,
+                                                 std::span<const MatchReport> other_classes,
+                                                 const CascadeParams& params);
+[[nodiscard]] inline TemplateThresholds learn_thresholds(std::span<const MatchReport> own_class,
+                                                         const CascadeParams& params) {
+  return learn_thresholds(own_class, {}, params).thresholds;
+}
+
+// The first threshold a report fails, with its value and limit (kNone when it passes). NaN fails.
+[[nodiscard]] RejectReason first_failed_gate(const MatchReport& report, const TemplateThresholds& t, double& value,
+                                             double& limit);
 
 // Start-up helper: the centres of a map's occupied cells (distance 0), carrier frame. Allocates; reads every cell.
 void surface_points_from_map(const DistanceMapView& map, std::vector<Eigen::Vector3f>& out);
 
 // The decision stage. Everything is sized at construction for one grid; decide() never allocates. Not thread-safe.
 //
-// Policy (thesis 6.4.4, plus verification): p1 >= accept_p1 and p2 <= accept_p2_max -> the SVM's class, Perfect
-// Match for its pose (kSvm). Otherwise, or when that class fails verification, Perfect Match against the
-// pm_candidates most probable classes; the candidates are taken in order of increasing error and the first that
-// passes verification wins (kPm). None passes -> kUnknown. The deadline is checked before every Perfect Match;
-// when it has passed the decision is kTimeout. Never a guess. A candidate whose Perfect Match error is already over
-// its threshold is not checked (its report's areas, coverage and outliers are NaN).
+// Policy (issue 10): candidates are verified (Perfect Match + two-way check against their template's learnt
+// thresholds) in the SVM's rank order, so the true class is verified even when the SVM ranks it low. The search ends
+// when a passing candidate is clearly more probable than the next (stop_ratio), after pm_candidates, or when
+// verify_budget_ms is spent. Exactly one passing candidate, or one with a clear margin of evidence over every other
+// passing one (margin_ratio, margin_floor_m2) -> accepted: kSvm when the SVM alone was sure (p1 >= accept_p1,
+// p2 <= accept_p2_max, its best class won), else kPm. Two passing without a margin -> kUnknown (ambiguous). None ->
+// kUnknown. A budget that ends while an unverified candidate is still as probable as stop_ratio allows -> kUnknown:
+// the accepted class could have had a twin there. The deadline is checked before every Perfect Match; when it has
+// passed the decision is kTimeout. Never a guess. A candidate whose Perfect Match error is already over its
+// threshold is not checked further (its report's areas, coverage and outliers are NaN).
 //
 // Decision fields: probability = the SVM's for the chosen class (its best class when unknown or timeout); pm_error,
-// pose, template_coverage, scan_outliers of the chosen candidate (unknown: pm_error, coverage and outliers of the
-// lowest-error candidate, for the log; no pose); second_class_index = the SVM's second (kSvm), the next-lowest
-// error candidate (kPm), the lowest-error candidate (kUnknown); pm_ms = Perfect Match plus checks; total_ms = all of
-// decide(). features_ms and svm_ms are the caller's to fill.
+// pose, template_coverage, scan_outliers of the chosen candidate (unknown: those of the most probable verified
+// candidate, for the log; no pose); second_class_index = the most probable other verified candidate;
+// candidates = every candidate looked at, in rank order, with its outcome; pm_ms = Perfect Match plus checks;
+// total_ms = all of decide(). features_ms and svm_ms are the caller's to fill.
 //
 // Two-way check: one-way matching (scan -> template distances, eq. 2.56) cannot see a scan that lacks material the
 // template has (a 40 mm hole is ~1 % of a plate's points and each sits at most 20 mm from the template). In the
@@ -171,10 +226,15 @@ class Cascade {
   };
   struct Candidate {
     int class_index = -1;
+    double probability = 0.0;
     bool evaluated = false;
     bool passed = false;
     double ms = 0.0;
     MatchReport report;
+  };
+  struct BlobEvidence {
+    double largest_cells = 0.0;  // weighted area of the heaviest blob
+    double total_cells = 0.0;    // weighted area of all blobs
   };
 
   // Perfect Match + check of the scan set in matcher_; false when the deadline passed before it could start.
@@ -196,7 +256,9 @@ class Cascade {
                                    const PlanarPose& pose, int& outside_points);
   void level_scan_depth(const Roi& roi, const Eigen::Vector2d& centre_m, MatchReport& report);
   void window_range(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi);
-  [[nodiscard]] int largest_blob(const Roi& roi, std::uint8_t bit);
+  // Flood-fills the blobs of `bit` (kMissing, or kExtra with `extra`) and weighs each by its shape
+  // (CascadeParams::weak_evidence_weight).
+  [[nodiscard]] BlobEvidence blob_evidence(const Roi& roi, std::uint8_t bit, bool extra);
   [[nodiscard]] MatchReport check_at(const Eigen::Vector2d& centre_m, std::span<const ScanPoint> scan,
                                      const PlanarPose& pose, const Roi& template_box);
   void reset_scan(const Roi& roi);
@@ -226,6 +288,7 @@ class Cascade {
   std::size_t outline_count_ = 0;
   bool outline_valid_ = false;         // outline_ belongs to the current scan
   std::vector<Candidate> candidates_;  // the pm_candidates most probable classes of a decision
+  std::vector<std::int32_t> blob_cells_;  // cells of the blob being weighed
 };
 
 }  // namespace cellsight::algo

@@ -2,6 +2,7 @@
 // loop, classify/eval and the PLC mapping. Plain value type: no strings, no allocation.
 #pragma once
 
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <limits>
@@ -46,6 +47,62 @@ struct PlanarPose {
   double theta_rad = 0.0;
 };
 
+// Why a candidate was not accepted (classify --json "rejected_by", eval's reasons, the run loop's log line).
+enum class RejectReason : std::uint8_t {
+  kNone,          // accepted, or not looked at
+  kNoTemplate,    // the class has no usable template (missing or refused file)
+  kPmError,       // Perfect Match error per point over its threshold: an unrelated shape
+  kMissingArea,   // the scan lacks a compact piece of the template (a hole the template does not have)
+  kExtraArea,     // the scan has material where the template has none (a template hole covered)
+  kUncovered,     // too much of the template unseen, all places together
+  kOutliers,      // too much of the scan off the template, all places together
+  kAmbiguous,     // passed, but another candidate passed as well without a clear margin
+  kNotVerified,   // ranked too low: the verification budget or the candidate limit ended first
+};
+
+[[nodiscard]] constexpr std::string_view to_string(RejectReason reason) {
+  switch (reason) {
+    case RejectReason::kNone:
+      return "none";
+    case RejectReason::kNoTemplate:
+      return "no_template";
+    case RejectReason::kPmError:
+      return "pm_error";
+    case RejectReason::kMissingArea:
+      return "missing_area";
+    case RejectReason::kExtraArea:
+      return "extra_area";
+    case RejectReason::kUncovered:
+      return "uncovered";
+    case RejectReason::kOutliers:
+      return "outliers";
+    case RejectReason::kAmbiguous:
+      return "ambiguous";
+    case RejectReason::kNotVerified:
+      return "not_verified";
+  }
+  return "invalid";
+}
+
+// One class the cascade considered, in the SVM's rank order.
+struct CandidateOutcome {
+  int class_index = -1;
+  double probability = 0.0;  // the SVM's
+  bool verified = false;     // Perfect Match and the two-way check ran
+  bool passed = false;       // met every threshold of its template
+  RejectReason rejected_by = RejectReason::kNone;
+  double value = std::numeric_limits<double>::quiet_NaN();  // the figure that failed (m^2 for areas, shares, error)
+  double limit = std::numeric_limits<double>::quiet_NaN();  // ... and its learnt threshold
+  double pm_error = std::numeric_limits<double>::quiet_NaN();
+  double missing_area_m2 = std::numeric_limits<double>::quiet_NaN();
+  double extra_area_m2 = std::numeric_limits<double>::quiet_NaN();
+  double evidence_m2 = std::numeric_limits<double>::quiet_NaN();  // weighted evidence against it (ties, margins)
+  double ms = 0.0;
+};
+
+// The most candidates a decision reports (fixed capacity: a Decision is a plain value that never allocates).
+inline constexpr int kMaxReportedCandidates = 16;
+
 struct Decision {
   DecisionSource source = DecisionSource::kNoPart;
   int class_index = -1;      // into the model's classes; -1 when there is no class (unknown, timeout, ...)
@@ -59,6 +116,13 @@ struct Decision {
   double missing_area_m2 = std::numeric_limits<double>::quiet_NaN();    // two-way check: largest blob the scan lacks
   double extra_area_m2 = std::numeric_limits<double>::quiet_NaN();      // ... and largest the template lacks
   int second_class_index = -1;  // runner-up (for logs and the eval report)
+  // The candidates in the SVM's rank order as far as the cascade went (verified or not), at most
+  // kMaxReportedCandidates; verified_count = how many ran Perfect Match.
+  std::array<CandidateOutcome, kMaxReportedCandidates> candidates{};
+  int candidate_count = 0;
+  int verified_count = 0;
+  // Unknown: the reason of the most probable verified candidate (ambiguous when two passed), for the log.
+  RejectReason unknown_reason = RejectReason::kNone;
   double features_ms = 0.0, svm_ms = 0.0, pm_ms = 0.0, total_ms = 0.0;
   [[nodiscard]] bool accepted() const { return source == DecisionSource::kSvm || source == DecisionSource::kPm; }
 };

@@ -11,6 +11,7 @@
 #include <numbers>
 #include <optional>
 #include <Eigen/Geometry>
+#include <functional>
 #include <sstream>
 
 #include "algo/ply.hpp"
@@ -61,7 +62,11 @@ std::string json_number(double v) {
   return buf;
 }
 
-std::string decision_json(const std::string& scan, const algo::Decision& d, std::string_view class_name) {
+// Class index -> name (empty for -1).
+using ClassNames = std::function<std::string(int)>;
+
+std::string decision_json(const std::string& scan, const algo::Decision& d, std::string_view class_name,
+                          const ClassNames& names) {
   std::ostringstream o;
   o << "{\"scan\": " << json_string(scan) << ", \"class\": "
     << (d.class_index >= 0 ? json_string(std::string(class_name)) : "null") << ", \"id\": " << d.part_id
@@ -76,8 +81,51 @@ std::string decision_json(const std::string& scan, const algo::Decision& d, std:
   // The two-way check of the chosen class (of the closest candidate when unknown), for diagnosis.
   o << ", \"coverage\": " << json_number(d.template_coverage) << ", \"outliers\": " << json_number(d.scan_outliers)
     << ", \"missing_mm2\": " << json_number(d.missing_area_m2 * 1e6)
-    << ", \"extra_mm2\": " << json_number(d.extra_area_m2 * 1e6) << ", \"ms\": " << json_number(d.total_ms) << "}";
+    << ", \"extra_mm2\": " << json_number(d.extra_area_m2 * 1e6) << ", \"ms\": " << json_number(d.total_ms);
+  // Added fields (issue 10): why, and what the cascade looked at, in the SVM's rank order.
+  o << ", \"reason\": \"" << algo::to_string(d.unknown_reason) << "\", \"verified\": " << d.verified_count
+    << ", \"candidates\": [";
+  for (int i = 0; i < d.candidate_count; ++i) {
+    const algo::CandidateOutcome& c = d.candidates[static_cast<std::size_t>(i)];
+    if (i > 0) o << ", ";
+    o << "{\"class\": " << json_string(names(c.class_index)) << ", \"p\": " << json_number(c.probability)
+      << ", \"verified\": " << (c.verified ? "true" : "false") << ", \"passed\": " << (c.passed ? "true" : "false")
+      << ", \"rejected_by\": " << (c.rejected_by == algo::RejectReason::kNone
+                                        ? std::string("null")
+                                        : "\"" + std::string(algo::to_string(c.rejected_by)) + "\"")
+      << ", \"value\": " << json_number(c.value) << ", \"limit\": " << json_number(c.limit)
+      << ", \"pm_error\": " << json_number(c.pm_error) << ", \"missing_mm2\": " << json_number(c.missing_area_m2 * 1e6)
+      << ", \"extra_mm2\": " << json_number(c.extra_area_m2 * 1e6) << ", \"ms\": " << json_number(c.ms) << "}";
+  }
+  o << "]}";
   return o.str();
+}
+
+// One line saying why a scan came out unknown: the gate, by how much, against which candidate.
+std::string unknown_reason_text(const algo::Decision& d, const ClassNames& names) {
+  std::string out = std::string(algo::to_string(d.unknown_reason));
+  for (int i = 0; i < d.candidate_count; ++i) {
+    const algo::CandidateOutcome& c = d.candidates[static_cast<std::size_t>(i)];
+    if (!c.verified) continue;
+    char buf[200];
+    if (c.rejected_by == algo::RejectReason::kPmError || c.rejected_by == algo::RejectReason::kUncovered ||
+        c.rejected_by == algo::RejectReason::kOutliers) {
+      std::snprintf(buf, sizeof buf, "; %s (p %.2f): %s %.3g > %.3g", names(c.class_index).c_str(), c.probability,
+                    std::string(algo::to_string(c.rejected_by)).c_str(), c.value, c.limit);
+    } else if (c.rejected_by == algo::RejectReason::kMissingArea || c.rejected_by == algo::RejectReason::kExtraArea) {
+      std::snprintf(buf, sizeof buf, "; %s (p %.2f): %s %.0f > %.0f mm2", names(c.class_index).c_str(), c.probability,
+                    std::string(algo::to_string(c.rejected_by)).c_str(), c.value * 1e6, c.limit * 1e6);
+    } else {
+      std::snprintf(buf, sizeof buf, "; %s (p %.2f): %s (evidence %.0f mm2)", names(c.class_index).c_str(),
+                    c.probability, std::string(algo::to_string(c.rejected_by)).c_str(), c.evidence_m2 * 1e6);
+    }
+    out += buf;
+  }
+  return out;
+}
+
+ClassNames class_names(const Recogniser& r) {
+  return [&r](int i) { return std::string(r.class_name(i)); };
 }
 
 struct Options {
@@ -138,6 +186,8 @@ struct EvalTotals {
   std::vector<std::string> names;  // truth classes seen (taught or not) + "unknown"
   std::map<std::string, std::map<std::string, int>> confusion;
   int scans = 0, correct = 0, wrong = 0, unknown = 0, untaught = 0, untaught_unknown = 0;
+  int svm_ranked = 0, svm_top1 = 0, svm_top2 = 0, decided = 0, decided_within_two = 0;
+  std::vector<std::string> reasons;  // one line per unknown taught scan or wrong id
   std::vector<double> pose_mm, pose_deg, ms;
   std::map<std::string, int> sources;
 };
@@ -246,7 +296,7 @@ int run_classify(const std::vector<std::string>& words, const Config& config, co
     const algo::Decision d = (*recogniser)->recognise(*points, deadline);
     const std::string_view name = (*recogniser)->class_name(d.class_index);
     if (args.has("--json")) {
-      std::printf("%s\n", decision_json(path, d, name).c_str());
+      std::printf("%s\n", decision_json(path, d, name, class_names(**recogniser)).c_str());
     } else {
       std::printf("%s: %s (%s, p %.3f, PM error %.3g", path.c_str(),
                   d.class_index >= 0 ? std::string(name).c_str() : "unknown", std::string(algo::to_string(d.source)).c_str(),
@@ -355,7 +405,25 @@ int run_eval(const std::vector<std::string>& words, const Config& config, const 
     } else {
       ++t.wrong;
     }
-    if (args.has("--json")) std::printf("%s\n", decision_json(s.path, d, decided).c_str());
+    if (args.has("--json")) std::printf("%s\n", decision_json(s.path, d, decided, class_names(**recogniser)).c_str());
+    // What the SVM alone would have said (its rank order is in the decision), and how far the cascade had to go.
+    if (taught && d.candidate_count > 0) {
+      ++t.svm_ranked;
+      for (int r = 0; r < std::min(2, d.candidate_count); ++r) {
+        if ((*recogniser)->class_name(d.candidates[static_cast<std::size_t>(r)].class_index) != s.truth_class) continue;
+        if (r == 0) ++t.svm_top1;
+        ++t.svm_top2;
+      }
+    }
+    if (d.accepted()) {
+      ++t.decided;
+      if (d.verified_count <= 2) ++t.decided_within_two;
+    }
+    if (taught && d.class_index < 0) {
+      t.reasons.push_back(s.path + " (" + s.truth_class + "): " + unknown_reason_text(d, class_names(**recogniser)));
+    } else if (d.class_index >= 0 && decided != s.truth_class) {
+      t.reasons.push_back(s.path + " (" + s.truth_class + "): WRONG id " + decided);
+    }
   }
   const int taught_scans = t.scans - t.untaught;
   std::printf("eval of %d scans in %s (%d of taught parts, %d of parts not taught)\n", t.scans, dir->c_str(),
@@ -371,6 +439,15 @@ int run_eval(const std::vector<std::string>& words, const Config& config, const 
   std::printf("  sources     ");
   for (const auto& [k, v] : t.sources) std::printf(" %s %d", k.c_str(), v);
   std::printf("\n");
+  if (t.svm_ranked > 0) {
+    std::printf("  SVM alone    top-1 %.2f %%, true class among its two most probable %.2f %% (%d taught scans)\n",
+                100.0 * t.svm_top1 / t.svm_ranked, 100.0 * t.svm_top2 / t.svm_ranked, t.svm_ranked);
+  }
+  if (t.decided > 0) {
+    std::printf("  verification %.2f %% of accepted scans decided after at most 2 candidates\n",
+                100.0 * t.decided_within_two / t.decided);
+  }
+  for (const std::string& r : t.reasons) std::printf("  unknown/wrong %s\n", r.c_str());
   print_stats("pose xy", t.pose_mm, "mm");
   print_stats("pose theta", t.pose_deg, "deg");
   print_stats("time", t.ms, "ms");

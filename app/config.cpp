@@ -216,6 +216,10 @@ void read_rest(YamlSection& root, Config& cfg) {
     s.number("accept_p1", cfg.cascade.accept_p1, 0.0, 1.0, "");
     s.number("accept_p2_max", cfg.cascade.accept_p2_max, 0.0, 1.0, "");
     s.integer("pm_candidates", cfg.cascade.pm_candidates, 1, 64, "classes");
+    s.number("verify_budget_ms", cfg.cascade.verify_budget_ms, 1.0, 3000.0, "ms");
+    s.number("stop_ratio", cfg.cascade.stop_ratio, 0.0, 1.0, "");
+    s.number("margin_ratio", cfg.cascade.margin_ratio, 0.0, 1.0, "");
+    s.number("margin_floor_m2", cfg.cascade.margin_floor_m2, 0.0, 1.0, "m^2");
     s.number("blob_window_m", cfg.cascade.blob_window_m, 0.0, 0.05, "m");
     s.number("depth_tolerance_m", cfg.cascade.depth_tolerance_m, 1e-4, 0.1, "m");
     s.integer("refine_iterations", cfg.cascade.refine_iterations, 0, 1000, "");
@@ -226,6 +230,10 @@ void read_rest(YamlSection& root, Config& cfg) {
     s.number("area_floor_m2", cfg.cascade.area_floor_m2, 0.0, 1.0, "m^2");
     s.number("share_factor", cfg.cascade.share_factor, 1.0, 100.0, "");
     s.number("share_floor", cfg.cascade.share_floor, 0.0, 1.0, "");
+    s.number("weak_evidence_weight", cfg.cascade.weak_evidence_weight, 0.0, 1.0, "");
+    s.number("band_elongation", cfg.cascade.band_elongation, 1.0, 1000.0, "");
+    s.number("band_contact_max", cfg.cascade.band_contact_max, 0.0, 1.0, "");
+    s.number("robust_k", cfg.cascade.robust_k, 1.0, 100.0, "");
     s.finish();
   }
   {

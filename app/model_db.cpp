@@ -92,6 +92,11 @@ std::string manifest_text(const Manifest& m) {
       << ", max_extra_area_m2: " << num(p.thresholds.max_extra_area_m2)
       << ", max_uncovered: " << num(p.thresholds.max_uncovered) << ", max_outliers: " << num(p.thresholds.max_outliers)
       << "}\n";
+    if (!p.confusable.empty()) {
+      std::string list;
+      for (const std::string& c : p.confusable) list += (list.empty() ? "" : ",") + c;
+      t << "    confusable: " << quoted(list) << "\n";
+    }
     t << "    scans:" << (p.scans.empty() ? " []" : "") << "\n";
     for (const ScanEntry& s : p.scans) {
       t << "      - {file: " << quoted(s.file) << ", crc32: \"" << hex32(s.crc32) << "\", source: " << quoted(s.source)
@@ -194,6 +199,18 @@ Expected<Manifest> parse_manifest(const std::string& path, const std::string& by
     if (!names.insert(e.name).second) p.error("name", "part '" + e.name + "' appears twice");
     if (!ids.insert(e.id).second) p.error("id", "PLC id " + std::to_string(e.id) + " appears twice");
     if (!safe_relative(e.template_file)) p.error("template", "must be a path inside the database");
+    {
+      std::string list;
+      p.text("confusable", list, true);  // optional: a database trained before look-alikes were learnt has none
+      std::stringstream in(list);
+      for (std::string name; std::getline(in, name, ',');) {
+        if (!valid_part_name(name)) {
+          p.error("confusable", "'" + name + "' is not a valid part name");
+        } else {
+          e.confusable.push_back(name);
+        }
+      }
+    }
     {
       YamlSection t = p.section("thresholds");
       t.boolean("learnt", e.thresholds.learnt);

@@ -38,6 +38,8 @@ struct PartEntry {
   std::string taught_at;      // local time
   std::vector<ScanEntry> scans;
   PartThresholds thresholds;
+  // Look-alikes learnt at training (algo::near_pass): verified too whenever this part passes. Names of parts.
+  std::vector<std::string> confusable;
 };
 
 struct SvmEntry {

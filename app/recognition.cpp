@@ -38,6 +38,9 @@ std::string_view to_string(PrepareStatus status) {
 
 std::string PrepareReport::describe() const {
   return std::to_string(raw_points) + " points, " + std::to_string(support_points) + " on the carrier, " +
+         (stray_points > 0 ? std::to_string(stray_points) + " in " + std::to_string(stray_pieces) +
+                                 " pieces not connected to the part, "
+                           : std::string()) +
          std::to_string(outside_points) + " of the part outside the grid, " + std::to_string(part_points) +
          " on the part";
 }
@@ -46,6 +49,7 @@ ScanPreparer::ScanPreparer(const Config& config, const algo::Plane& support, std
     : support_(support),
       support_threshold_m_(config.support.distance_threshold_mm * 1e-3),
       part_(max_points),
+      isolator_(grid_spec(config), algo::IsolationParams{}),
       grid_(grid_spec(config), max_points) {
   const algo::GridSpec spec = grid_spec(config);
   extractor_ = algo::FeatureExtractor(spec.ny, spec.nx, algo::feature_params_for(spec));
@@ -60,6 +64,9 @@ PrepareReport ScanPreparer::prepare(std::span<const algo::ScanPoint> raw) {
   if (raw.empty()) return r;
   for (const algo::ScanPoint& p : raw) (void)part_.push(p);  // a scan beyond capacity keeps what fits
   r.support_points = algo::remove_support(part_, support_, support_threshold_m_);
+  const algo::IsolationReport isolated = isolator_.isolate(part_);
+  r.stray_points = isolated.dropped_points;
+  r.stray_pieces = isolated.dropped_pieces;
   r.part_points = part_.size();
   if (part_.size() == 0) {
     r.status = PrepareStatus::kNoPart;
@@ -111,6 +118,17 @@ LoadedTemplates open_templates(const Config& config, const ModelDb& db) {
       model.surface_points = t.surface_points();
     }
     out.models.push_back(model);
+  }
+  // Look-alikes by class index (names of parts no longer in the database are dropped); the spans are taken once the
+  // vectors are complete.
+  out.confusable.resize(m.parts.size());
+  for (std::size_t c = 0; c < m.parts.size(); ++c) {
+    for (const std::string& name : m.parts[c].confusable) {
+      for (std::size_t o = 0; o < m.parts.size(); ++o) {
+        if (o != c && m.parts[o].name == name) out.confusable[c].push_back(static_cast<int>(o));
+      }
+    }
+    out.models[c].confusable = out.confusable[c];
   }
   return out;
 }
@@ -209,8 +227,11 @@ class ModelRecogniser final : public Recogniser {
   static algo::CascadeParams mode_params(const Config& config, RecogniserMode mode, std::size_t classes) {
     algo::CascadeParams p = cascade_params(config);
     if (mode == RecogniserMode::kPmOnly) {
+      constexpr double kNoBudgetMs = 1e9;  // debugging: every class, whatever it costs
       p.accept_p1 = 2.0;
       p.pm_candidates = static_cast<int>(std::max<std::size_t>(1, classes));
+      p.stop_ratio = 1e-12;  // every candidate the SVM gives any probability
+      p.verify_budget_ms = kNoBudgetMs;
     }
     return p;
   }

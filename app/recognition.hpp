@@ -16,6 +16,7 @@
 #include "algo/perfect_match.hpp"
 #include "algo/svm.hpp"
 #include "algo/grid.hpp"
+#include "algo/part_isolation.hpp"
 #include "algo/result.hpp"
 #include "algo/scan.hpp"
 #include "algo/sensor_model.hpp"
@@ -41,6 +42,8 @@ enum class PrepareStatus : std::uint8_t {
 struct PrepareReport {
   PrepareStatus status = PrepareStatus::kEmpty;
   std::size_t raw_points = 0, support_points = 0, outside_points = 0, part_points = 0;
+  std::size_t stray_points = 0;  // not connected to the part (a neighbour's part at the field's edge, clutter)
+  int stray_pieces = 0;
   [[nodiscard]] std::string describe() const;  // "12345 points, 2345 carrier, 0 outside the grid"
 };
 
@@ -65,6 +68,7 @@ class ScanPreparer {
   algo::Plane support_{};
   double support_threshold_m_ = 0.0;
   algo::ScanBuffer part_;
+  algo::PartIsolator isolator_;
   algo::OccupancyGrid grid_;
   cv::Mat depth_;
   algo::FeatureExtractor extractor_;
@@ -79,6 +83,7 @@ class ScanPreparer {
 // leaves an empty map in `models` (its class can never be accepted) and a line in `problems`.
 struct LoadedTemplates {
   std::vector<std::optional<TemplateFile>> files;
+  std::vector<std::vector<int>> confusable;  // class indices; the models' spans borrow them
   std::vector<algo::TemplateModel> models;
   std::vector<std::string> problems;
 };

@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <mutex>
 #include <optional>
+#include <set>
 #include <thread>
 
 #include "algo/ply.hpp"
@@ -150,6 +151,60 @@ Expected<TaughtData> build_dataset(const Config& config, const ModelDb& db, cons
   return out;
 }
 
+// The scans of every other class against each template (the runner-ups learn_thresholds() keeps a margin to):
+// result[c] = reports of the other classes' scans against class c's template. Runs on `threads` threads.
+Expected<std::vector<std::vector<algo::MatchReport>>> cross_matches(const Config& config, const ModelDb& db,
+                                                                    const algo::Plane& support, int threads,
+                                                                    const LoadedTemplates& templates,
+                                                                    const std::atomic<bool>* stop) {
+  const Manifest& m = db.manifest();
+  struct Job {
+    std::size_t label;
+    const ScanEntry* scan;
+  };
+  std::vector<Job> jobs;
+  for (std::size_t c = 0; c < m.parts.size(); ++c) {
+    for (const ScanEntry& s : m.parts[c].scans) jobs.push_back({c, &s});
+  }
+  const std::size_t classes = m.parts.size();
+  // reports[j][c]: scan j against template c (c != its own class).
+  std::vector<std::vector<algo::MatchReport>> reports(jobs.size());
+  std::mutex mutex;
+  std::string first_error;
+  std::atomic<std::size_t> next{0};
+  const auto worker = [&] {
+    ScanPreparer preparer(config, support, max_scan_points(config));
+    algo::Cascade cascade(cascade_params(config), perfect_match_params(config), grid_spec(config));
+    for (std::size_t i = next++; i < jobs.size(); i = next++) {
+      if (stop != nullptr && stop->load()) return;
+      auto points = load_taught_scan(db, *jobs[i].scan);
+      if (!points || preparer.prepare(*points).status != PrepareStatus::kOk) {
+        const std::lock_guard<std::mutex> lock(mutex);
+        if (first_error.empty()) first_error = db.path_of(jobs[i].scan->file) + ": cannot be prepared";
+        return;
+      }
+      reports[i].resize(classes);
+      for (std::size_t c = 0; c < classes; ++c) {
+        if (c == jobs[i].label || templates.models[c].map.cells() == nullptr) continue;
+        reports[i][c] = cascade.evaluate(templates.models[c], preparer.part_points());
+      }
+    }
+  };
+  std::vector<std::thread> pool;
+  for (int t = 1; t < std::max(1, threads); ++t) pool.emplace_back(worker);
+  worker();
+  for (auto& t : pool) t.join();
+  if (!first_error.empty()) return make_error(first_error);
+  if (stop != nullptr && stop->load()) return make_error("stopped");
+  std::vector<std::vector<algo::MatchReport>> out(classes);
+  for (std::size_t i = 0; i < jobs.size(); ++i) {
+    for (std::size_t c = 0; c < classes; ++c) {
+      if (c != jobs[i].label && templates.models[c].map.cells() != nullptr) out[c].push_back(reports[i][c]);
+    }
+  }
+  return out;
+}
+
 int run_train(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
   ModeArgs args;
   std::string error;
@@ -238,11 +293,56 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
   const algo::TrainingReport& report = trained->report;
   if (report.stopped) std::printf("stopped: the model is trained on the best feature set found so far\n");
 
-  // Acceptance thresholds of every template from its own taught scans (the unknown-part decision, algo/cascade).
+  // Acceptance thresholds of every template from its own taught scans that agree with each other, with a margin to
+  // the other parts' scans (the unknown-part decision, algo/cascade).
+  std::printf("learning the acceptance thresholds (every taught scan against every template)...\n");
+  auto others = cross_matches(config, *db, *support, threads, templates, &g_stop);
+  if (!others) return fail(kExitFailure, "thresholds: " + others.error().message);
   std::vector<PartThresholds> thresholds;
-  for (const auto& own : taught->own_matches) {
-    const algo::TemplateThresholds t = algo::learn_thresholds(own, cascade_params(config));
+  std::vector<algo::TemplateThresholds> learnt_thresholds;
+  for (std::size_t c = 0; c < taught->own_matches.size(); ++c) {
+    const algo::ThresholdLearning learnt =
+        algo::learn_thresholds(taught->own_matches[c], (*others)[c], cascade_params(config));
+    const algo::TemplateThresholds& t = learnt.thresholds;
+    learnt_thresholds.push_back(t);
     thresholds.push_back({true, t.max_error, t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered, t.max_outliers});
+    const PartEntry& part = m.parts[c];
+    for (const int i : learnt.flagged) {
+      const algo::MatchReport& r = taught->own_matches[c][static_cast<std::size_t>(i)];
+      std::printf("warning: %s: taught scan %s disagrees with the other scans of the part (PM error %.3g, missing "
+                  "%.0f mm2, extra %.0f mm2): it does not widen the thresholds; check it (glare, a stray part, the "
+                  "wrong part?)\n",
+                  part.name.c_str(), part.scans[static_cast<std::size_t>(i)].file.c_str(), r.pm.error,
+                  r.missing_area_m2 * 1e6, r.extra_area_m2 * 1e6);
+    }
+    if (learnt.other_scans_inseparable > 0) {
+      std::printf("warning: %s: %d scans of other parts cannot be told from it by any gate: those parts may be "
+                  "reported as %s; teach more scans or check the parts differ\n",
+                  part.name.c_str(), learnt.other_scans_inseparable, part.name.c_str());
+    }
+  }
+
+  // Look-alikes: a part whose scans came within kNearPassFactor of passing another's template (either way round) is
+  // verified with it at run time (algo::CascadeParams, candidate policy).
+  constexpr double kNearPassFactor = 3.0;
+  std::vector<std::set<std::string>> confusable(m.parts.size());
+  for (std::size_t c = 0; c < m.parts.size(); ++c) {
+    std::size_t k = 0;  // (*others)[c] holds the other classes' scans in manifest order
+    for (std::size_t o = 0; o < m.parts.size(); ++o) {
+      if (o == c) continue;
+      for (std::size_t s = 0; s < m.parts[o].scans.size(); ++s, ++k) {
+        if (k < (*others)[c].size() && algo::near_pass((*others)[c][k], learnt_thresholds[c], kNearPassFactor)) {
+          confusable[c].insert(m.parts[o].name);
+          confusable[o].insert(m.parts[c].name);
+        }
+      }
+    }
+  }
+  for (std::size_t c = 0; c < m.parts.size(); ++c) {
+    if (confusable[c].empty()) continue;
+    std::string list;
+    for (const std::string& n : confusable[c]) list += (list.empty() ? "" : ", ") + n;
+    std::printf("%s: look-alikes verified with it: %s\n", m.parts[c].name.c_str(), list.c_str());
   }
 
   // Atomic update: the new model under a new name, then the manifest that points at it, then the old one goes.
@@ -264,7 +364,10 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
   mm.svm.test_scans = report.test_samples;
   mm.svm.active_features = trained->model.active_features();
   mm.svm.hyper = report.svm.parameters;
-  for (std::size_t c = 0; c < mm.parts.size(); ++c) mm.parts[c].thresholds = thresholds[c];
+  for (std::size_t c = 0; c < mm.parts.size(); ++c) {
+    mm.parts[c].thresholds = thresholds[c];
+    mm.parts[c].confusable.assign(confusable[c].begin(), confusable[c].end());
+  }
   if (auto ok = db->save(); !ok) {
     std::error_code ec;
     std::filesystem::remove(db->path_of(model_file), ec);

@@ -105,6 +105,14 @@ TEST_CASE("Given the shipped config file, when it is loaded, then it is valid an
   CHECK(cfg->cascade.accept_p1 == d.cascade.accept_p1);
   CHECK(cfg->cascade.accept_p2_max == d.cascade.accept_p2_max);
   CHECK(cfg->cascade.pm_candidates == d.cascade.pm_candidates);
+  CHECK(cfg->cascade.verify_budget_ms == d.cascade.verify_budget_ms);
+  CHECK(cfg->cascade.stop_ratio == d.cascade.stop_ratio);
+  CHECK(cfg->cascade.margin_ratio == d.cascade.margin_ratio);
+  CHECK(cfg->cascade.margin_floor_m2 == d.cascade.margin_floor_m2);
+  CHECK(cfg->cascade.weak_evidence_weight == d.cascade.weak_evidence_weight);
+  CHECK(cfg->cascade.band_elongation == d.cascade.band_elongation);
+  CHECK(cfg->cascade.band_contact_max == d.cascade.band_contact_max);
+  CHECK(cfg->cascade.robust_k == d.cascade.robust_k);
   CHECK(cfg->cascade.blob_window_m == d.cascade.blob_window_m);
   CHECK(cfg->cascade.depth_tolerance_m == d.cascade.depth_tolerance_m);
   CHECK(cfg->cascade.refine_iterations == d.cascade.refine_iterations);

@@ -1,0 +1,130 @@
+// Part isolation (see part_isolation.hpp).
+#include "algo/part_isolation.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+namespace cellsight::algo {
+
+PartIsolator::PartIsolator(const GridSpec& grid, const IsolationParams& params) : grid_(grid), params_(params) {
+  const auto cells = static_cast<std::size_t>(grid.nx) * static_cast<std::size_t>(grid.ny);
+  occupied_.assign(cells, 0);
+  bridged_.assign(cells, 0);
+  label_.assign(cells, -1);
+  stack_.assign(cells, 0);
+  piece_cells_.assign(cells, 0);
+  piece_border_.assign(cells, 0);
+  piece_keep_.assign(cells, 0);
+}
+
+bool PartIsolator::cell_of(const ScanPoint& p, std::size_t& index) const {
+  const double fx = (static_cast<double>(p.x) - grid_.origin_m.x()) / grid_.resolution_m;
+  const double fy = (static_cast<double>(p.y) - grid_.origin_m.y()) / grid_.resolution_m;
+  if (!(fx >= 0.0 && fy >= 0.0 && fx < grid_.nx && fy < grid_.ny)) return false;  // NaN fails too
+  index = static_cast<std::size_t>(static_cast<int>(fy)) * static_cast<std::size_t>(grid_.nx) +
+          static_cast<std::size_t>(static_cast<int>(fx));
+  return true;
+}
+
+IsolationReport PartIsolator::isolate(ScanBuffer& part) {
+  IsolationReport report;
+  const int nx = grid_.nx;
+  const int ny = grid_.ny;
+  std::fill(occupied_.begin(), occupied_.end(), 0);
+  int x_lo = nx, x_hi = -1, y_lo = ny, y_hi = -1;
+  for (const ScanPoint& p : part.points()) {
+    std::size_t i = 0;
+    if (!cell_of(p, i)) continue;
+    ++occupied_[i];
+    const int x = static_cast<int>(i % static_cast<std::size_t>(nx));
+    const int y = static_cast<int>(i / static_cast<std::size_t>(nx));
+    x_lo = std::min(x_lo, x);
+    x_hi = std::max(x_hi, x);
+    y_lo = std::min(y_lo, y);
+    y_hi = std::max(y_hi, y);
+  }
+  if (x_hi < 0) return report;
+  // Dilation by a square of bridge_cells (separable: rows, then columns) over the occupied box plus the radius.
+  const int r = std::max(0, params_.bridge_cells);
+  const int bx0 = std::max(0, x_lo - r), bx1 = std::min(nx - 1, x_hi + r);
+  const int by0 = std::max(0, y_lo - r), by1 = std::min(ny - 1, y_hi + r);
+  auto at = [nx](int x, int y) { return static_cast<std::size_t>(y) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(x); };
+  for (int y = by0; y <= by1; ++y) {
+    for (int x = bx0; x <= bx1; ++x) {
+      bool any = false;
+      for (int d = -r; d <= r && !any; ++d) {
+        const int xx = x + d;
+        any = xx >= 0 && xx < nx && occupied_[at(xx, y)] > 0;
+      }
+      bridged_[at(x, y)] = any ? 1 : 0;
+      label_[at(x, y)] = -1;
+    }
+  }
+  // Columns: a cell is bridged when any cell within r rows is bridged along x (read from the row pass, kept in bit 1).
+  for (int y = by0; y <= by1; ++y) {
+    for (int x = bx0; x <= bx1; ++x) {
+      bool any = false;
+      for (int d = -r; d <= r && !any; ++d) {
+        const int yy = y + d;
+        any = yy >= by0 && yy <= by1 && (bridged_[at(x, yy)] & 1U) != 0;
+      }
+      if (any) bridged_[at(x, y)] |= 2U;
+    }
+  }
+  // Pieces: 4-connected flood fill of the bridged cells; each piece counts its occupied cells and whether it reaches
+  // the x border.
+  int pieces = 0;
+  for (int y = by0; y <= by1; ++y) {
+    for (int x = bx0; x <= bx1; ++x) {
+      const std::size_t seed = at(x, y);
+      if ((bridged_[seed] & 2U) == 0 || label_[seed] >= 0) continue;
+      const int id = pieces++;
+      piece_cells_[static_cast<std::size_t>(id)] = 0;
+      piece_border_[static_cast<std::size_t>(id)] = 0;
+      std::size_t top = 0;
+      stack_[top++] = static_cast<std::int32_t>(seed);
+      label_[seed] = id;
+      while (top > 0) {
+        const auto c = static_cast<std::size_t>(stack_[--top]);
+        const int cx = static_cast<int>(c % static_cast<std::size_t>(nx));
+        const int cy = static_cast<int>(c / static_cast<std::size_t>(nx));
+        if (occupied_[c] > 0) {
+          ++piece_cells_[static_cast<std::size_t>(id)];
+          if (cx < params_.border_cells || cx >= nx - params_.border_cells) piece_border_[static_cast<std::size_t>(id)] = 1;
+        }
+        const int nxs[4] = {cx - 1, cx + 1, cx, cx};
+        const int nys[4] = {cy, cy, cy - 1, cy + 1};
+        for (int k = 0; k < 4; ++k) {
+          if (nxs[k] < bx0 || nxs[k] > bx1 || nys[k] < by0 || nys[k] > by1) continue;
+          const std::size_t n = at(nxs[k], nys[k]);
+          if ((bridged_[n] & 2U) == 0 || label_[n] >= 0) continue;
+          label_[n] = id;
+          stack_[top++] = static_cast<std::int32_t>(n);
+        }
+      }
+    }
+  }
+  report.pieces = pieces;
+  if (pieces <= 1) return report;
+  int largest = 0;
+  for (int i = 1; i < pieces; ++i) {
+    if (piece_cells_[static_cast<std::size_t>(i)] > piece_cells_[static_cast<std::size_t>(largest)]) largest = i;
+  }
+  const double min_cells = params_.min_keep_share * piece_cells_[static_cast<std::size_t>(largest)];
+  for (int i = 0; i < pieces; ++i) {
+    const auto u = static_cast<std::size_t>(i);
+    const bool keep = i == largest || (piece_border_[u] == 0 && piece_cells_[u] >= min_cells);
+    piece_keep_[u] = keep ? 1 : 0;
+    report.dropped_pieces += keep ? 0 : 1;
+  }
+  if (report.dropped_pieces == 0) return report;
+  report.dropped_points = part.filter([&](const ScanPoint& p) {
+    std::size_t i = 0;
+    if (!cell_of(p, i)) return true;
+    const std::int32_t id = label_[i];
+    return id < 0 || piece_keep_[static_cast<std::size_t>(id)] != 0;
+  });
+  return report;
+}
+
+}  // namespace cellsight::algo

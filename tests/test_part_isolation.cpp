@@ -1,0 +1,116 @@
+// Tests of algo/part_isolation: material not connected to the part is dropped before features and matching, the
+// part itself is never cut. Synthetic point sets on the real grid spacing; the truth is which points were drawn as
+// what.
+#include <catch2/catch.hpp>
+#include <cstdint>
+#include <random>
+#include <vector>
+
+#include "algo/grid.hpp"
+#include "algo/part_isolation.hpp"
+#include "algo/scan.hpp"
+
+using namespace cellsight;
+using algo::ScanPoint;
+
+namespace {
+
+algo::GridSpec grid() {
+  algo::GridSpec g;
+  g.origin_m = {0.0, 0.0, 0.0};
+  g.resolution_m = 0.0022;
+  g.nx = 296;
+  g.ny = 500;
+  g.nz = 182;
+  return g;
+}
+
+// A sheet on the scan's sampling (one profile per 2.2 mm along x, a point per 1.6 mm along y); `tag` goes to `row`
+// so the test knows what each point was drawn as.
+void add_sheet(std::vector<ScanPoint>& out, double x0, double x1, double y0, double y1, double z, std::uint16_t tag) {
+  for (double x = x0; x < x1; x += 0.0022) {
+    for (double y = y0; y < y1; y += 0.0016) {
+      out.push_back({static_cast<float>(x), static_cast<float>(y), static_cast<float>(z), 0, tag});
+    }
+  }
+}
+
+algo::ScanBuffer buffer_of(const std::vector<ScanPoint>& points) {
+  algo::ScanBuffer b(points.size() + 16);
+  for (const ScanPoint& p : points) b.push(p);
+  return b;
+}
+
+int count_tag(const algo::ScanBuffer& b, std::uint16_t tag) {
+  int n = 0;
+  for (const ScanPoint& p : b.points()) n += p.row == tag ? 1 : 0;
+  return n;
+}
+
+constexpr std::uint16_t kPart = 1, kStray = 2, kSpeck = 3;
+
+}  // namespace
+
+SCENARIO("A neighbour's part at the field's edge and loose specks are separated from the part", "[isolation]") {
+  algo::PartIsolator isolator(grid(), algo::IsolationParams{});
+  GIVEN("a 450 x 700 mm plate in the middle of the grid") {
+    std::vector<ScanPoint> points;
+    add_sheet(points, 0.10, 0.55, 0.20, 0.90, 0.20, kPart);
+    const int part_points = static_cast<int>(points.size());
+    WHEN("a 40 mm sheet strip enters from the grid's right end, 20 mm away from the plate") {
+      add_sheet(points, 0.57, 0.6512, 0.30, 0.80, 0.21, kStray);
+      algo::ScanBuffer b = buffer_of(points);
+      const algo::IsolationReport r = isolator.isolate(b);
+      THEN("the strip is dropped and every plate point stays") {
+        CHECK(r.pieces == 2);
+        CHECK(r.dropped_pieces == 1);
+        CHECK(count_tag(b, kStray) == 0);
+        CHECK(count_tag(b, kPart) == part_points);
+      }
+    }
+    WHEN("a few specular specks float in front of the carrier away from it") {
+      add_sheet(points, 0.02, 0.024, 0.05, 0.052, 0.1, kSpeck);
+      add_sheet(points, 0.30, 0.302, 0.97, 0.972, 0.1, kSpeck);
+      algo::ScanBuffer b = buffer_of(points);
+      (void)isolator.isolate(b);
+      THEN("they go, the plate stays whole") {
+        CHECK(count_tag(b, kSpeck) == 0);
+        CHECK(count_tag(b, kPart) == part_points);
+      }
+    }
+  }
+  GIVEN("the same plate cut in two by a 30 mm glare band that left no point") {
+    std::vector<ScanPoint> points;
+    add_sheet(points, 0.10, 0.30, 0.20, 0.90, 0.20, kPart);
+    add_sheet(points, 0.33, 0.55, 0.20, 0.90, 0.20, kPart);
+    const int part_points = static_cast<int>(points.size());
+    WHEN("it is isolated") {
+      algo::ScanBuffer b = buffer_of(points);
+      const algo::IsolationReport r = isolator.isolate(b);
+      THEN("both halves stay: neither reaches the field's edge") {
+        CHECK(r.pieces == 2);
+        CHECK(r.dropped_pieces == 0);
+        CHECK(count_tag(b, kPart) == part_points);
+      }
+    }
+  }
+  GIVEN("a plate whose profiles lost 3 % of their points and one whole profile") {
+    std::vector<ScanPoint> all;
+    add_sheet(all, 0.10, 0.55, 0.20, 0.90, 0.20, kPart);
+    std::mt19937_64 rng(7);
+    std::uniform_real_distribution<double> u(0.0, 1.0);
+    std::vector<ScanPoint> points;
+    for (const ScanPoint& p : all) {
+      if (u(rng) < 0.03 || std::abs(p.x - 0.3) < 0.0011) continue;
+      points.push_back(p);
+    }
+    WHEN("it is isolated") {
+      algo::ScanBuffer b = buffer_of(points);
+      const algo::IsolationReport r = isolator.isolate(b);
+      THEN("it is one piece and nothing is dropped") {
+        CHECK(r.pieces == 1);
+        CHECK(b.size() == points.size());
+      }
+    }
+  }
+}
