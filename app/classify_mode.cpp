@@ -237,7 +237,7 @@ Status generate_sim_scans(const Config& config, const ModelDb& db, const std::ve
     std::optional<sim::PartPose> template_pose;
     Eigen::Vector2d centroid = Eigen::Vector2d::Zero();
     if (const PartEntry* taught = db.find(part); taught != nullptr && !taught->scans.empty()) {
-      const std::string& source = taught->scans.front().source;
+      const std::string& source = taught->template_scan_entry()->source;
       std::int64_t seed = 0;
       auto info = read_template_info(db.path_of(taught->template_file));
       if (source.rfind("sim seed ", 0) == 0 && parse_whole(source.substr(9), 0, INT64_MAX, seed) && info) {

@@ -86,6 +86,7 @@ std::string manifest_text(const Manifest& m) {
     t << "    id: " << p.id << "\n";
     t << "    template: " << quoted(p.template_file) << "\n";
     t << "    taught_at: " << quoted(p.taught_at) << "\n";
+    if (!p.template_scan.empty()) t << "    template_scan: " << quoted(p.template_scan) << "\n";
     t << "    thresholds: {learnt: " << (p.thresholds.learnt ? "true" : "false")
       << ", max_error: " << num(p.thresholds.max_error)
       << ", max_missing_area_m2: " << num(p.thresholds.max_missing_area_m2)
@@ -195,6 +196,7 @@ Expected<Manifest> parse_manifest(const std::string& path, const std::string& by
     p.integer("id", e.id, 1, kMaxPartId, "");
     p.text("template", e.template_file);
     p.text("taught_at", e.taught_at, true);
+    p.text("template_scan", e.template_scan, true);  // optional (older databases: the first scan)
     if (!valid_part_name(e.name)) p.error("name", "'" + e.name + "' is not a valid part name");
     if (!names.insert(e.name).second) p.error("name", "part '" + e.name + "' appears twice");
     if (!ids.insert(e.id).second) p.error("id", "PLC id " + std::to_string(e.id) + " appears twice");

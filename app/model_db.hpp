@@ -38,6 +38,15 @@ struct PartEntry {
   std::string taught_at;      // local time
   std::vector<ScanEntry> scans;
   PartThresholds thresholds;
+  // The taught scan the template was built from (teach picks the one that agrees best with the others); empty in a
+  // database taught before that: the first scan.
+  std::string template_scan;
+  [[nodiscard]] const ScanEntry* template_scan_entry() const {
+    for (const ScanEntry& s : scans) {
+      if (s.file == template_scan) return &s;
+    }
+    return scans.empty() ? nullptr : &scans.front();
+  }
   // Look-alikes learnt at training (algo::near_pass): verified too whenever this part passes. Names of parts.
   std::vector<std::string> confusable;
 };

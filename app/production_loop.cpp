@@ -790,6 +790,22 @@ void ProductionLoop::publish(const algo::Decision& decision, Clock::time_point n
                 r.acq_id, drivers::to_string(r.code), static_cast<int>(name.size()), name.data(),
                 static_cast<unsigned>(r.part_id), algo::to_string(decision.source).data(), decision.probability,
                 record.cycle_ms, record.recognise_ms, record.frames, record.points, record.seq);
+    if (decision.source == algo::DecisionSource::kUnknown) {
+      // Why (issue 10): the most probable verified candidate's failed gate, and how deep the search went.
+      const algo::CandidateOutcome* why = nullptr;
+      for (int i = 0; i < decision.candidate_count && why == nullptr; ++i) {
+        const algo::CandidateOutcome& c = decision.candidates[static_cast<std::size_t>(i)];
+        if (c.verified) why = &c;
+      }
+      const std::string_view cand =
+          why != nullptr && recogniser_ != nullptr ? recogniser_->class_name(why->class_index) : std::string_view("-");
+      CS_LOG_INFO(kComponent, "acq %u unknown: %s; %d of %d candidates verified; first: %.*s (p %.3f) %s %.4g > %.4g",
+                  r.acq_id, algo::to_string(decision.unknown_reason).data(), decision.verified_count,
+                  decision.candidate_count, static_cast<int>(cand.size()), cand.data(),
+                  why != nullptr ? why->probability : 0.0,
+                  why != nullptr ? algo::to_string(why->rejected_by).data() : "-", why != nullptr ? why->value : 0.0,
+                  why != nullptr ? why->limit : 0.0);
+    }
   }
   if (observer_ != nullptr) observer_->on_part_done(record);
 

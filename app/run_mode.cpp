@@ -259,8 +259,9 @@ void write_template_truth(std::FILE* file, const Config& config, const sim::SimC
     std::fprintf(file, "{\"template\": \"%s\", \"part_id\": %d", part.name.c_str(), part.id);
     const sim::PartSpec* spec = cell.find_part(part.name);
     std::uint64_t seed = 0;
-    const bool from_sim = spec != nullptr && !part.scans.empty() && part.scans.front().source.rfind(kSimSeed, 0) == 0 &&
-                          parse_u64(part.scans.front().source.substr(kSimSeed.size()), seed);
+    const ScanEntry* source = part.template_scan_entry();  // the pass the template was built from
+    const bool from_sim = spec != nullptr && source != nullptr && source->source.rfind(kSimSeed, 0) == 0 &&
+                          parse_u64(source->source.substr(kSimSeed.size()), seed);
     auto pass = from_sim ? cell.random_pass(part.name, seed) : Expected<sim::PassSpec>(make_error("not simulated"));
     auto info = read_template_info(db->path_of(part.template_file));
     if (pass && info) {

@@ -1,6 +1,9 @@
 // `cellsight teach` and `cellsight parts`: store scans of a part type, build its template, manage the database.
 #include "app/teach_mode.hpp"
 
+#include <algorithm>
+#include <limits>
+#include <optional>
 #include <cstdio>
 #include <filesystem>
 
@@ -64,6 +67,87 @@ Expected<std::vector<TaughtScan>> import_scans(const std::vector<std::string>& f
   return scans;
 }
 
+struct TemplateChoice {
+  std::size_t index = 0;
+  TemplateModel model;
+};
+
+// The template scan: candidates in order of how close their part's point count is to the median of the taught
+// scans (a glare band or a cut-off part has fewer points), built and checked against the other scans (Perfect Match
+// + the two-way check) until one leaves a median evidence within the cascade's area floor; else the best of the
+// tried. Scans that disagree with the chosen one are named (the operator sees it at teach time). Teach time only:
+// allocates a full template per try.
+Expected<TemplateChoice> choose_template(const Config& config, ScanPreparer& preparer,
+                                         const std::vector<TaughtScan>& scans) {
+  constexpr int kMaxTries = 3;
+  constexpr double kDisagreeFactor = 4.0;
+  std::vector<std::size_t> counts(scans.size());
+  for (std::size_t i = 0; i < scans.size(); ++i) {
+    (void)preparer.prepare(scans[i].points);
+    counts[i] = preparer.part_points().size();
+  }
+  std::vector<std::size_t> sorted = counts;
+  std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(sorted.size() / 2), sorted.end());
+  const auto median_count = static_cast<double>(sorted[sorted.size() / 2]);
+  std::vector<std::size_t> order(scans.size());
+  for (std::size_t i = 0; i < order.size(); ++i) order[i] = i;
+  std::stable_sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) {
+    return std::abs(static_cast<double>(counts[a]) - median_count) < std::abs(static_cast<double>(counts[b]) - median_count);
+  });
+  const algo::CascadeParams cp = cascade_params(config);
+  algo::Cascade cascade(cp, perfect_match_params(config), grid_spec(config));
+  std::optional<TemplateChoice> best;
+  double best_median = std::numeric_limits<double>::infinity();
+  std::vector<double> best_evidence;
+  std::string first_error;
+  for (int t = 0; t < std::min<int>(kMaxTries, static_cast<int>(order.size())); ++t) {
+    const std::size_t i = order[static_cast<std::size_t>(t)];
+    (void)preparer.prepare(scans[i].points);
+    auto model = build_template(preparer.part_points(), grid_spec(config));
+    if (!model) {
+      if (first_error.empty()) first_error = scans[i].source + ": " + model.error().message;
+      continue;
+    }
+    algo::TemplateModel view;
+    view.class_index = 0;
+    view.map = model->map.view();
+    view.centroid_m = model->centroid_m;
+    view.surface_points = model->surface_points;
+    std::vector<double> evidence(scans.size(), 0.0);
+    std::vector<double> others;
+    for (std::size_t j = 0; j < scans.size(); ++j) {
+      if (j == i) continue;
+      (void)preparer.prepare(scans[j].points);
+      evidence[j] = cascade.evaluate(view, preparer.part_points()).evidence_m2;
+      others.push_back(evidence[j]);
+    }
+    double median = 0.0;
+    if (!others.empty()) {
+      std::nth_element(others.begin(), others.begin() + static_cast<std::ptrdiff_t>(others.size() / 2), others.end());
+      median = others[others.size() / 2];
+    }
+    if (median < best_median) {
+      best_median = median;
+      best_evidence = evidence;
+      best = TemplateChoice{i, std::move(*model)};
+    }
+    if (median <= cp.area_floor_m2) break;
+  }
+  if (!best) return make_error(first_error.empty() ? std::string("no scan") : first_error);
+  std::printf("template: %s (median evidence of the other %zu scans against it %.0f mm2)\n",
+              scans[best->index].source.c_str(), scans.size() - 1, best_median * 1e6);
+  const double disagree = std::max(kDisagreeFactor * best_median, cp.area_floor_m2);
+  for (std::size_t j = 0; j < scans.size(); ++j) {
+    if (j != best->index && best_evidence[j] > disagree) {
+      std::printf("warning: %s disagrees with the other taught scans (%.0f mm2 of evidence against the template, "
+                  "typical %.0f mm2): glare, a stray part or the wrong part? It is stored; training does not let it "
+                  "widen the acceptance thresholds\n",
+                  scans[j].source.c_str(), best_evidence[j] * 1e6, best_median * 1e6);
+    }
+  }
+  return std::move(*best);
+}
+
 void print_part(const ModelDb& db, const PartEntry& p, bool detail) {
   std::printf("%-24s %6d %6zu  %-5s %s\n", p.name.c_str(), p.id, p.scans.size(), p.thresholds.learnt ? "yes" : "no",
               p.taught_at.c_str());
@@ -76,6 +160,14 @@ void print_part(const ModelDb& db, const PartEntry& p, bool detail) {
                 info->centroid_m.y() * 1e3);
   } else {
     std::printf("  template     %s: %s\n", p.template_file.c_str(), info.error().message.c_str());
+  }
+  if (const ScanEntry* t = p.template_scan_entry()) {
+    std::printf("  built from   %s (%s): poses are relative to this pass\n", t->file.c_str(), t->source.c_str());
+  }
+  if (!p.confusable.empty()) {
+    std::string list;
+    for (const std::string& c : p.confusable) list += (list.empty() ? "" : ", ") + c;
+    std::printf("  look-alikes  %s (verified with it)\n", list.c_str());
   }
   if (p.thresholds.learnt) {
     std::printf("  accepts      PM error <= %.3g, missing <= %.0f mm2 (%.2f %% in all), extra <= %.0f mm2 (%.2f %% in all)\n",
@@ -170,21 +262,24 @@ int run_teach(const std::vector<std::string>& words, const Config& config, const
     for (const std::string& f : written) std::filesystem::remove(db->path_of(f), ec);
   };
   PartEntry entry = existing != nullptr ? *existing : PartEntry{};
+  std::size_t template_index = SIZE_MAX;  // of *scans, when this call builds the template
   if (existing == nullptr) {
     entry.name = *part;
     entry.id = static_cast<int>(id);
     entry.template_file = "templates/" + *part + ".dmap";
     entry.taught_at = local_time_text();
-    // The template is the first scan: the robot is taught on that one.
-    (void)preparer.prepare(scans->front().points);
-    auto model = build_template(preparer.part_points(), grid_spec(config));
-    if (!model) return fail(kExitUsage, "teach: template of " + *part + ": " + model.error().message);
+    // The template is the taught scan that agrees best with the others (issue 10: the first one may carry a glare
+    // band or a stray edge); poses are reported relative to it and `parts show` names it.
+    auto choice = choose_template(config, preparer, *scans);
+    if (!choice) return fail(kExitUsage, "teach: template of " + *part + ": " + choice.error().message);
+    auto& model = choice->model;
+    template_index = choice->index;
     std::error_code ec;
     std::filesystem::create_directories(db->path_of("templates"), ec);
     TemplateIdentity identity;
     identity.part_name = *part;
     identity.plc_id = static_cast<std::uint32_t>(id);
-    if (auto ok = write_template(db->path_of(entry.template_file), *model, identity); !ok) {
+    if (auto ok = write_template(db->path_of(entry.template_file), model, identity); !ok) {
       return fail(kExitFailure, "teach: " + ok.error().message);
     }
     written.push_back(entry.template_file);
@@ -204,6 +299,7 @@ int run_teach(const std::vector<std::string>& words, const Config& config, const
       return fail(kExitFailure, "teach: " + ok.error().message);
     }
     written.push_back(file);
+    if (static_cast<std::size_t>(&s - scans->data()) == template_index) entry.template_scan = file;
     entry.scans.push_back({file, crc32_of(bytes), s.source});
   }
   if (existing != nullptr) {
