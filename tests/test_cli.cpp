@@ -184,3 +184,44 @@ TEST_CASE("Given `cellsight sim --list`, when run, then every catalogue part is 
   REQUIRE(parts.ok());
   for (const auto& p : *parts) CHECK(r.output.find(p.name) != std::string::npos);
 }
+
+TEST_CASE("Given `cellsight sim --random-catalogue`, when run, then it writes a loadable catalogue once, `sim --list` "
+          "of a site file pointing at it shows role and family, and bad arguments exit 2") {
+  const fs::path dir = fresh_dir("random-catalogue");
+  fs::create_directories(dir);
+  const fs::path file = dir / "random.yaml";
+  const Run r = run("sim --random-catalogue 12 --seed 7 --out " + file.string());
+  INFO(r.output);
+  REQUIRE(r.exit_code == 0);
+  const std::string text = read_all(file);
+  CHECK(text.find("--random-catalogue 12 --seed 7") != std::string::npos);
+  CHECK(text.find("near-twin pairs:") != std::string::npos);
+  auto parts = cellsight::app::load_catalogue(file.string());
+  REQUIRE(parts.ok());
+  CHECK(parts->size() == 12);
+
+  std::ofstream(dir / "site.yaml") << "sim:\n  catalogue: random.yaml\n";
+  const std::string list_command = kExe + " --config " + (dir / "site.yaml").string() + " sim --list 2>&1";
+  FILE* pipe = ::popen(list_command.c_str(), "r");
+  REQUIRE(pipe != nullptr);
+  std::array<char, 16384> buf{};
+  const std::string listed(buf.data(), std::fread(buf.data(), 1, buf.size(), pipe));
+  CHECK(WEXITSTATUS(::pclose(pipe)) == 0);
+  CHECK(listed.find("role") != std::string::npos);
+  CHECK(listed.find("family") != std::string::npos);
+  CHECK(listed.find("untaught") != std::string::npos);
+
+  const Run again = run("sim --random-catalogue 12 --seed 8 --out " + file.string());
+  CHECK(again.exit_code == 2);
+  CHECK(again.output.find("refusing to overwrite") != std::string::npos);
+  CHECK(read_all(file) == text);
+  for (const char* bad : {"1", "301", "12x", "-3"}) {
+    const Run b = run(std::string("sim --random-catalogue ") + bad + " --out " + (dir / "other.yaml").string());
+    CHECK(b.exit_code == 2);
+    CHECK(b.output.find("expected a whole number of parts from 2 to 300") != std::string::npos);
+  }
+  CHECK(run("sim --random-catalogue 12 --part tray --out " + (dir / "other.yaml").string()).exit_code == 2);
+  CHECK(run("sim --random-catalogue 12").exit_code == 2);
+  CHECK_FALSE(fs::exists(dir / "other.yaml"));
+  fs::remove_all(dir);
+}
