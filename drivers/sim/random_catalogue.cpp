@@ -586,7 +586,8 @@ const char* twin_relation_text(TwinRelation relation) {
 Eigen::AlignedBox2d feature_footprint_mm(const PartSpec& part, const FeatureSpec& f) {
   if (f.kind == FeatureKind::kFlange) {
     const double w2 = 0.5 * part.width_mm, h2 = 0.5 * part.height_mm;
-    const double inward = std::max(1.0, -std::cos(f.angle_deg * std::numbers::pi / 180.0) * f.width_mm);
+    // Rounded to 0.1 mm so that libm's last bit of cos cannot move a layout decision from one machine to another.
+    const double inward = std::max(1.0, tenth_mm(-std::cos(f.angle_deg * std::numbers::pi / 180.0) * f.width_mm));
     switch (f.edge) {
       case Edge::kBottom: return {Eigen::Vector2d(-w2, -h2), Eigen::Vector2d(w2, -h2 + inward)};
       case Edge::kTop: return {Eigen::Vector2d(-w2, h2 - inward), Eigen::Vector2d(w2, h2)};
