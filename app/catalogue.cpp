@@ -1,8 +1,9 @@
 // Part catalogue reader and writer: every part and feature validated, unknown keys refused.
 #include "app/catalogue.hpp"
 
+#include <yaml-cpp/yaml.h>
+
 #include <charconv>
-#include <cstdio>
 #include <set>
 #include <sstream>
 
@@ -66,22 +67,11 @@ std::string number_text(double v) {
   return std::string(buf, end);
 }
 
-// A YAML double-quoted scalar: any text survives the round trip.
+// A YAML double-quoted scalar (yaml-cpp escapes it): any text survives the round trip.
 std::string quoted(const std::string& text) {
-  std::string out = "\"";
-  for (const char c : text) {
-    if (c == '"' || c == '\\') {
-      out += '\\';
-      out += c;
-    } else if (static_cast<unsigned char>(c) < 0x20) {
-      char esc[8];
-      std::snprintf(esc, sizeof esc, "\\x%02x", static_cast<unsigned>(c));
-      out += esc;
-    } else {
-      out += c;
-    }
-  }
-  return out + "\"";
+  YAML::Emitter out;
+  out << YAML::DoubleQuoted << text;
+  return out.c_str();
 }
 
 // One feature as a flow mapping; only the keys that differ from a feature's defaults (which the reader keeps).

@@ -283,6 +283,19 @@ TEST_CASE("Given a generated catalogue, when it is written and loaded back, then
     INFO(generated[i].name);
     CHECK((*loaded)[i] == generated[i]);
   }
+  // Texts a person might type survive too: quotes, backslash, colon, hash, a line break, non-ASCII.
+  auto odd = generated;
+  odd.resize(2);
+  odd[0].description = "say \"hi\": C:\\parts # not a comment\nsecond line, 45\u00b0";
+  odd[1].family = "- [x]";
+  const std::string odd_path = (dir / "odd.yaml").string();
+  std::ofstream(odd_path) << app::catalogue_yaml(odd, "a header\n\nwith an empty line");
+  const auto odd_loaded = app::load_catalogue(odd_path);
+  INFO((odd_loaded.ok() ? std::string() : odd_loaded.error().message));
+  REQUIRE(odd_loaded.ok());
+  CHECK(*odd_loaded == odd);
+  fs::remove(odd_path);
+
   const auto before = fs::last_write_time(path);
   const auto again = app::write_random_catalogue(config, 12, 6, path);
   REQUIRE_FALSE(again.ok());
