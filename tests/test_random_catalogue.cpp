@@ -198,6 +198,32 @@ TEST_CASE("Given random catalogues, when every part is checked, then it is in th
   }
 }
 
+TEST_CASE("Given a catalogue of 40 parts, when parts outside the twin pairs are compared, then no two share a shape, "
+          "and every outline and feature kind occurs") {
+  const auto cat = sim::generate_random_catalogue(40, 11);
+  std::set<std::size_t> paired;
+  for (const auto& t : cat.twins) paired.insert({t.base, t.twin});
+  std::set<std::tuple<double, double, std::vector<std::pair<double, double>>, std::vector<Instance>>> shapes;
+  std::set<int> kinds;
+  std::set<std::size_t> outline_sizes;
+  for (std::size_t i = 0; i < cat.parts.size(); ++i) {
+    const auto& p = cat.parts[i];
+    for (const auto& f : p.features) kinds.insert(static_cast<int>(f.kind));
+    outline_sizes.insert(p.outline_mm.size());
+    if (paired.count(i) != 0) continue;
+    std::vector<std::pair<double, double>> outline;
+    for (const auto& q : outline_set(p)) outline.emplace_back(q.x(), q.y());
+    INFO(p.name);
+    CHECK(shapes.insert({p.width_mm, p.height_mm, outline, instances(p)}).second);
+  }
+  CHECK(kinds.size() == 7);  // hole, slot, window, hole_array, rib, louvre, flange
+  // Rectangle (none), trapezoid (4), notched (6 or 8), chamfered (5 to 8), round-topped (15).
+  CHECK(outline_sizes.count(0) == 1);
+  CHECK(outline_sizes.count(4) == 1);
+  CHECK(outline_sizes.count(15) == 1);
+  CHECK(outline_sizes.size() >= 4);
+}
+
 TEST_CASE("Given a hand-made layout with a clash, when it is checked, then the clash and the edge are named") {
   sim::PartSpec part;
   part.name = "clash";
