@@ -34,7 +34,7 @@ std::string parent_of(const std::string& path) {
 
 }  // namespace
 
-Status write_file_atomic(const std::string& path, std::string_view content) {
+Status write_file_atomic(const std::string& path, std::string_view content, Overwrite overwrite) {
   std::string temp = path + ".tmp-XXXXXX";
   const int fd = ::mkstemp(temp.data());
   if (fd < 0) return make_error(path + ": cannot create a temporary file beside it: " + errno_text());
@@ -57,7 +57,13 @@ Status write_file_atomic(const std::string& path, std::string_view content) {
     return make_error(path + ": cannot finish the file: " + why);
   }
   ::close(fd);
-  if (::rename(temp.c_str(), path.c_str()) != 0) {
+  if (overwrite == Overwrite::kRefuse) {
+    const int rc = ::link(temp.c_str(), path.c_str());
+    const int saved = errno;
+    ::unlink(temp.c_str());
+    if (rc != 0 && saved == EEXIST) return make_error(path + ": already exists; refusing to overwrite it");
+    if (rc != 0) return make_error(path + ": cannot create: " + std::strerror(saved));
+  } else if (::rename(temp.c_str(), path.c_str()) != 0) {
     const std::string why = errno_text();
     ::unlink(temp.c_str());
     return make_error(path + ": cannot replace: " + why);

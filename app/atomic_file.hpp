@@ -8,8 +8,13 @@
 
 namespace cellsight::app {
 
-// Writes `content` to `path` atomically (temp file in the same folder, fsync, rename, fsync of the folder).
-[[nodiscard]] Status write_file_atomic(const std::string& path, std::string_view content);
+enum class Overwrite { kReplace, kRefuse };
+
+// Writes `content` to `path` atomically (temp file in the same folder, fsync, rename, fsync of the folder). With
+// Overwrite::kRefuse an existing `path` is left alone and reported (the file is linked into place, which fails
+// atomically when the name is taken).
+[[nodiscard]] Status write_file_atomic(const std::string& path, std::string_view content,
+                                       Overwrite overwrite = Overwrite::kReplace);
 
 // A folder filled under a temporary name and renamed into place by commit(); removed again if never committed.
 class StagedDirectory {

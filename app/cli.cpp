@@ -1,6 +1,7 @@
 // Command-line parsing and mode dispatch.
 #include "app/cli.hpp"
 
+#include <algorithm>
 #include <cerrno>
 #include <cstdio>
 #include <cstdlib>
@@ -16,8 +17,10 @@
 #include "app/teach_mode.hpp"
 #include "app/train_mode.hpp"
 #include "app/scan_mode.hpp"
+#include "app/mode_args.hpp"
 #include "app/sim_mode.hpp"
 #include "drivers/log.hpp"
+#include "drivers/sim/random_catalogue.hpp"
 
 namespace cellsight::app {
 namespace {
@@ -29,7 +32,10 @@ constexpr const char* kUsage =
     "  sim --part NAME [--seed S] [--pose x_m,y_m,theta_deg[,swing_deg]] --out DIR\n"
     "        render one simulated pass: DIR/frames/NNNNNN.png (mono8) and DIR/truth.yaml\n"
     "  sim --list\n"
-    "        list the simulated cell's part catalogue\n"
+    "        list the simulated cell's part catalogue (with role and family when the catalogue has them)\n"
+    "  sim --random-catalogue N [--seed S] --out FILE.yaml\n"
+    "        write a random catalogue of N parts (2..300) with near-twin pairs and 3 untaught parts; same N and seed,\n"
+    "        same file; an existing FILE is never overwritten (point sim.catalogue of a config at it)\n"
     "  scan [--sim --part NAME [--seed S] [--pose x,y,theta] | --sim --empty] --out SCAN.ply [--ascii]\n"
     "       [--calibration FILE]\n"
     "        one acquisition with the calibrated sensor -> point cloud (carrier frame, metres, carrier included)\n"
@@ -58,7 +64,7 @@ constexpr const char* kUsageGlobals =
 
 // Options that take a value; everything else starting with "--" is a flag.
 const std::set<std::string> kValueOptions = {"--config", "--log-level", "--models", "--part", "--seed", "--pose",
-                                             "--out", "--calibration"};
+                                             "--out", "--calibration", "--random-catalogue"};
 
 struct Args {
   std::string mode;
@@ -111,15 +117,64 @@ bool check_known(const Args& args, const std::set<std::string>& values, const st
   return true;
 }
 
+bool parse_seed(const std::string& text, std::uint64_t& out) {
+  char* end = nullptr;
+  errno = 0;
+  const unsigned long long v = std::strtoull(text.c_str(), &end, 10);
+  if (text.empty() || *end != '\0' || errno != 0 || text[0] == '-') return false;
+  out = v;
+  return true;
+}
+
+int run_random_catalogue(const Args& args, const Config& config) {
+  if (args.flags.count("--list") != 0 || args.values.count("--part") != 0 || args.values.count("--pose") != 0) {
+    return usage_error("sim --random-catalogue takes only --seed and --out");
+  }
+  std::int64_t count = 0;
+  const std::string& count_text = args.values.at("--random-catalogue");
+  if (!parse_whole(count_text, sim::kRandomCatalogueMinParts, sim::kRandomCatalogueMaxParts, count)) {
+    return usage_error("--random-catalogue '" + count_text + "': expected a whole number of parts from " +
+                       std::to_string(sim::kRandomCatalogueMinParts) + " to " + std::to_string(sim::kRandomCatalogueMaxParts));
+  }
+  std::uint64_t seed = 1;
+  if (const auto s = args.values.find("--seed"); s != args.values.end() && !parse_seed(s->second, seed)) {
+    return usage_error("--seed '" + s->second + "': expected a whole number >= 0");
+  }
+  const auto out = args.values.find("--out");
+  if (out == args.values.end()) return usage_error("sim --random-catalogue needs --out FILE.yaml");
+  if (auto ok = write_random_catalogue(config, static_cast<int>(count), seed, out->second); !ok) {
+    std::fprintf(stderr, "cellsight: %s\n", ok.error().message.c_str());
+    return kExitUsage;
+  }
+  return kExitOk;
+}
+
 int run_sim(const Args& args, const Config& config) {
   std::string error;
-  if (!check_known(args, {"--part", "--seed", "--pose", "--out"}, {"--list"}, error)) return usage_error(error);
+  if (!check_known(args, {"--part", "--seed", "--pose", "--out", "--random-catalogue"}, {"--list"}, error)) {
+    return usage_error(error);
+  }
+  if (args.values.count("--random-catalogue") != 0) return run_random_catalogue(args, config);
   auto cell = make_sim_cell(config);
   if (!cell) return usage_error(cell.error().message);
   if (args.flags.count("--list") != 0) {
-    std::printf("%-20s %9s %9s  %s\n", "part", "width_mm", "height_mm", "description");
-    for (const auto& p : cell->catalogue()) {
-      std::printf("%-20s %9.0f %9.0f  %s\n", p.name.c_str(), p.width_mm, p.height_mm, p.description.c_str());
+    const auto& parts = cell->catalogue();
+    const bool roles = std::any_of(parts.begin(), parts.end(), [](const sim::PartSpec& p) {
+      return p.role != sim::PartRole::kUnspecified || !p.family.empty();
+    });
+    if (roles) {
+      std::printf("%-20s %9s %9s  %-8s %-20s %s\n", "part", "width_mm", "height_mm", "role", "family", "description");
+    } else {
+      std::printf("%-20s %9s %9s  %s\n", "part", "width_mm", "height_mm", "description");
+    }
+    for (const auto& p : parts) {
+      if (roles) {
+        const char* role = p.role == sim::PartRole::kTaught ? "taught" : p.role == sim::PartRole::kUntaught ? "untaught" : "-";
+        std::printf("%-20s %9.0f %9.0f  %-8s %-20s %s\n", p.name.c_str(), p.width_mm, p.height_mm, role,
+                    p.family.empty() ? "-" : p.family.c_str(), p.description.c_str());
+      } else {
+        std::printf("%-20s %9.0f %9.0f  %s\n", p.name.c_str(), p.width_mm, p.height_mm, p.description.c_str());
+      }
     }
     return kExitOk;
   }
@@ -130,14 +185,8 @@ int run_sim(const Args& args, const Config& config) {
   if (out == args.values.end()) return usage_error("sim needs --out DIR");
   options.part = part->second;
   options.out_dir = out->second;
-  if (const auto seed = args.values.find("--seed"); seed != args.values.end()) {
-    char* end = nullptr;
-    errno = 0;
-    const unsigned long long v = std::strtoull(seed->second.c_str(), &end, 10);
-    if (seed->second.empty() || *end != '\0' || errno != 0 || seed->second[0] == '-') {
-      return usage_error("--seed '" + seed->second + "': expected a whole number >= 0");
-    }
-    options.seed = v;
+  if (const auto seed = args.values.find("--seed"); seed != args.values.end() && !parse_seed(seed->second, options.seed)) {
+    return usage_error("--seed '" + seed->second + "': expected a whole number >= 0");
   }
   if (const auto pose = args.values.find("--pose"); pose != args.values.end()) {
     auto parsed = parse_pose(pose->second);
@@ -152,15 +201,6 @@ int run_sim(const Args& args, const Config& config) {
     return kExitUsage;
   }
   return kExitOk;
-}
-
-bool parse_seed(const std::string& text, std::uint64_t& out) {
-  char* end = nullptr;
-  errno = 0;
-  const unsigned long long v = std::strtoull(text.c_str(), &end, 10);
-  if (text.empty() || *end != '\0' || errno != 0 || text[0] == '-') return false;
-  out = v;
-  return true;
 }
 
 int run_scan_mode(const Args& args, const Config& config) {

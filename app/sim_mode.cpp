@@ -13,6 +13,7 @@
 #include "app/atomic_file.hpp"
 #include "app/catalogue.hpp"
 #include "drivers/log.hpp"
+#include "drivers/sim/random_catalogue.hpp"
 
 namespace cellsight::app {
 namespace {
@@ -60,6 +61,64 @@ Expected<sim::SimCell> make_sim_cell(const Config& config) {
   auto catalogue = load_catalogue(config.catalogue_path);
   if (!catalogue) return catalogue.error();
   return sim::SimCell(config.rig, std::move(*catalogue), config.sim);
+}
+
+Status check_catalogue_fits_grid(const Config& config, const std::vector<sim::PartSpec>& parts) {
+  const Eigen::Vector3d lo = config.grid.origin_m;
+  const Eigen::Vector3d hi = lo + config.grid.resolution_m * Eigen::Vector3d(config.grid.nx, config.grid.ny, config.grid.nz);
+  const double xy = config.sim.pose_xy_range_m;
+  const double theta = config.sim.pose_theta_range_deg / kRadToDeg;
+  const double swing = config.sim.swing_range_deg / kRadToDeg;
+  constexpr int kPoseCorners = 16;  // x, y, theta, swing each at - or + its range
+  for (const auto& part : parts) {
+    const std::vector<sim::Facet> facets = sim::build_part(part);
+    for (int corner = 0; corner < kPoseCorners; ++corner) {
+      const sim::PartPose pose{(corner & 1 ? xy : -xy), (corner & 2 ? xy : -xy), (corner & 4 ? theta : -theta),
+                               (corner & 8 ? swing : -swing)};
+      const Eigen::Isometry3d placement = sim::placement(config.rig.carrier, part, pose);
+      for (sim::Facet f : facets) {
+        f.transform(placement);
+        if ((f.bounds.min().array() < lo.array()).any() || (f.bounds.max().array() > hi.array()).any()) {
+          std::ostringstream why;
+          why << "part " << part.name << " leaves the grid at the pose x " << pose.x_m << " m, y " << pose.y_m
+              << " m, theta " << pose.theta_rad * kRadToDeg << " deg, swing " << pose.swing_rad * kRadToDeg << " deg";
+          return make_error(why.str());
+        }
+      }
+    }
+  }
+  return {};
+}
+
+Status write_random_catalogue(const Config& config, int count, std::uint64_t seed, const std::string& out_path) {
+  const sim::RandomCatalogue catalogue = sim::generate_random_catalogue(count, seed);
+  if (auto ok = check_catalogue_fits_grid(config, catalogue.parts); !ok) {
+    return make_error("the generated catalogue does not fit this configuration's grid: " + ok.error().message);
+  }
+  std::ostringstream header;
+  header << "Random part catalogue of the simulated cell (nobody tuned recognition for these parts).\n"
+         << "generator: cellsight sim --random-catalogue " << count << " --seed " << seed
+         << " (drivers/sim/random_catalogue.cpp); the same N and seed give this file byte for byte.\n"
+         << "N: " << count << ", seed: " << seed << "\n"
+         << "Keys as in config/parts.yaml; family is shared by near twins, role says whether an evaluation teaches the\n"
+         << "part (taught) or keeps it back as one that must come out unknown (untaught).\n"
+         << "near-twin pairs:" << (catalogue.twins.empty() ? " none" : "") << "\n";
+  for (const auto& t : catalogue.twins) {
+    header << "  " << catalogue.parts[t.base].name << " / " << catalogue.parts[t.twin].name << ": "
+           << sim::twin_relation_text(t.relation)
+           << (t.relation == sim::TwinRelation::kHeightPlus5mm ? " (deliberately hard)" : "") << "\n";
+  }
+  header << "untaught:";
+  for (const auto& p : catalogue.parts) {
+    if (p.role == sim::PartRole::kUntaught) header << ' ' << p.name;
+  }
+  header << "\n";
+  if (auto ok = write_file_atomic(out_path, catalogue_yaml(catalogue.parts, header.str()), Overwrite::kRefuse); !ok) {
+    return ok.error();
+  }
+  CS_LOG_INFO("sim", "random catalogue: %d parts, seed %llu, %zu near-twin pairs -> %s", count,
+              static_cast<unsigned long long>(seed), catalogue.twins.size(), out_path.c_str());
+  return {};
 }
 
 std::string truth_yaml(const Config& config, const sim::SimCell& cell, const std::vector<double>& exposures_us) {

@@ -1,4 +1,4 @@
-// `cellsight sim`: render one simulated pass to PNG frames plus truth.yaml, or list the catalogue.
+// `cellsight sim`: render one simulated pass to PNG frames plus truth.yaml, list the catalogue, or write a random one.
 #pragma once
 
 #include <cstdint>
@@ -26,6 +26,14 @@ struct SimOptions {
 
 // Renders every frame of the pass into a staged folder and moves it to options.out_dir when complete.
 [[nodiscard]] Status write_sim_pass(const Config& config, sim::SimCell& cell, const SimOptions& options);
+
+// Fails, naming the first part and pose corner, unless every part lies inside the configured occupancy grid at all
+// 16 extremes of the random pose (x, y, theta and swing each at +- their configured range) on the configured carrier.
+[[nodiscard]] Status check_catalogue_fits_grid(const Config& config, const std::vector<sim::PartSpec>& parts);
+
+// `sim --random-catalogue N --seed S --out FILE`: a generated catalogue (drivers/sim/random_catalogue.hpp), checked
+// against the configured grid, written atomically to a new file (an existing file is never replaced).
+[[nodiscard]] Status write_random_catalogue(const Config& config, int count, std::uint64_t seed, const std::string& out_path);
 
 // The truth.yaml text of the current pass (deterministic: no wall-clock data).
 [[nodiscard]] std::string truth_yaml(const Config& config, const sim::SimCell& cell, const std::vector<double>& exposures_us);

@@ -26,8 +26,8 @@ struct Run {
   std::string output;  // stdout and stderr
 };
 
-Run run(const std::string& args) {
-  const std::string command = kExe + " --config " + kConfig + " " + args + " 2>&1";
+Run run(const std::string& args, const std::string& config = kConfig) {
+  const std::string command = kExe + " --config " + config + " " + args + " 2>&1";
   FILE* pipe = ::popen(command.c_str(), "r");
   REQUIRE(pipe != nullptr);
   std::string out;
@@ -183,4 +183,41 @@ TEST_CASE("Given `cellsight sim --list`, when run, then every catalogue part is 
   auto parts = cellsight::app::load_catalogue(CELLSIGHT_SOURCE_DIR "/config/parts.yaml");
   REQUIRE(parts.ok());
   for (const auto& p : *parts) CHECK(r.output.find(p.name) != std::string::npos);
+}
+
+TEST_CASE("Given `cellsight sim --random-catalogue`, when run, then it writes a loadable catalogue once, `sim --list` "
+          "of a site file pointing at it shows role and family, and bad arguments exit 2") {
+  const fs::path dir = fresh_dir("random-catalogue");
+  fs::create_directories(dir);
+  const fs::path file = dir / "random.yaml";
+  const Run r = run("sim --random-catalogue 12 --seed 7 --out " + file.string());
+  INFO(r.output);
+  REQUIRE(r.exit_code == 0);
+  const std::string text = read_all(file);
+  CHECK(text.find("--random-catalogue 12 --seed 7") != std::string::npos);
+  CHECK(text.find("near-twin pairs:") != std::string::npos);
+  auto parts = cellsight::app::load_catalogue(file.string());
+  REQUIRE(parts.ok());
+  CHECK(parts->size() == 12);
+
+  std::ofstream(dir / "site.yaml") << "sim:\n  catalogue: random.yaml\n";
+  const Run listed = run("sim --list", (dir / "site.yaml").string());
+  CHECK(listed.exit_code == 0);
+  CHECK(listed.output.find("role") != std::string::npos);
+  CHECK(listed.output.find("family") != std::string::npos);
+  CHECK(listed.output.find("untaught") != std::string::npos);
+
+  const Run again = run("sim --random-catalogue 12 --seed 8 --out " + file.string());
+  CHECK(again.exit_code == 2);
+  CHECK(again.output.find("refusing to overwrite") != std::string::npos);
+  CHECK(read_all(file) == text);
+  for (const char* bad : {"1", "301", "12x", "-3"}) {
+    const Run b = run(std::string("sim --random-catalogue ") + bad + " --out " + (dir / "other.yaml").string());
+    CHECK(b.exit_code == 2);
+    CHECK(b.output.find("expected a whole number of parts from 2 to 300") != std::string::npos);
+  }
+  CHECK(run("sim --random-catalogue 12 --part tray --out " + (dir / "other.yaml").string()).exit_code == 2);
+  CHECK(run("sim --random-catalogue 12").exit_code == 2);
+  CHECK_FALSE(fs::exists(dir / "other.yaml"));
+  fs::remove_all(dir);
 }

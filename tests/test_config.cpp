@@ -201,25 +201,9 @@ TEST_CASE("Given every catalogue part at the extremes of the random pose, when p
   REQUIRE(cfg.ok());
   auto cell = app::make_sim_cell(*cfg);
   REQUIRE(cell.ok());
-  const Eigen::Vector3d lo = cfg->grid.origin_m;
-  const Eigen::Vector3d hi = lo + cfg->grid.resolution_m * Eigen::Vector3d(cfg->grid.nx, cfg->grid.ny, cfg->grid.nz);
-  const double xy = cfg->sim.pose_xy_range_m;
-  const double theta = cfg->sim.pose_theta_range_deg * std::numbers::pi / 180.0;
-  const double swing = cfg->sim.swing_range_deg * std::numbers::pi / 180.0;
-  for (const auto& part : cell->catalogue()) {
-    for (int corner = 0; corner < 16; ++corner) {
-      sim::PassSpec pass;
-      pass.part = part.name;
-      pass.pose = {(corner & 1 ? xy : -xy), (corner & 2 ? xy : -xy), (corner & 4 ? theta : -theta), (corner & 8 ? swing : -swing)};
-      REQUIRE(cell->begin_pass(pass).ok());
-      for (const auto& f : cell->scene().facets) {
-        if (!f.is_part) continue;
-        INFO(part.name << " pose corner " << corner);
-        CHECK((f.bounds.min().array() >= lo.array()).all());
-        CHECK((f.bounds.max().array() <= hi.array()).all());
-      }
-    }
-  }
+  const auto fits = app::check_catalogue_fits_grid(*cfg, cell->catalogue());
+  INFO((fits.ok() ? std::string() : fits.error().message));
+  CHECK(fits.ok());
 }
 
 TEST_CASE("Given catalogue mistakes, when the catalogue is loaded, then each is named with its line") {

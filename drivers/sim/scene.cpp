@@ -17,19 +17,6 @@ std::vector<Eigen::Vector2d> rectangle(double u0, double v0, double u1, double v
   return {{u0, v0}, {u1, v0}, {u1, v1}, {u0, v1}};
 }
 
-bool point_in_polygon(const std::vector<Eigen::Vector2d>& poly, const Eigen::Vector2d& p) {
-  bool inside = false;
-  for (std::size_t i = 0, j = poly.size() - 1; i < poly.size(); j = i++) {
-    const Eigen::Vector2d& a = poly[i];
-    const Eigen::Vector2d& b = poly[j];
-    if ((a.y() > p.y()) != (b.y() > p.y())) {
-      const double x_cross = a.x() + (p.y() - a.y()) * (b.x() - a.x()) / (b.y() - a.y());
-      if (p.x() < x_cross) inside = !inside;
-    }
-  }
-  return inside;
-}
-
 // A facet from an origin, two in-plane unit axes and an outline in those axes.
 Facet make_facet(const Eigen::Vector3d& origin, const Eigen::Vector3d& axis_u, const Eigen::Vector3d& axis_v,
                  std::vector<Eigen::Vector2d> outline) {
@@ -110,6 +97,19 @@ void add_flange(std::vector<Facet>& facets, double half_w, double half_h, const 
 }
 
 }  // namespace
+
+bool point_in_polygon(const std::vector<Eigen::Vector2d>& poly, const Eigen::Vector2d& p) {
+  bool inside = false;
+  for (std::size_t i = 0, j = poly.size() - 1; i < poly.size(); j = i++) {
+    const Eigen::Vector2d& a = poly[i];
+    const Eigen::Vector2d& b = poly[j];
+    if ((a.y() > p.y()) != (b.y() > p.y())) {
+      const double x_cross = a.x() + (p.y() - a.y()) * (b.x() - a.x()) / (b.y() - a.y());
+      if (p.x() < x_cross) inside = !inside;
+    }
+  }
+  return inside;
+}
 
 void Facet::finalise() {
   normal = axis_u.cross(axis_v).normalized();

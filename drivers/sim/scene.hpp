@@ -23,6 +23,9 @@ struct HoleArray {
   double radius;
 };
 
+// Even-odd test of a point against a simple polygon (points on the boundary may go either way).
+[[nodiscard]] bool point_in_polygon(const std::vector<Eigen::Vector2d>& poly, const Eigen::Vector2d& p);
+
 // One planar piece of sheet metal, zero thickness, visible from both sides.
 // Points are origin + u * axis_u + v * axis_v with (u, v) inside `outline` and outside every hole.
 struct Facet {
@@ -64,7 +67,12 @@ struct FeatureSpec {
   int count_x = 1, count_y = 1;        // hole_array, and repeats of rib/louvre/slot
   double pitch_x_mm = 0, pitch_y_mm = 0;
   Edge edge = Edge::kBottom;           // flange
+
+  friend bool operator==(const FeatureSpec&, const FeatureSpec&) = default;
 };
+
+// What an evaluation does with a part: teach it, or keep it back as one the recogniser must call unknown.
+enum class PartRole { kUnspecified, kTaught, kUntaught };
 
 struct PartSpec {
   std::string name;
@@ -72,6 +80,10 @@ struct PartSpec {
   double width_mm = 0, height_mm = 0;
   std::vector<Eigen::Vector2d> outline_mm;  // optional; empty = width x height rectangle
   std::vector<FeatureSpec> features;
+  std::string family;                  // optional: shared by near twins (look-alike parts)
+  PartRole role = PartRole::kUnspecified;
+
+  friend bool operator==(const PartSpec&, const PartSpec&) = default;
 };
 
 // Builds the facets of a part in its own frame (metres). Fails only on specs that validate_part() rejects.

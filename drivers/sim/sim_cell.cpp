@@ -74,9 +74,21 @@ Expected<PassSpec> SimCell::random_pass(const std::string& part, std::uint64_t s
   return pass;
 }
 
-Eigen::Vector3d SimCell::nominal_centre(const PartSpec& part) const {
-  const auto& c = rig_.params.carrier;
-  return {0.5 * c.length_m, c.hook_height_m - 0.5e-3 * part.height_mm, c.part_plane_z_m};
+namespace {
+
+Eigen::Vector3d nominal_centre_on(const CarrierParams& carrier, const PartSpec& part) {
+  return {0.5 * carrier.length_m, carrier.hook_height_m - 0.5e-3 * part.height_mm, carrier.part_plane_z_m};
+}
+
+}  // namespace
+
+Eigen::Vector3d SimCell::nominal_centre(const PartSpec& part) const { return nominal_centre_on(rig_.params.carrier, part); }
+
+Eigen::Isometry3d placement(const CarrierParams& carrier, const PartSpec& part, const PartPose& pose) {
+  const Eigen::Vector3d c = nominal_centre_on(carrier, part);
+  // p_C = c + R_z(theta) R_y(swing) p_part + (x, y, 0): DESIGN.md's pose with the part frame centred on c.
+  return Eigen::Translation3d(c + Eigen::Vector3d(pose.x_m, pose.y_m, 0.0)) *
+         Eigen::AngleAxisd(pose.theta_rad, Eigen::Vector3d::UnitZ()) * Eigen::AngleAxisd(pose.swing_rad, Eigen::Vector3d::UnitY());
 }
 
 Status SimCell::begin_pass(const PassSpec& pass) {
@@ -87,11 +99,7 @@ Status SimCell::begin_pass(const PassSpec& pass) {
   if (pass.with_part) {
     const PartSpec* part = find_part(pass.part);
     if (part == nullptr) return make_error("unknown part '" + pass.part + "'");
-    const Eigen::Vector3d c = nominal_centre(*part);
-    // p_C = c + R_z(theta) R_y(swing) p_part + (x, y, 0): DESIGN.md's pose with the part frame centred on c.
-    part_to_carrier_ = Eigen::Translation3d(c + Eigen::Vector3d(pass.pose.x_m, pass.pose.y_m, 0.0)) *
-                       Eigen::AngleAxisd(pass.pose.theta_rad, Eigen::Vector3d::UnitZ()) *
-                       Eigen::AngleAxisd(pass.pose.swing_rad, Eigen::Vector3d::UnitY());
+    part_to_carrier_ = placement(rig_.params.carrier, *part, pass.pose);
     for (Facet f : build_part(*part)) {
       f.transform(part_to_carrier_);
       scene_.facets.push_back(std::move(f));

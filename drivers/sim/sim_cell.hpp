@@ -87,6 +87,9 @@ class SimCell {
   Eigen::Isometry3d part_to_carrier_ = Eigen::Isometry3d::Identity();
 };
 
+// Part frame -> carrier frame of `part` hanging on `carrier` at `pose` (what SimCell::begin_pass places it with).
+[[nodiscard]] Eigen::Isometry3d placement(const CarrierParams& carrier, const PartSpec& part, const PartPose& pose);
+
 // Coatings used when the configuration names none: bare metal, primer, matt top coat, dark coat.
 [[nodiscard]] std::vector<Coating> default_coatings();
 
