@@ -159,29 +159,40 @@ PerturbReport::Strip add_strip(std::vector<ScanPoint>& points, const Layout& l, 
   return s;
 }
 
-// The strip's x extent from the chosen end, narrowed to keep kStrayClearance_m (x-y) from every part point.
+// The strip's x extent from the drawn end (the other end when the part leaves no room there), narrowed to keep
+// kStrayClearance_m (x-y) from every part point.
 bool apply_stray_edge(std::vector<ScanPoint>& points, const Layout& l, const Plane& support, double carrier_band_m,
                       double strength, Rng& rng, PerturbReport& r) {
-  const bool from_left = rng.uniform() < 0.5;
+  const bool drawn_left = rng.uniform() < 0.5;
   const double width = rng.uniform(kStrayWidthMin_m, kStrayWidthMax_m) * strength;
   const double height = std::min(rng.uniform(kStrayHeightMin_m, kStrayHeightMax_m), l.hi.y() - l.lo.y());
   const double y0 = l.lo.y() + rng.uniform() * (l.hi.y() - l.lo.y() - height);
   const double y1 = y0 + height;
-  // The inner edge may come no nearer than the clearance to a part point beside the strip (nearer in y than the
-  // clearance); points above or below it count by their x-y distance to the strip's corner.
-  const double end = from_left ? l.lo.x() : l.hi.x();
-  const double dir = from_left ? 1.0 : -1.0;
-  double reach_in = width;  // of the inner edge from the end
-  for (std::size_t i = 0; i < points.size(); ++i) {
-    if (l.is_part[i] == 0) continue;
-    const double along = dir * (points[i].x - end);
-    const double dy = std::max({y0 - points[i].y, static_cast<double>(points[i].y) - y1, 0.0});
-    if (dy >= kStrayClearance_m) continue;
-    reach_in = std::min(reach_in, along - std::sqrt(kStrayClearance_m * kStrayClearance_m - dy * dy));
+  // How far in from an end the inner edge may reach: no nearer than the clearance to a part point beside the strip
+  // (nearer in y than the clearance); points above or below it count by their x-y distance to the strip's corner.
+  const auto reach_from = [&](bool from_left) {
+    const double end = from_left ? l.lo.x() : l.hi.x();
+    const double dir = from_left ? 1.0 : -1.0;
+    double reach = width;
+    for (std::size_t i = 0; i < points.size(); ++i) {
+      if (l.is_part[i] == 0) continue;
+      const double along = dir * (points[i].x - end);
+      const double dy = std::max({y0 - points[i].y, static_cast<double>(points[i].y) - y1, 0.0});
+      if (dy >= kStrayClearance_m) continue;
+      reach = std::min(reach, along - std::sqrt(kStrayClearance_m * kStrayClearance_m - dy * dy));
+    }
+    return reach;
+  };
+  // At least two profiles wide, or the part leaves no room at that end.
+  const double min_reach = 1.5 * l.profile_spacing_m;
+  bool from_left = drawn_left;
+  double reach = reach_from(from_left);
+  if (reach < min_reach) {
+    from_left = !from_left;
+    reach = reach_from(from_left);
   }
-  // At least two profiles wide, or the part leaves no room at this end.
-  if (reach_in < 1.5 * l.profile_spacing_m) return false;
-  const double x0 = from_left ? end : end - reach_in, x1 = from_left ? end + reach_in : end;
+  if (reach < min_reach) return false;
+  const double x0 = from_left ? l.lo.x() : l.hi.x() - reach, x1 = from_left ? l.lo.x() + reach : l.hi.x();
   r.stray_edge = add_strip(points, l, support, x0, x1, y0, y1, l.part_depth_m, carrier_band_m, rng);
   r.stray_edge_from_left = from_left;
   return r.stray_edge.points > 0;

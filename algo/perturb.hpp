@@ -27,6 +27,8 @@ enum class PerturbKind : std::uint8_t {
   // A neighbouring carrier's part entering the field of view at the left or right end of the scanned x range: a
   // flat sheet strip (20–80 mm·s wide, 300–700 mm high) at a part's depth in front of the carrier, sampled on the
   // scan's profiles and point spacing along y, at least 15 mm (x-y) from the part; it hides the carrier behind it.
+  // Narrowed where the part comes nearer; the other end when the drawn one has no room for two profiles; not
+  // applied (PerturbReport::applied) when neither has.
   kStrayEdge,
   // The chain and hook: a 6–10 mm·s wide vertical strip from the part's top edge up to the top of the scan, at the
   // depth of the part's top there; plus 0.2 %·s of the scan's point count as isolated specular outliers anywhere in
