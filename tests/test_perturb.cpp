@@ -83,7 +83,7 @@ algo::PerturbSpec spec_of(std::string_view text) {
 
 }  // namespace
 
-TEST_CASE("Given the same seed, a perturbation gives the same points; given another seed, other points") {
+TEST_CASE("Given the same seed, a perturbation gives the same points and given another seed other points") {
   const algo::PerturbSpec spec = spec_of("swing,stray_edge,stray_points,glare,dropout,noise");
   auto a = make_scan(), b = make_scan(), c = make_scan();
   (void)algo::perturb_scan(a, spec, carrier_plane(), 42);
@@ -313,7 +313,7 @@ TEST_CASE("Given a flat part, when swung, then its depth slope along x is -tan(d
   }
 }
 
-TEST_CASE("Given a share, a kind hits about that fraction of the scans; mixed puts glare and stray edge on 30 %") {
+TEST_CASE("Given a share, a kind hits about that fraction of the scans, and mixed puts glare and stray edge on 30 %") {
   Synthetic coarse;
   coarse.dy_m = 0.02;
   const auto before = make_scan(coarse);
