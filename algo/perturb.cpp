@@ -28,6 +28,7 @@ constexpr double kStrayWidthMin_m = 0.020, kStrayWidthMax_m = 0.080;
 constexpr double kStrayHeightMin_m = 0.300, kStrayHeightMax_m = 0.700;
 constexpr double kStrayClearance_m = 0.015;  // from the part's nearest point, in x-y
 constexpr double kChainWidthMin_m = 0.006, kChainWidthMax_m = 0.010;
+constexpr double kHookReach_m = 0.05;  // the chain rises this close (x) to the part's centroid
 constexpr double kOutlierFraction = 0.002;
 constexpr double kSwingMax_rad = 2.0 * std::numbers::pi / 180.0;
 constexpr double kMixedShare = 0.3;  // mixed: glare and stray_edge each on this share of the scans
@@ -201,19 +202,21 @@ bool apply_stray_edge(std::vector<ScanPoint>& points, const Layout& l, const Pla
 void apply_stray_points(std::vector<ScanPoint>& points, const Layout& l, const Plane& support,
                         double carrier_band_m, double strength, Rng& rng, PerturbReport& r) {
   const std::size_t n_in = points.size();
-  // The hook: a profile near the part's x centre, the chain from that profile's highest part point upward.
-  const double x_centre = 0.5 * (l.lo.x() + l.hi.x());
+  // The hook is above the part's x centroid: the chain starts at the highest part point within kHookReach_m of it
+  // in x (a part with a notch there: at the part point nearest to that line).
+  double x_centre = 0.0;
+  for (std::size_t i = 0; i < points.size(); ++i) x_centre += l.is_part[i] != 0 ? points[i].x : 0.0;
+  x_centre /= static_cast<double>(l.part_points);
   std::size_t top = points.size();
-  double best = 1e9;
   for (std::size_t i = 0; i < points.size(); ++i) {
     if (l.is_part[i] == 0) continue;
-    // Highest point, among those within 50 mm of the centre line of the scan (else the nearest to it).
-    const double off = std::max(0.0, std::abs(points[i].x - x_centre) - 0.05);
-    const double score = off * 1e3 - points[i].y;
-    if (score < best) {
-      best = score;
+    if (top == points.size()) {
       top = i;
+      continue;
     }
+    const double off = std::max(0.0, std::abs(points[i].x - x_centre) - kHookReach_m);
+    const double off_top = std::max(0.0, std::abs(points[top].x - x_centre) - kHookReach_m);
+    if (off < off_top || (off == off_top && points[i].y > points[top].y)) top = i;
   }
   const double width = rng.uniform(kChainWidthMin_m, kChainWidthMax_m) * strength;
   const double x_top = points[top].x, y_top = points[top].y;
