@@ -15,9 +15,9 @@
 # environment: CELLSIGHT_BIN  the cellsight executable (default build/app/cellsight, built if missing)
 #
 # Time: dominated by rendering the simulated passes, (taught parts x COUNT + all parts x SCANS) per kind, and
-# training. Measured on the development machine (2 shared cores, busy): --count 8 --scans 3 with 7 parts (61 passes
-# per kind) took 2-3 minutes per kind, 25 minutes for all kinds and the baseline. A full run (15 parts, 12 + 10
-# scans: 294 passes per kind) scales to roughly 10-15 minutes per kind, 1.5-2.5 hours in all (an estimate).
+# training. Measured on the development machine (2 shared cores, busy): the defaults (15 parts, 12 + 10 scans:
+# 294 passes per kind) took 11-13 minutes per kind (baseline, mixed), so about 1 h 50 min for all kinds and the
+# baseline; --count 8 --scans 3 with 7 parts (61 passes per kind) took 2-3 minutes per kind, 25 minutes in all.
 # exit: 0 table printed, 1 a step failed (its output is in DIR/KIND/log.txt), 2 bad arguments
 set -uo pipefail
 cd "$(dirname "$0")/.." || exit 2
