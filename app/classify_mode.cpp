@@ -20,6 +20,7 @@
 #include "app/cli.hpp"
 #include "app/mode_args.hpp"
 #include "app/model_db.hpp"
+#include "app/perturb_mode.hpp"
 #include "app/recognition.hpp"
 #include "app/scan_mode.hpp"
 #include "drivers/sim/sim_cell.hpp"
@@ -223,8 +224,10 @@ algo::PlanarPose relative_pose(const sim::PartPose& scan, const sim::PartPose& t
 
 // eval --sim: K simulated passes of each listed part (seeds S..S+K-1) written as DIR/<part>/sSEED.ply with
 // DIR/truth.csv; passes of taught parts get their pose relative to the template (whose seed the manifest records).
+// With `perturb` every pass is perturbed before it is written (the truth stays the simulator's).
 Status generate_sim_scans(const Config& config, const ModelDb& db, const std::vector<std::string>& parts, int count,
-                          std::uint64_t first_seed, const std::string& calibration_path, const std::string& dir) {
+                          std::uint64_t first_seed, const std::string& calibration_path, const std::string& dir,
+                          const PassPerturbation* perturb) {
   auto cell = make_sim_cell(config);
   if (!cell) return cell.error();
   std::error_code ec;
@@ -263,7 +266,8 @@ Status generate_sim_scans(const Config& config, const ModelDb& db, const std::ve
             lines[static_cast<std::size_t>(index)] = line;
           }
           return {};
-        });
+        },
+        perturb);
     if (!ok) return ok;
     for (const std::string& line : lines) truth += line;
   }
@@ -314,7 +318,7 @@ int run_classify(const std::vector<std::string>& words, const Config& config, co
 int run_eval(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
   ModeArgs args;
   std::string error;
-  if (!parse_mode_args(words, {"--scans", "--calibration", "--count", "--seed", "--parts"},
+  if (!parse_mode_args(words, {"--scans", "--calibration", "--count", "--seed", "--parts", "--perturb"},
                        {"--json", "--svm-only", "--pm-only", "--sim"}, args, error) ||
       !args.positional.empty()) {
     return fail(kExitUsage, "eval: " + (error.empty() ? "unexpected argument '" + args.positional.front() + "'" : error));
@@ -323,6 +327,9 @@ int run_eval(const std::vector<std::string>& words, const Config& config, const 
   if (dir == nullptr) return fail(kExitUsage, "eval needs --scans DIR (DIR/<part>/*.ply, optional DIR/truth.csv)");
   auto options = common_options(args, config);
   if (!options) return fail(kExitUsage, "eval: " + options.error().message);
+  auto perturb = perturbation_option(args, config, options->calibration_path, kPerturbEval);
+  if (!perturb) return fail(kExitUsage, "eval: " + perturb.error().message);
+  if (*perturb && !args.has("--sim")) return fail(kExitUsage, "eval: --perturb applies to --sim only");
   if (args.has("--sim")) {
     // Generate the labelled set first (it stays in DIR: the same scans can be run again, or elsewhere, as PLY).
     std::int64_t count = 0, seed = 100001;
@@ -344,7 +351,7 @@ int run_eval(const std::vector<std::string>& words, const Config& config, const 
     }
     if (fs::exists(*dir) && !fs::is_empty(*dir)) return fail(kExitUsage, "eval --sim: " + *dir + " is not empty");
     if (auto ok = generate_sim_scans(config, *db, parts, static_cast<int>(count), static_cast<std::uint64_t>(seed),
-                                     options->calibration_path, *dir);
+                                     options->calibration_path, *dir, *perturb ? &**perturb : nullptr);
         !ok) {
       return fail(kExitFailure, "eval --sim: " + ok.error().message);
     }

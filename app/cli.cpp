@@ -13,6 +13,7 @@
 #include "app/config.hpp"
 #include "app/calibrate_mode.hpp"
 #include "app/classify_mode.hpp"
+#include "app/perturb_mode.hpp"
 #include "app/run_mode.hpp"
 #include "app/teach_mode.hpp"
 #include "app/train_mode.hpp"
@@ -42,7 +43,7 @@ constexpr const char* kUsage =
     "  calibrate camera|laser|conveyor ...   technician calibration (see scripts/calibrate.sh)\n"
     "  calibrate support (--scan EMPTY.ply | --sim [--seed S]) [--calibration FILE]\n"
     "        fit the carrier (support) plane on an empty-carrier scan; stored in calibration.yaml\n"
-    "  teach --part NAME [--id N] (--sim --count K [--seed S] | SCAN.ply ...) [--calibration FILE]\n"
+    "  teach --part NAME [--id N] (--sim --count K [--seed S] [--perturb SPEC] | SCAN.ply ...) [--calibration FILE]\n"
     "        store scans of a part type in the model database; the first becomes its Perfect Match template\n"
     "  train [--report DIR] [--compare] [--iterations N] [--seed S]\n"
     "        features of every taught scan, simulated-annealing feature selection + k-fold CV, the SVM,\n"
@@ -50,6 +51,10 @@ constexpr const char* kUsage =
     "  classify [--json] [--svm-only|--pm-only] SCAN.ply ...   one decision per scan\n"
     "  eval --scans DIR [--json]   DIR/<part>/*.ply [+ DIR/truth.csv: file,x_m,y_m,theta_deg] -> accuracy,\n"
     "        confusion, pose errors, timing (folders of parts that are not taught must come out unknown)\n"
+    "  eval --sim --count K [--seed S] [--parts A,B] [--perturb SPEC] --scans DIR   generate the labelled set first\n"
+    "  perturb --kind SPEC [--seed S] [--calibration FILE] IN.ply OUT.ply\n"
+    "        seeded scan artefacts; SPEC: KIND[:STRENGTH][@SHARE],... with KIND noise, dropout, glare, stray_edge,\n"
+    "        stray_points, thin, swing, mixed or none (see README, 'Robustness')\n"
     "  parts list | show NAME | delete NAME\n"
     "  help  this text\n";
 
@@ -283,6 +288,7 @@ int run_file_mode(const std::string& mode, int argc, char** argv) {
   if (mode == "classify") return run_classify(rest, *config, models);
   if (mode == "eval") return run_eval(rest, *config, models);
   if (mode == "run") return run_run(rest, *config);
+  if (mode == "perturb") return run_perturb(rest, *config);
   return usage_error("unknown mode '" + mode + "'");
 }
 
@@ -296,7 +302,8 @@ int run_cli(int argc, char** argv) {
       continue;
     }
     if (a.rfind("--", 0) == 0) break;
-    if (a == "teach" || a == "train" || a == "parts" || a == "classify" || a == "eval" || a == "run") {
+    if (a == "teach" || a == "train" || a == "parts" || a == "classify" || a == "eval" || a == "run" ||
+        a == "perturb") {
       return run_file_mode(a, argc, argv);
     }
     break;

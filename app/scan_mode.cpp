@@ -20,6 +20,7 @@
 #include "app/calibration_file.hpp"
 #include "app/devices.hpp"
 #include "app/local_time.hpp"
+#include "app/perturb_mode.hpp"
 #include "app/sim_mode.hpp"
 #include "drivers/log.hpp"
 
@@ -190,7 +191,8 @@ int run_calibrate_support(const std::vector<std::string>& args, const Config& co
 }
 
 Status acquire_sim_passes(const Config& config, const std::string& part, int count, std::uint64_t first_seed,
-                          const std::string& calibration_path, const std::string& label, const PassConsumer& take) {
+                          const std::string& calibration_path, const std::string& label, const PassConsumer& take,
+                          const PassPerturbation* perturb) {
   std::atomic<int> next{0};
   int done = 0;
   std::mutex mutex;
@@ -209,6 +211,9 @@ Status acquire_sim_passes(const Config& config, const std::string& part, int cou
       options.calibration_path = calibration_path;
       ScanSummary summary;
       auto points = acquire_scan(config, options, summary);
+      if (points && perturb != nullptr) {
+        (void)algo::perturb_scan(*points, perturb->spec, perturb->support, perturb->seed_for(options.seed));
+      }
       const std::lock_guard<std::mutex> lock(mutex);
       if (!first_error.empty()) return;
       if (!points) {

@@ -51,10 +51,13 @@ struct ScanSummary {
 // Acquires passes of `part` on the simulated cell, seeds first_seed .. first_seed + count - 1, on all cores, and hands
 // each to take(index, seed, points), one call at a time (under a lock), in completion order. Progress "  <label> n /
 // count" on stdout: redrawn in place on a terminal, otherwise a line every 10th and the last (log files, journald).
-// The first failure (of an acquisition or of take) stops the others and is returned.
+// The first failure (of an acquisition or of take) stops the others and is returned. With `perturb`, each pass is
+// perturbed (seed from its pass seed) before take sees it.
+struct PassPerturbation;
 using PassConsumer = std::function<Status(int index, std::uint64_t seed, std::vector<algo::ScanPoint>&& points)>;
 [[nodiscard]] Status acquire_sim_passes(const Config& config, const std::string& part, int count,
                                         std::uint64_t first_seed, const std::string& calibration_path,
-                                        const std::string& label, const PassConsumer& take);
+                                        const std::string& label, const PassConsumer& take,
+                                        const PassPerturbation* perturb = nullptr);
 
 }  // namespace cellsight::app

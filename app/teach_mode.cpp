@@ -13,6 +13,7 @@
 #include "app/cli.hpp"
 #include "app/local_time.hpp"
 #include "app/mode_args.hpp"
+#include "app/perturb_mode.hpp"
 #include "app/recognition.hpp"
 #include "app/scan_mode.hpp"
 #include "app/template_file.hpp"
@@ -41,16 +42,19 @@ std::string scan_file_name(const std::string& part, std::size_t index) {
   return "scans/" + part + "/" + buf;
 }
 
-// Acquires `count` passes of `part` on the simulated cell, seeds first_seed.., on all cores.
+// Acquires `count` passes of `part` on the simulated cell, seeds first_seed.., on all cores (each perturbed when
+// `perturb` is given).
 Expected<std::vector<TaughtScan>> acquire_sim_scans(const Config& config, const std::string& part, int count,
-                                                    std::uint64_t first_seed, const std::string& calibration_path) {
+                                                    std::uint64_t first_seed, const std::string& calibration_path,
+                                                    const PassPerturbation* perturb) {
   std::vector<TaughtScan> scans(static_cast<std::size_t>(count));
   auto ok = acquire_sim_passes(config, part, count, first_seed, calibration_path, "scanned",
                                [&](int index, std::uint64_t seed, std::vector<algo::ScanPoint>&& points) -> Status {
                                  scans[static_cast<std::size_t>(index)] = {std::move(points),
                                                                            "sim seed " + std::to_string(seed)};
                                  return {};
-                               });
+                               },
+                               perturb);
   if (!ok) return ok.error();
   return scans;
 }
@@ -182,7 +186,8 @@ void print_part(const ModelDb& db, const PartEntry& p, bool detail) {
 int run_teach(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
   ModeArgs args;
   std::string error;
-  if (!parse_mode_args(words, {"--part", "--id", "--count", "--seed", "--calibration"}, {"--sim"}, args, error)) {
+  if (!parse_mode_args(words, {"--part", "--id", "--count", "--seed", "--calibration", "--perturb"}, {"--sim"}, args,
+                       error)) {
     return fail(kExitUsage, "teach: " + error);
   }
   const std::string* part = args.value("--part");
@@ -200,8 +205,9 @@ int run_teach(const std::vector<std::string>& words, const Config& config, const
     if (c == nullptr || !parse_whole(*c, 1, kMaxTeachCount, count)) {
       return fail(kExitUsage, "teach --sim needs --count K (1.." + std::to_string(kMaxTeachCount) + ")");
     }
-  } else if (args.value("--count") != nullptr || args.value("--seed") != nullptr) {
-    return fail(kExitUsage, "teach: --count and --seed apply to --sim only");
+  } else if (args.value("--count") != nullptr || args.value("--seed") != nullptr ||
+             args.value("--perturb") != nullptr) {
+    return fail(kExitUsage, "teach: --count, --seed and --perturb apply to --sim only");
   }
   auto db = ModelDb::open(models_dir, grid_spec(config), true);
   if (!db) return fail(kExitUsage, db.error().message);
@@ -228,6 +234,8 @@ int run_teach(const std::vector<std::string>& words, const Config& config, const
   const std::string calibration_path = calibration_arg ? *calibration_arg : default_calibration_path(config);
   auto support = load_support_plane(calibration_path);
   if (!support) return fail(kExitUsage, support.error().message);
+  auto perturb = perturbation_option(args, config, calibration_path, kPerturbTeach);
+  if (!perturb) return fail(kExitUsage, "teach: " + perturb.error().message);
 
   const std::size_t already = existing != nullptr ? existing->scans.size() : 0;
   Expected<std::vector<TaughtScan>> scans = std::vector<TaughtScan>{};
@@ -238,9 +246,11 @@ int run_teach(const std::vector<std::string>& words, const Config& config, const
       if (!parse_whole(*s, 0, INT64_MAX, v)) return fail(kExitUsage, "teach: --seed '" + *s + "': expected a number");
       first_seed = static_cast<std::uint64_t>(v);
     }
-    std::printf("teaching %s (PLC id %lld): %lld simulated passes, seeds %llu..\n", part->c_str(),
-                static_cast<long long>(id), static_cast<long long>(count), static_cast<unsigned long long>(first_seed));
-    scans = acquire_sim_scans(config, *part, static_cast<int>(count), first_seed, calibration_path);
+    std::printf("teaching %s (PLC id %lld): %lld simulated passes, seeds %llu..%s%s\n", part->c_str(),
+                static_cast<long long>(id), static_cast<long long>(count), static_cast<unsigned long long>(first_seed),
+                *perturb ? ", perturbed: " : "", *perturb ? (*perturb)->spec.text.c_str() : "");
+    scans = acquire_sim_scans(config, *part, static_cast<int>(count), first_seed, calibration_path,
+                              *perturb ? &**perturb : nullptr);
   } else {
     scans = import_scans(args.positional);
   }
