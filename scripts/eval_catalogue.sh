@@ -10,6 +10,8 @@
 # usage: scripts/eval_catalogue.sh SEED [N=12] [SCANS=12] [EVAL_COUNT=20] [EVAL_SEED=100001]
 # environment: CELLSIGHT_BIN  the cellsight executable (default: build/app/cellsight)
 #              WORK           the work folder (default: out/eval_catalogue/seedSEED-nN); it must not exist yet
+#              SITE_EXTRA     YAML appended to the site config (e.g. $'cascade:\n  verify_budget_ms: 1000' to judge
+#                             accuracy apart from a loaded machine's timing)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -42,6 +44,7 @@ cat >"$CONFIG" <<EOF
 # Site file of scripts/eval_catalogue.sh: only what differs from the built-in defaults.
 sim:
   catalogue: catalogue.yaml     # relative to this file's folder
+${SITE_EXTRA:-}
 EOF
 "$BIN" --config "$CONFIG" sim --list
 TAUGHT=$("$BIN" --config "$CONFIG" sim --list | awk 'NR > 1 && $4 == "taught" {print $1}')
