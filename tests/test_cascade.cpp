@@ -826,6 +826,57 @@ TEST_CASE("learn_thresholds leaves out a taught scan that disagrees and keeps a 
   CHECK(same.other_scans_inseparable == 1);
 }
 
+SCENARIO("A passing class's look-alikes are verified before it is accepted, and two that pass alike are unknown",
+         "[cascade][policy]") {
+  GIVEN("the four classes plus a fifth whose template is plate_4h's again (a twin no check can tell apart)") {
+    Catalogue4& cat = catalogue4();
+    std::vector<TemplateModel> models(cat.models().begin(), cat.models().end());
+    TemplateModel twin = models[0];
+    twin.class_index = 4;
+    twin.part_id = 105;
+    models.push_back(twin);
+    const auto scan = sample_part(part("plate_4h"), kTestPose, 901);
+    const ClassProbability svm[] = {{0, 0.95}, {1, 0.02}, {2, 0.015}, {3, 0.01}, {4, 0.005}};
+    WHEN("the twin is not known as a look-alike and the SVM is sure of plate_4h") {
+      const Decision d = cat.cascade().decide(svm, models, scan, far_deadline());
+      THEN("plate_4h is accepted after one verification: nothing asked for the twin") {
+        CHECK(d.class_index == 0);
+        CHECK(d.verified_count == 1);
+      }
+    }
+    WHEN("training recorded them as look-alikes of each other") {
+      const int of_first[] = {4};
+      const int of_twin[] = {0};
+      models[0].confusable = of_first;
+      models[4].confusable = of_twin;
+      const Decision d = cat.cascade().decide(svm, models, scan, far_deadline());
+      THEN("the twin is verified too, passes as well, and the scan is unknown (ambiguous), never a guess") {
+        CHECK(d.source == DecisionSource::kUnknown);
+        CHECK(d.class_index == -1);
+        CHECK(d.verified_count == 2);
+        CHECK(d.unknown_reason == algo::RejectReason::kAmbiguous);
+        CHECK(d.candidates[0].passed);
+        CHECK(d.candidates[4].passed);
+        CHECK(d.candidates[4].rejected_by == algo::RejectReason::kAmbiguous);
+      }
+    }
+    WHEN("the look-alike is the one-hole sibling plate_5h") {
+      const int of_first[] = {2};
+      const int of_sibling[] = {0};
+      models.pop_back();
+      models[0].confusable = of_first;
+      models[2].confusable = of_sibling;
+      const Decision d = cat.cascade().decide(svm, models, scan, far_deadline());
+      THEN("it is verified, fails on the hole, and plate_4h is accepted") {
+        CHECK(d.class_index == 0);
+        CHECK(d.verified_count == 2);
+        CHECK(d.candidates[2].verified);
+        CHECK_FALSE(d.candidates[2].passed);
+      }
+    }
+  }
+}
+
 TEST_CASE("decide() allocates nothing", "[cascade][alloc]") {
   // Given a cascade and its templates, built at start-up
   Catalogue4& cat = catalogue4();
