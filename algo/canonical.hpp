@@ -59,7 +59,8 @@ class CanonicalScratch {
                                       CanonicalScratch&, std::span<ScanPoint>, CanonicalPose&);
   int nx_ = 0, ny_ = 0;
   std::vector<std::uint8_t> mask_;  // x-y occupancy, nx x ny, row iy
-  std::vector<float> smooth_;       // 3 x 3 box filter of the mask
+  std::vector<std::uint8_t> rows_;    // 3 x 1 box sums of the mask
+  std::vector<std::uint8_t> smooth_;  // 3 x 3 box sums of the mask (0 .. 9)
   std::vector<std::uint32_t> sample_;  // indices of the plane fit's subsample
 };
 
