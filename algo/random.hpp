@@ -6,14 +6,9 @@
 #include <cstdint>
 #include <numbers>
 
-namespace cellsight::algo {
+#include "algo/splitmix.hpp"
 
-constexpr std::uint64_t splitmix64(std::uint64_t& state) {
-  std::uint64_t z = (state += 0x9E3779B97F4A7C15ULL);
-  z = (z ^ (z >> 30U)) * 0xBF58476D1CE4E5B9ULL;
-  z = (z ^ (z >> 27U)) * 0x94D049BB133111EBULL;
-  return z ^ (z >> 31U);
-}
+namespace cellsight::algo {
 
 // Mixes several values into one seed (e.g. pass seed, frame index, purpose).
 constexpr std::uint64_t mix_seed(std::uint64_t a, std::uint64_t b) {

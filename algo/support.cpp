@@ -5,16 +5,10 @@
 #include <cmath>
 #include <string>
 
+#include "algo/splitmix.hpp"
+
 namespace cellsight::algo {
 namespace {
-
-// splitmix64: a tiny deterministic generator, so the fit does not depend on a library's RNG.
-std::uint64_t next_random(std::uint64_t& state) {
-  std::uint64_t z = (state += 0x9E3779B97F4A7C15ULL);
-  z = (z ^ (z >> 30U)) * 0xBF58476D1CE4E5B9ULL;
-  z = (z ^ (z >> 27U)) * 0x94D049BB133111EBULL;
-  return z ^ (z >> 31U);
-}
 
 Eigen::Vector3d as_vector(const ScanPoint& p) { return {p.x, p.y, p.z}; }
 
@@ -29,9 +23,9 @@ Expected<SupportFit> fit_support_plane(std::span<const ScanPoint> points, const 
   Plane best;
   std::size_t best_count = 0;
   for (int it = 0; it < params.ransac_iterations; ++it) {
-    const Eigen::Vector3d a = as_vector(points[next_random(state) % points.size()]);
-    const Eigen::Vector3d b = as_vector(points[next_random(state) % points.size()]);
-    const Eigen::Vector3d c = as_vector(points[next_random(state) % points.size()]);
+    const Eigen::Vector3d a = as_vector(points[splitmix64(state) % points.size()]);
+    const Eigen::Vector3d b = as_vector(points[splitmix64(state) % points.size()]);
+    const Eigen::Vector3d c = as_vector(points[splitmix64(state) % points.size()]);
     Eigen::Vector3d n = (b - a).cross(c - a);
     if (n.norm() < 1e-9) continue;
     n.normalize();

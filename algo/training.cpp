@@ -14,6 +14,8 @@
 #include <thread>
 #include <unordered_map>
 
+#include "algo/splitmix.hpp"
+
 namespace cellsight::algo {
 
 namespace {
@@ -36,14 +38,6 @@ int largest(const std::vector<int>& v) {
   int top = 0;
   for (int x : v) top = std::max(top, x);
   return top;
-}
-
-// SplitMix64: derives independent, reproducible seeds for stages and tasks from the one training seed.
-std::uint64_t mix_seed(std::uint64_t a, std::uint64_t b) {
-  std::uint64_t z = a + 0x9E3779B97F4A7C15ULL * (b + 1);
-  z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ULL;
-  z = (z ^ (z >> 27)) * 0x94D049BB133111EBULL;
-  return z ^ (z >> 31);
 }
 
 // Runs task(i) for every i in [0, count) on up to `threads` threads (the caller's included) and joins them.
@@ -81,6 +75,10 @@ struct Context {
   const Dataset* train = nullptr;
   int n = 0, classes = 0, folds = 0, threads = 1;
   std::vector<int> fold;       // per sample
+  // Per sample: 1 when its prediction counts toward the CV accuracy. Only taught scans count: a synthetic variant
+  // helps train the other folds' models but does not score, so CV accuracy measures real scans.
+  std::vector<std::uint8_t> scored;
+  int scored_n = 0;
   std::vector<double> scaled;  // n x kFeatureCount, Scaler applied
   const std::atomic<bool>* stop = nullptr;
 };
@@ -185,7 +183,7 @@ class SvmEvaluator final : public Evaluator {
           svm_model* model = svm_train(&problem, &param);
           int ok = 0;
           for (std::size_t i = 0; i < n; ++i) {
-            if (ctx.fold[i] != fold) continue;
+            if (ctx.fold[i] != fold || ctx.scored[i] == 0) continue;
             ok += static_cast<int>(svm_predict(model, &nodes[i * stride])) == ctx.train->labels[i] ? 1 : 0;
           }
           svm_free_and_destroy_model(&model);
@@ -222,6 +220,7 @@ class KnnEvaluator final : public Evaluator {
         ctx.n, ctx.threads,
         [&](int ii) {
           const auto i = static_cast<std::size_t>(ii);
+          if (ctx.scored[i] == 0) return;  // hit[] stays 0: a variant does not score
           std::vector<std::pair<double, int>> near;
           for (std::size_t j = 0; j < n; ++j) {
             if (ctx.fold[j] == ctx.fold[i]) continue;  // only the other folds are "training" for sample i
@@ -312,10 +311,10 @@ class MlpEvaluator final : public Evaluator {
           }
           Mlp net;
           net.train(x, y, static_cast<int>(d), ctx.classes,
-                    params(layout, mix_seed(seed_, static_cast<std::uint64_t>(t))));
+                    params(layout, stream_seed(seed_, static_cast<std::uint64_t>(t))));
           int ok = 0;
           for (std::size_t i = 0; i < n; ++i) {
-            if (ctx.fold[i] != fold) continue;
+            if (ctx.fold[i] != fold || ctx.scored[i] == 0) continue;
             ok += net.predict(std::span<const double>(rows).subspan(i * d, d)) == ctx.train->labels[i] ? 1 : 0;
           }
           task_correct[static_cast<std::size_t>(t)] = ok;
@@ -373,7 +372,7 @@ AnnealingOutcome anneal(Evaluator& evaluator, const Context& ctx, const Annealin
     ++out.report.evaluations;
     const auto best = std::max_element(correct.begin(), correct.end());  // first maximum: the simplest model
     s.param = static_cast<int>(best - correct.begin());
-    s.accuracy = static_cast<double>(*best) / ctx.n;
+    s.accuracy = static_cast<double>(*best) / ctx.scored_n;
     s.cost = kPercent * (1.0 - s.accuracy) + ap.feature_penalty_pct * static_cast<double>(mask.count());
     memo.emplace(mask, s);
     return true;
@@ -503,6 +502,62 @@ void score_test(const Dataset& test, int classes, ClassifierReport& report, Pred
                                          : std::numeric_limits<double>::quiet_NaN();
 }
 
+// The SVM's probabilities on the held-back scans: top-2 rate and the reliability of the top probability (expected
+// calibration error: the scan-weighted gap between mean top probability and accuracy over equal-width bins).
+void score_calibration(const Dataset& test, SvmModel& model, ClassifierReport& report) {
+  std::vector<CalibrationBin> bins(kCalibrationBins);
+  int top2 = 0;
+  for (std::size_t i = 0; i < test.size(); ++i) {
+    const auto probabilities = model.predict(test.features[i]);
+    if (probabilities.empty()) continue;
+    const bool hit = probabilities[0].class_index == test.labels[i];
+    top2 += hit || (probabilities.size() > 1 && probabilities[1].class_index == test.labels[i]) ? 1 : 0;
+    const double p1 = probabilities[0].probability;
+    CalibrationBin& b = bins[static_cast<std::size_t>(std::clamp(static_cast<int>(p1 * kCalibrationBins), 0,
+                                                                 kCalibrationBins - 1))];
+    ++b.scans;
+    b.mean_probability += p1;
+    b.accuracy += hit ? 1.0 : 0.0;
+  }
+  const double n = static_cast<double>(test.size());
+  report.test_top2 = test.size() > 0 ? top2 / n : std::numeric_limits<double>::quiet_NaN();
+  report.test_ece = test.size() > 0 ? 0.0 : std::numeric_limits<double>::quiet_NaN();
+  report.reliability.clear();
+  for (int k = 0; k < kCalibrationBins; ++k) {
+    CalibrationBin b = bins[static_cast<std::size_t>(k)];
+    if (b.scans == 0) continue;
+    b.lo = static_cast<double>(k) / kCalibrationBins;
+    b.hi = static_cast<double>(k + 1) / kCalibrationBins;
+    b.mean_probability /= b.scans;
+    b.accuracy /= b.scans;
+    report.test_ece += b.scans / n * std::abs(b.mean_probability - b.accuracy);
+    report.reliability.push_back(b);
+  }
+}
+
+// Scaled samples, group-aware folds and the scored (taught) samples of one training set.
+Expected<Context> make_context(const Dataset& set, const Scaler& scaler, const TrainParams& params,
+                               const std::atomic<bool>* stop) {
+  auto folds = stratified_folds(set, params.folds, stream_seed(params.seed, 1));
+  if (!folds) return folds.error();
+  Context ctx;
+  ctx.train = &set;
+  ctx.n = static_cast<int>(set.size());
+  ctx.classes = static_cast<int>(set.classes.size());
+  ctx.folds = params.folds;
+  const int cores = std::max(1, static_cast<int>(std::thread::hardware_concurrency()));
+  ctx.threads = params.threads > 0 ? std::min(params.threads, cores) : cores;
+  ctx.fold = std::move(*folds);
+  ctx.scaled = scale_all(scaler, set.features);
+  ctx.stop = stop;
+  ctx.scored.resize(set.size());
+  for (std::size_t i = 0; i < set.size(); ++i) {
+    ctx.scored[i] = set.variant_of(i) == 0 ? 1 : 0;
+    ctx.scored_n += ctx.scored[i];
+  }
+  return ctx;
+}
+
 Status validate_params(const TrainParams& p) {
   const auto& a = p.annealing;
   if (p.folds < 2) return make_error("training: folds must be at least 2");
@@ -564,10 +619,22 @@ std::string_view to_string(Classifier classifier) {
   return "unknown";
 }
 
+void Dataset::push(const FeatureVector& f, int label, int group, int variant) {
+  features.push_back(f);
+  labels.push_back(label);
+  groups.push_back(group);
+  variants.push_back(variant);
+}
+
 Status validate_dataset(const Dataset& data) {
   if (data.classes.size() < 2) return make_error("dataset: at least two classes are needed");
   if (data.features.size() != data.labels.size()) return make_error("dataset: one label per feature vector is needed");
+  if ((!data.groups.empty() && data.groups.size() != data.size()) ||
+      (!data.variants.empty() && data.variants.size() != data.size())) {
+    return make_error("dataset: groups and variants must be absent or one per sample");
+  }
   const int k = static_cast<int>(data.classes.size());
+  std::unordered_map<int, int> group_label;
   for (std::size_t i = 0; i < data.size(); ++i) {
     if (data.labels[i] < 0 || data.labels[i] >= k) {
       return make_error("dataset: sample " + std::to_string(i) + " has label " + std::to_string(data.labels[i]) +
@@ -575,6 +642,11 @@ Status validate_dataset(const Dataset& data) {
     }
     for (float v : data.features[i]) {
       if (!std::isfinite(v)) return make_error("dataset: sample " + std::to_string(i) + " has a non-finite feature");
+    }
+    if (data.variant_of(i) < 0) return make_error("dataset: sample " + std::to_string(i) + " has a negative variant");
+    const auto [it, fresh] = group_label.emplace(data.group_of(i), data.labels[i]);
+    if (!fresh && it->second != data.labels[i]) {
+      return make_error("dataset: group " + std::to_string(data.group_of(i)) + " mixes two classes");
     }
   }
   return {};
@@ -586,10 +658,14 @@ Expected<DatasetSplit> split_per_class(const Dataset& all, int train_per_class, 
   DatasetSplit split;
   split.train.classes = split.test.classes = all.classes;
   std::mt19937_64 rng(seed);
+  std::unordered_map<int, std::vector<std::size_t>> variants_of;  // group -> its synthetic variants, in order
+  for (std::size_t i = 0; i < all.size(); ++i) {
+    if (all.variant_of(i) > 0) variants_of[all.group_of(i)].push_back(i);
+  }
   for (int c = 0; c < static_cast<int>(all.classes.size()); ++c) {
-    std::vector<std::size_t> members;
+    std::vector<std::size_t> members;  // the taught scans of the class
     for (std::size_t i = 0; i < all.size(); ++i) {
-      if (all.labels[i] == c) members.push_back(i);
+      if (all.labels[i] == c && all.variant_of(i) == 0) members.push_back(i);
     }
     if (static_cast<int>(members.size()) <= train_per_class) {
       return make_error("split: class '" + all.classes[static_cast<std::size_t>(c)].name + "' has " +
@@ -598,9 +674,14 @@ Expected<DatasetSplit> split_per_class(const Dataset& all, int train_per_class, 
     }
     std::shuffle(members.begin(), members.end(), rng);
     for (std::size_t m = 0; m < members.size(); ++m) {
-      Dataset& to = static_cast<int>(m) < train_per_class ? split.train : split.test;
-      to.features.push_back(all.features[members[m]]);
-      to.labels.push_back(c);
+      const std::size_t i = members[m];
+      const bool train = static_cast<int>(m) < train_per_class;
+      Dataset& to = train ? split.train : split.test;
+      to.push(all.features[i], c, all.group_of(i), 0);
+      if (!train) continue;
+      if (const auto v = variants_of.find(all.group_of(i)); v != variants_of.end()) {
+        for (std::size_t j : v->second) to.push(all.features[j], c, all.group_of(j), all.variant_of(j));
+      }
     }
   }
   return split;
@@ -610,20 +691,22 @@ Expected<std::vector<int>> stratified_folds(const Dataset& data, int folds, std:
   if (folds < 2) return make_error("k-fold: at least 2 folds are needed");
   std::vector<int> fold(data.size(), -1);
   std::mt19937_64 rng(seed);
+  std::unordered_map<int, int> group_fold;
   for (int c = 0; c < static_cast<int>(data.classes.size()); ++c) {
-    std::vector<std::size_t> members;
+    std::vector<int> groups;  // of the class, in order of first appearance
     for (std::size_t i = 0; i < data.size(); ++i) {
-      if (data.labels[i] == c) members.push_back(i);
+      if (data.labels[i] == c && group_fold.emplace(data.group_of(i), -1).second) groups.push_back(data.group_of(i));
     }
-    if (static_cast<int>(members.size()) < folds) {
+    if (static_cast<int>(groups.size()) < folds) {
       return make_error("k-fold: class '" + data.classes[static_cast<std::size_t>(c)].name + "' has " +
-                        std::to_string(members.size()) + " training sample(s); " + std::to_string(folds) +
+                        std::to_string(groups.size()) + " training sample(s); " + std::to_string(folds) +
                         "-fold cross-validation needs at least " + std::to_string(folds) + " per class");
     }
-    std::shuffle(members.begin(), members.end(), rng);
-    for (std::size_t m = 0; m < members.size(); ++m)
-      fold[members[m]] = static_cast<int>(m % static_cast<std::size_t>(folds));
+    std::shuffle(groups.begin(), groups.end(), rng);
+    for (std::size_t m = 0; m < groups.size(); ++m)
+      group_fold[groups[m]] = static_cast<int>(m % static_cast<std::size_t>(folds));
   }
+  for (std::size_t i = 0; i < data.size(); ++i) fold[i] = group_fold[data.group_of(i)];
   return fold;
 }
 
@@ -644,21 +727,19 @@ Expected<TrainingResult> train_recogniser(const DatasetSplit& split, const Train
       return make_error("training: the test split has other classes than the training split");
     }
   }
-  auto folds = stratified_folds(split.train, params.folds, mix_seed(params.seed, 1));
-  if (!folds) return folds.error();
+  // The annealing's set: the taught scans and their first search_variants variants.
+  Dataset search;
+  search.classes = split.train.classes;
+  for (std::size_t i = 0; i < split.train.size(); ++i) {
+    const int v = split.train.variant_of(i);
+    if (params.search_variants < 0 || v <= params.search_variants)
+      search.push(split.train.features[i], split.train.labels[i], split.train.group_of(i), v);
+  }
   silence_libsvm();
-
   const Scaler scaler = Scaler::fit(split.train.features);
-  Context ctx;
-  ctx.train = &split.train;
-  ctx.n = static_cast<int>(split.train.size());
-  ctx.classes = classes;
-  ctx.folds = params.folds;
-  const int cores = std::max(1, static_cast<int>(std::thread::hardware_concurrency()));
-  ctx.threads = params.threads > 0 ? std::min(params.threads, cores) : cores;
-  ctx.fold = std::move(*folds);
-  ctx.scaled = scale_all(scaler, split.train.features);
-  ctx.stop = stop;
+  auto searched = make_context(search, scaler, params, stop);
+  if (!searched) return searched.error();
+  Context& ctx = *searched;
   const std::vector<double> test_scaled = scale_all(scaler, split.test.features);
 
   const FeatureMask initial = params.annealing.initial_mask.any() ? params.annealing.initial_mask
@@ -668,7 +749,11 @@ Expected<TrainingResult> train_recogniser(const DatasetSplit& split, const Train
   TrainingResult result;
   TrainingReport& report = result.report;
   for (const ClassInfo& c : split.train.classes) report.class_names.push_back(c.name);
-  report.train_samples = ctx.n;
+  for (std::size_t i = 0; i < split.train.size(); ++i) {
+    if (split.train.variant_of(i) == 0) ++report.train_samples;
+  }
+  report.synthetic_samples = static_cast<int>(split.train.size()) - report.train_samples;
+  report.search_samples = ctx.n;
   report.test_samples = static_cast<int>(split.test.size());
   report.folds = params.folds;
   report.threads = ctx.threads;
@@ -676,8 +761,20 @@ Expected<TrainingResult> train_recogniser(const DatasetSplit& split, const Train
   // ---- SVM: annealing, then the probability model on the whole training split (thesis 2.6.1).
   SvmEvaluator svm_eval(params);
   AnnealingOutcome svm = anneal(svm_eval, ctx, params.annealing, params.annealing.iterations, initial,
-                                mix_seed(params.seed, 2), {Classifier::kSvm, 0, stages, t0}, progress);
+                                stream_seed(params.seed, 2), {Classifier::kSvm, 0, stages, t0}, progress);
   if (!svm.scored) return make_error("training stopped before the first feature set was scored: no model");
+  // The chosen features' C and gamma again on every training sample (the final model learns from all of them):
+  // the grid's best on the search set need not be the best on the larger one.
+  if (split.train.size() > search.size() && !stop_requested(stop)) {
+    auto full = make_context(split.train, scaler, params, stop);
+    if (!full) return full.error();
+    std::vector<int> correct(static_cast<std::size_t>(svm_eval.grid_size()), 0);
+    if (svm_eval.evaluate(*full, svm.mask, correct)) {
+      const auto best = std::max_element(correct.begin(), correct.end());
+      svm.score.param = static_cast<int>(best - correct.begin());
+      svm.score.accuracy = static_cast<double>(*best) / full->scored_n;
+    }
+  }
   report.svm_hyper = svm_eval.hyper(svm.score.param);
   auto model = SvmModel::train(split.train.features, split.train.labels, split.train.classes, svm.mask, scaler,
                                report.svm_hyper, params.seed);
@@ -692,18 +789,19 @@ Expected<TrainingResult> train_recogniser(const DatasetSplit& split, const Train
     const auto probabilities = result.model.predict(split.test.features[i]);
     return probabilities.empty() ? -1 : probabilities.front().class_index;
   });
+  score_calibration(split.test, result.model, report.svm);
   report.stopped = report.svm.stopped;
 
   // ---- comparison classifiers (thesis 4.2), each with its own annealing run.
   if (params.compare && !report.stopped) {
     KnnEvaluator knn_eval(params.knn_k);
     const int knn_iterations = params.knn_iterations >= 0 ? params.knn_iterations : params.annealing.iterations;
-    AnnealingOutcome knn = anneal(knn_eval, ctx, params.annealing, knn_iterations, initial, mix_seed(params.seed, 3),
+    AnnealingOutcome knn = anneal(knn_eval, ctx, params.annealing, knn_iterations, initial, stream_seed(params.seed, 3),
                                   {Classifier::kKnn, 1, stages, t0}, progress);
     if (knn.scored) {
       const int k = knn_eval.k(knn.score.param);
       const std::size_t d = knn.mask.count();
-      const std::vector<double> train_rows = gather(ctx.scaled, split.train.size(), knn.mask);
+      const std::vector<double> train_rows = gather(ctx.scaled, search.size(), knn.mask);
       const std::vector<double> test_rows = gather(test_scaled, split.test.size(), knn.mask);
       ClassifierReport r = std::move(knn.report);
       r.parameters = knn_eval.describe(knn.score.param, static_cast<int>(d));
@@ -711,7 +809,7 @@ Expected<TrainingResult> train_recogniser(const DatasetSplit& split, const Train
       r.mask = knn.mask;
       r.features = mask_names(knn.mask);
       score_test(split.test, classes, r, [&](std::size_t i) {
-        return knn_classify(train_rows, split.train.labels, static_cast<int>(d), classes, k,
+        return knn_classify(train_rows, search.labels, static_cast<int>(d), classes, k,
                             std::span<const double>(test_rows).subspan(i * d, d));
       });
       report.stopped = report.stopped || r.stopped;
@@ -719,16 +817,16 @@ Expected<TrainingResult> train_recogniser(const DatasetSplit& split, const Train
     }
   }
   if (params.compare && !report.stopped) {
-    MlpEvaluator mlp_eval(params.mlp_layouts, params.mlp, mix_seed(params.seed, 4));
+    MlpEvaluator mlp_eval(params.mlp_layouts, params.mlp, stream_seed(params.seed, 4));
     AnnealingOutcome mlp = anneal(mlp_eval, ctx, params.annealing, params.mlp_iterations, initial,
-                                  mix_seed(params.seed, 5), {Classifier::kMlp, 2, stages, t0}, progress);
+                                  stream_seed(params.seed, 5), {Classifier::kMlp, 2, stages, t0}, progress);
     if (mlp.scored) {
       const std::size_t d = mlp.mask.count();
-      const std::vector<double> train_rows = gather(ctx.scaled, split.train.size(), mlp.mask);
+      const std::vector<double> train_rows = gather(ctx.scaled, search.size(), mlp.mask);
       const std::vector<double> test_rows = gather(test_scaled, split.test.size(), mlp.mask);
       Mlp net;
-      net.train(train_rows, split.train.labels, static_cast<int>(d), classes,
-                mlp_eval.params(mlp.score.param, mix_seed(params.seed, 6)));
+      net.train(train_rows, search.labels, static_cast<int>(d), classes,
+                mlp_eval.params(mlp.score.param, stream_seed(params.seed, 6)));
       ClassifierReport r = std::move(mlp.report);
       r.parameters = mlp_eval.describe(mlp.score.param, static_cast<int>(d));
       r.cv_accuracy = mlp.score.accuracy;

@@ -25,20 +25,31 @@ struct Dataset {
   std::vector<ClassInfo> classes;
   std::vector<FeatureVector> features;
   std::vector<int> labels;  // index into classes, one per feature vector
+  // Optional, one per sample when present. group: a taught scan and its synthetic variants (algo/augment) share
+  // one id, so they never land on both sides of a split or of a CV fold (empty: every sample its own group).
+  // variant: 0 for the taught scan itself, k >= 1 for its k-th variant (empty: all 0).
+  std::vector<int> groups;
+  std::vector<int> variants;
   [[nodiscard]] std::size_t size() const { return labels.size(); }
+  [[nodiscard]] int group_of(std::size_t i) const { return groups.empty() ? static_cast<int>(i) : groups[i]; }
+  [[nodiscard]] int variant_of(std::size_t i) const { return variants.empty() ? 0 : variants[i]; }
+  void push(const FeatureVector& f, int label, int group, int variant);
 };
-// Labels in range, one per sample, every feature finite, at least two classes.
+// Labels in range, one per sample, every feature finite, at least two classes, groups and variants either absent
+// or one per sample (a group's samples share its label).
 [[nodiscard]] Status validate_dataset(const Dataset& data);
 
 struct DatasetSplit {
   Dataset train, test;
 };
-// Thesis 6.4.2: per class, train_per_class random samples for training (35 of 50 there), the rest held back for
-// the generalisation test. A class with no sample left for testing is refused.
+// Thesis 6.4.2: per class, train_per_class random taught scans for training (35 of 50 there), the rest held back
+// for the generalisation test. A training scan takes its synthetic variants along; a held-back scan goes alone (its
+// variants are dropped: the test measures real scans only). A class with no scan left for testing is refused.
 [[nodiscard]] Expected<DatasetSplit> split_per_class(const Dataset& all, int train_per_class, std::uint64_t seed);
 
-// Stratified k-fold assignment (thesis 2.5): the fold of every sample, each class spread evenly over the folds.
-// Refuses a class with fewer samples than folds, which would leave a fold without it.
+// Stratified k-fold assignment (thesis 2.5): the fold of every sample, each class's groups spread evenly over the
+// folds, every group (a taught scan and its variants) whole in one fold, so a variant never tests its own origin.
+// Refuses a class with fewer groups than folds, which would leave a fold without it.
 [[nodiscard]] Expected<std::vector<int>> stratified_folds(const Dataset& data, int folds, std::uint64_t seed);
 
 enum class Classifier : std::uint8_t { kSvm, kKnn, kMlp };
@@ -73,6 +84,10 @@ struct TrainParams {
   int folds = 5;
   std::uint64_t seed = 1;
   int threads = 0;  // cross-validation threads; 0 = std::thread::hardware_concurrency()
+  // The annealing scores its candidates on the taught scans plus at most this many synthetic variants of each
+  // (-1: all); the final model always learns from all of them. Each candidate costs k-fold x grid SVM trainings,
+  // so the search runs on the smaller set (the selection needs the ranking of masks, not the last percent).
+  int search_variants = -1;
   // SVM grid searched for every candidate mask (thesis 6.4.2): C x gamma factor i (gamma = i / active
   // features) [x degree for the polynomial kernel]. Measured on this 2-core machine, 15 classes x 35 scans,
   // 200 iterations: RBF 2.8 min (5.2 min while the machine was loaded), polynomial with 4 degrees ~3.7 min.
@@ -110,11 +125,24 @@ struct AnnealingStep {
   bool accepted = false;
 };
 
+inline constexpr int kCalibrationBins = 10;
+struct CalibrationBin {
+  double lo = 0.0, hi = 0.0;        // top probability range
+  int scans = 0;
+  double mean_probability = 0.0;    // mean top probability of its scans
+  double accuracy = 0.0;            // share of them classified right
+};
+
 struct ClassifierReport {
   Classifier classifier = Classifier::kSvm;
   std::string parameters;      // the chosen hyper-parameters, readable
   double cv_accuracy = 0.0;    // k-fold accuracy of the chosen mask and parameters on the training split
   double test_accuracy = 0.0;  // on the held-back test split (NaN when it is empty)
+  // SVM only, on the held-back test split: the true class among the two most probable, and the calibration of
+  // the top probability (expected calibration error over kCalibrationBins equal-width bins; NaN when empty).
+  double test_top2 = 0.0;
+  double test_ece = 0.0;
+  std::vector<CalibrationBin> reliability;  // the bins with at least one scan
   FeatureMask mask{};
   std::vector<std::string> features;        // names of the active features
   std::vector<std::vector<int>> confusion;  // [true class][predicted class] on the test split
@@ -127,7 +155,9 @@ struct ClassifierReport {
 
 struct TrainingReport {
   std::vector<std::string> class_names;
-  int train_samples = 0, test_samples = 0, folds = 0, threads = 0;
+  int train_samples = 0, test_samples = 0, folds = 0, threads = 0;  // taught scans, not counting variants
+  int synthetic_samples = 0;  // synthetic variants of the training scans the final model also learnt from
+  int search_samples = 0;     // samples (scans and variants) the annealing scored its candidates on
   ClassifierReport svm;
   SvmHyper svm_hyper{};
   std::optional<ClassifierReport> knn, mlp;

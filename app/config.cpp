@@ -182,6 +182,8 @@ void read_rest(YamlSection& root, Config& cfg) {
     s.choice("kernel", cfg.svm.kernel, {"rbf", "poly"});
     s.integer("threads", cfg.svm.threads, 0, 256, "threads");
     s.integer("seed", cfg.svm.seed, 0, INT64_MAX, "");
+    s.integer("augment_per_scan", cfg.svm.augment_per_scan, 0, 100, "");
+    s.integer("augment_search_per_scan", cfg.svm.augment_search_per_scan, 0, 100, "");
     s.finish();
   }
   {

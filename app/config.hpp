@@ -71,6 +71,10 @@ struct SvmConfig {
   std::string kernel = "rbf";   // rbf | poly (thesis eq. 6.2 / 6.4)
   int threads = 0;              // cross-validation threads; 0 = all cores
   std::int64_t seed = 1;
+  // Synthetic variants of every taught scan (algo/augment: re-posed, thinned, dropouts, noise), 0 = off; the
+  // annealing scores its candidates on at most augment_search_per_scan of them, the final SVM learns from all.
+  int augment_per_scan = 8;
+  int augment_search_per_scan = 1;
 };
 
 // The recognition parameters are the algorithms' own structs, so their defaults (documented and measured there)

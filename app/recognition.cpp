@@ -50,6 +50,8 @@ ScanPreparer::ScanPreparer(const Config& config, const algo::Plane& support, std
       support_threshold_m_(config.support.distance_threshold_mm * 1e-3),
       part_(max_points),
       isolator_(grid_spec(config), algo::IsolationParams{}),
+      canonical_(max_points),
+      canonical_scratch_(grid_spec(config)),
       grid_(grid_spec(config), max_points) {
   const algo::GridSpec spec = grid_spec(config);
   extractor_ = algo::FeatureExtractor(spec.ny, spec.nx, algo::feature_params_for(spec));
@@ -72,7 +74,29 @@ PrepareReport ScanPreparer::prepare(std::span<const algo::ScanPoint> raw) {
     r.status = PrepareStatus::kNoPart;
     return r;
   }
-  r.outside_points = grid_.accumulate(part_.points());
+  return describe_part(r);
+}
+
+PrepareReport ScanPreparer::prepare_part(std::span<const algo::ScanPoint> part) {
+  PrepareReport r;
+  r.raw_points = part.size();
+  part_.clear();
+  grid_.clear();
+  for (const algo::ScanPoint& p : part) (void)part_.push(p);
+  r.part_points = part_.size();
+  if (part_.size() == 0) {
+    r.status = PrepareStatus::kNoPart;
+    return r;
+  }
+  return describe_part(r);
+}
+
+PrepareReport ScanPreparer::describe_part(PrepareReport r) {
+  const algo::GridSpec& spec = grid_.spec();
+  for (const algo::ScanPoint& p : part_.points()) {  // the part as it hangs must fit the grid
+    int ix = 0, iy = 0, iz = 0;
+    r.outside_points += spec.cell_of({p.x, p.y, p.z}, ix, iy, iz) ? 0 : 1;
+  }
   if (static_cast<double>(r.outside_points) > kMaxOutsideFraction * static_cast<double>(part_.size())) {
     r.status = PrepareStatus::kOutsideGrid;
     return r;
@@ -81,6 +105,12 @@ PrepareReport ScanPreparer::prepare(std::span<const algo::ScanPoint> raw) {
     r.status = PrepareStatus::kTooFewPoints;
     return r;
   }
+  if (algo::canonicalise(part_.points(), spec, canonical_params_, canonical_scratch_, canonical_, canonical_pose_) !=
+      algo::CanonicalStatus::kOk) {
+    r.status = PrepareStatus::kNoPart;
+    return r;
+  }
+  (void)grid_.accumulate(canonical_points());  // a corner turned out of the grid is not the part's fault
   grid_.depth_image(depth_);
   if (extractor_.compute(depth_, features_) != algo::FeatureStatus::kOk) {
     r.status = PrepareStatus::kNoPart;

@@ -11,6 +11,7 @@
 
 #include <opencv2/core.hpp>
 
+#include "algo/canonical.hpp"
 #include "algo/cascade.hpp"
 #include "algo/features.hpp"
 #include "algo/perfect_match.hpp"
@@ -47,7 +48,8 @@ struct PrepareReport {
   [[nodiscard]] std::string describe() const;  // "12345 points, 2345 carrier, 0 outside the grid"
 };
 
-// Support removal -> occupancy grid -> depth image -> 74 features, with every buffer sized at construction: the
+// Support removal -> the part's own frame -> occupancy grid -> depth image -> 74 features, with every buffer sized at
+// construction: the
 // part of the cycle that turns a raw scan into what the SVM and Perfect Match take. prepare() never allocates.
 class ScanPreparer {
  public:
@@ -57,18 +59,33 @@ class ScanPreparer {
   ScanPreparer(const Config& config, const algo::Plane& support, std::size_t max_points);
 
   [[nodiscard]] PrepareReport prepare(std::span<const algo::ScanPoint> raw);
-  // Valid after prepare() returned kOk.
+  // The same from a part's points whose carrier is already gone (a synthetic training variant, algo/augment).
+  [[nodiscard]] PrepareReport prepare_part(std::span<const algo::ScanPoint> part);
+  // Valid after prepare() returned kOk. part_points() are in the carrier frame (what Perfect Match needs);
+  // canonical_points() are the same points in the part's own frame (algo/canonical), what the grid, the depth
+  // image and the features see.
   [[nodiscard]] std::span<const algo::ScanPoint> part_points() const { return part_.points(); }
+  [[nodiscard]] std::span<const algo::ScanPoint> canonical_points() const {
+    return {canonical_.data(), part_.size()};
+  }
+  [[nodiscard]] const algo::CanonicalPose& canonical_pose() const { return canonical_pose_; }
   [[nodiscard]] const algo::FeatureVector& features() const { return features_; }
   [[nodiscard]] const algo::OccupancyGrid& grid() const { return grid_; }
   [[nodiscard]] const cv::Mat& depth_image() const { return depth_; }
   [[nodiscard]] std::size_t max_points() const { return part_.capacity(); }
 
  private:
+  // part_ -> canonical frame -> grid -> depth image -> features.
+  [[nodiscard]] PrepareReport describe_part(PrepareReport r);
+
   algo::Plane support_{};
   double support_threshold_m_ = 0.0;
   algo::ScanBuffer part_;
   algo::PartIsolator isolator_;
+  std::vector<algo::ScanPoint> canonical_;  // part_ in the part's own frame, same capacity
+  algo::CanonicalParams canonical_params_{};
+  algo::CanonicalScratch canonical_scratch_;
+  algo::CanonicalPose canonical_pose_{};
   algo::OccupancyGrid grid_;
   cv::Mat depth_;
   algo::FeatureExtractor extractor_;

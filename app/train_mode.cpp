@@ -9,7 +9,9 @@
 #include <set>
 #include <thread>
 
+#include "algo/augment.hpp"
 #include "algo/ply.hpp"
+#include "algo/splitmix.hpp"
 #include "app/atomic_file.hpp"
 #include "app/calibration_file.hpp"
 #include "app/cli.hpp"
@@ -52,6 +54,12 @@ class StopOnSignal {
 
 std::size_t max_scan_points(const Config& config) { return scan_builder_params(config).max_points; }
 
+// Seed of variant v of taught scan `scan`: reproducible for svm.seed, different for every scan and variant.
+std::uint64_t augment_seed(const Config& config, std::size_t scan, int variant) {
+  return algo::stream_seed(algo::stream_seed(static_cast<std::uint64_t>(config.svm.seed), scan),
+                        static_cast<std::uint64_t>(variant));
+}
+
 }  // namespace
 
 Expected<algo::Plane> load_support_plane(const std::string& calibration_path) {
@@ -92,8 +100,9 @@ Expected<TaughtData> build_dataset(const Config& config, const ModelDb& db, cons
     data.classes.push_back({m.parts[c].name, m.parts[c].id});
     for (const ScanEntry& s : m.parts[c].scans) jobs.push_back({static_cast<int>(c), &s});
   }
-  data.features.resize(jobs.size());
-  data.labels.resize(jobs.size());
+  // Features of every taught scan and of its synthetic variants (svm.augment_per_scan; algo/augment), by job.
+  const int variants = config.svm.augment_per_scan;
+  std::vector<std::vector<algo::FeatureVector>> job_features(jobs.size());
   std::vector<algo::MatchReport> matches(templates != nullptr ? jobs.size() : 0);
   std::mutex mutex;
   std::string first_error;
@@ -101,6 +110,7 @@ Expected<TaughtData> build_dataset(const Config& config, const ModelDb& db, cons
   std::atomic<std::size_t> done{0};
   const auto worker = [&] {
     ScanPreparer preparer(config, support, max_scan_points(config));
+    std::vector<algo::ScanPoint> origin, variant;
     std::optional<algo::Cascade> cascade;
     if (templates != nullptr) cascade.emplace(cascade_params(config), perfect_match_params(config), grid_spec(config));
     for (std::size_t i = next++; i < jobs.size(); i = next++) {
@@ -118,11 +128,17 @@ Expected<TaughtData> build_dataset(const Config& config, const ModelDb& db, cons
         if (r.status != PrepareStatus::kOk) {
           error = db.path_of(jobs[i].scan->file) + ": " + std::string(to_string(r.status)) + " (" + r.describe() + ")";
         } else {
-          data.features[i] = preparer.features();
-          data.labels[i] = jobs[i].label;
+          job_features[i].push_back(preparer.features());
           if (cascade) {
             matches[i] = cascade->evaluate(templates->models[static_cast<std::size_t>(jobs[i].label)],
                                            preparer.part_points());
+          }
+          const std::span<const algo::ScanPoint> part = preparer.part_points();
+          origin.assign(part.begin(), part.end());
+          for (int v = 1; v <= variants; ++v) {
+            algo::augment_scan(origin, algo::AugmentParams{}, augment_seed(config, i, v), variant);
+            if (preparer.prepare_part(variant).status == PrepareStatus::kOk)
+              job_features[i].push_back(preparer.features());  // a variant that lost the part is left out
           }
         }
       }
@@ -142,10 +158,14 @@ Expected<TaughtData> build_dataset(const Config& config, const ModelDb& db, cons
   for (auto& t : pool) t.join();
   if (!first_error.empty()) return make_error(first_error);
   if (stop != nullptr && stop->load()) return make_error("stopped before the features of every scan were computed");
+  for (std::size_t i = 0; i < jobs.size(); ++i) {
+    for (std::size_t v = 0; v < job_features[i].size(); ++v)
+      data.push(job_features[i][v], jobs[i].label, static_cast<int>(i), static_cast<int>(v));
+  }
   if (templates != nullptr) {
     out.own_matches.resize(data.classes.size());
     for (std::size_t i = 0; i < jobs.size(); ++i) {
-      out.own_matches[static_cast<std::size_t>(data.labels[i])].push_back(matches[i]);
+      out.own_matches[static_cast<std::size_t>(jobs[i].label)].push_back(matches[i]);
     }
   }
   return out;
@@ -229,6 +249,7 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
   params.folds = config.svm.folds;
   params.seed = static_cast<std::uint64_t>(config.svm.seed);
   params.threads = config.svm.threads;
+  params.search_variants = config.svm.augment_search_per_scan;
   params.kernel = config.svm.kernel == "poly" ? algo::KernelType::kPoly : algo::KernelType::kRbf;
   params.compare = args.has("--compare");
   if (const std::string* v = args.value("--iterations")) {

@@ -283,6 +283,11 @@ std::string training_summary_text(const algo::TrainingReport& report, const Trai
   if (!context.dataset.empty()) s += "Dataset:         " + context.dataset + "\n";
   s += fmt("Classes:         %zu taught parts\n", k);
   s += fmt("Scans:           %d for training, ", report.train_samples) + test_split_text(report) + "\n";
+  if (report.synthetic_samples > 0) {
+    s += fmt("Variants:        %d synthetic (re-posed, thinned, dropouts, noise) of the training scans; the feature "
+             "search scored %d samples\n",
+             report.synthetic_samples, report.search_samples);
+  }
   s += fmt("Features:        version %u, %d computed per scan\n", context.feature_version, algo::kFeatureCount);
 
   const bool low = !(svm.test_accuracy >= context.target_accuracy);
@@ -304,6 +309,14 @@ std::string training_summary_text(const algo::TrainingReport& report, const Trai
   s += "\n";
   s +=
       fmt("Cross-validation accuracy (%d-fold, training scans): ", report.folds) + percent_text(svm.cv_accuracy) + "\n";
+  if (report.test_samples > 0) {
+    s += "True part among the two most probable (test): " + percent_text(svm.test_top2) + "\n";
+    s += fmt("Calibration of the top probability (test): expected calibration error %.3f\n", svm.test_ece);
+    for (const algo::CalibrationBin& b : svm.reliability) {
+      s += fmt("  p in [%.1f, %.1f): %3d scans, mean p %.3f, right %.3f\n", b.lo, b.hi, b.scans, b.mean_probability,
+               b.accuracy);
+    }
+  }
   append_paragraph(s, "Kernel: ", kernel_text(report.svm_hyper, active_count(svm)));
   s += fmt("Chosen features (%d of %d):\n", active_count(svm), algo::kFeatureCount);
   append_wrapped(s, svm.features, "  ");
@@ -398,6 +411,17 @@ void emit_classifier(YAML::Emitter& out, const algo::ClassifierReport& r, const 
   emit_number(out, r.test_accuracy);
   out << YAML::Key << "cv_accuracy" << YAML::Value;
   emit_number(out, r.cv_accuracy);
+  if (r.classifier == algo::Classifier::kSvm) {
+    out << YAML::Key << "test_top2" << YAML::Value;
+    emit_number(out, r.test_top2);
+    out << YAML::Key << "test_ece" << YAML::Value;
+    emit_number(out, r.test_ece);
+    out << YAML::Key << "reliability" << YAML::Value << YAML::BeginSeq;
+    for (const algo::CalibrationBin& b : r.reliability) {
+      out << YAML::Flow << std::vector<double>{b.lo, b.hi, static_cast<double>(b.scans), b.mean_probability, b.accuracy};
+    }
+    out << YAML::EndSeq;
+  }
   out << YAML::Key << "active_features" << YAML::Value << active_count(r);
   out << YAML::Key << "features" << YAML::Value << YAML::Flow << r.features;
   out << YAML::Key << "evaluations" << YAML::Value << r.evaluations;
@@ -446,6 +470,8 @@ std::string training_report_yaml(const algo::TrainingReport& report, const Train
   out << YAML::Key << "classes" << YAML::Value << YAML::Flow << report.class_names;
   out << YAML::Key << "train_samples" << YAML::Value << report.train_samples;
   out << YAML::Key << "test_samples" << YAML::Value << report.test_samples;
+  out << YAML::Key << "synthetic_samples" << YAML::Value << report.synthetic_samples;
+  out << YAML::Key << "search_samples" << YAML::Value << report.search_samples;
   out << YAML::Key << "folds" << YAML::Value << report.folds;
   out << YAML::Key << "threads" << YAML::Value << report.threads;
   out << YAML::Key << "seconds" << YAML::Value << report.seconds;

@@ -124,6 +124,8 @@ TEST_CASE("Given the shipped config file, when it is loaded, then it is valid an
   CHECK(cfg->cascade.share_factor == d.cascade.share_factor);
   CHECK(cfg->cascade.share_floor == d.cascade.share_floor);
   CHECK(cfg->svm.sa_start_temperature == d.svm.sa_start_temperature);
+  CHECK(cfg->svm.augment_per_scan == d.svm.augment_per_scan);
+  CHECK(cfg->svm.augment_search_per_scan == d.svm.augment_search_per_scan);
   CHECK(cfg->runtime.deadline_ms == d.runtime.deadline_ms);
   CHECK(cfg->catalogue_path == fs::path(kShippedCatalogue).lexically_normal().string());
 }

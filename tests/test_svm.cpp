@@ -515,3 +515,32 @@ SCENARIO("The scaler maps the training range onto [-1, 1] and compresses heavy-t
   CHECK(small_b == Approx(-1.0));
   CHECK(small_a - small_b > 0.25);  // without compression: 0.001
 }
+
+SCENARIO("The held-back test reports the top-2 rate and the calibration of the SVM's probabilities", "[training]") {
+  GIVEN("4 overlapping classes (some test scans are confused)") {
+    auto split = algo::split_per_class(make_clusters(4, 30, 6, kInformative, 3.0), 20, 2);
+    REQUIRE(split.ok());
+    algo::TrainParams p = small_params();
+    p.annealing.iterations = 5;
+    WHEN("the recogniser is trained") {
+      auto r = algo::train_recogniser(*split, p);
+      REQUIRE(r.ok());
+      const algo::ClassifierReport& svm = r->report.svm;
+      THEN("top-2 is at least top-1, the bins hold every test scan, and the ECE is their weighted gap") {
+        CHECK(svm.test_top2 >= svm.test_accuracy);
+        int scans = 0;
+        double ece = 0.0, right = 0.0;
+        for (const algo::CalibrationBin& b : svm.reliability) {
+          CHECK(b.mean_probability >= b.lo);
+          CHECK(b.mean_probability <= b.hi);
+          scans += b.scans;
+          ece += b.scans * std::abs(b.mean_probability - b.accuracy);
+          right += b.scans * b.accuracy;
+        }
+        CHECK(scans == static_cast<int>(split->test.size()));
+        CHECK(svm.test_ece == Approx(ece / scans));
+        CHECK(right / scans == Approx(svm.test_accuracy));
+      }
+    }
+  }
+}
