@@ -213,8 +213,11 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
     set_limit(out.thresholds, f, v);
   }
   // 3. Margin to the runner-up: an other-class scan that would pass is pushed out by the figure on which it stands
-  //    farthest above the own class (relative to the limit), whose limit goes halfway between the own maximum and
-  //    that scan. A scan no figure separates (all at or below the own maxima) stays: the pair is reported.
+  //    farthest above the own class, provided it stands clearly above it there (kClearSeparation times the own
+  //    maximum): that limit goes to the geometric mean of the two, still well above every own scan. A scan no figure
+  //    separates that clearly stays: the pair is reported, and at run time the look-alike verification and the
+  //    evidence margin make such a scan unknown rather than a guess.
+  constexpr double kClearSeparation = 2.0;
   for (const MatchReport& r : other_classes) {
     const auto x = figures_of(r);
     auto l = limits_of(out.thresholds);
@@ -225,12 +228,12 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
       continue;
     }
     int best = -1;
-    double best_gap = 0.0;
+    double best_ratio = kClearSeparation;
     for (int f = 0; f < kFigures; ++f) {
-      const double own = own_max[static_cast<std::size_t>(f)];
-      const double gap = (x[static_cast<std::size_t>(f)] - own) / std::max(l[static_cast<std::size_t>(f)], 1e-12);
-      if (std::isfinite(gap) && gap > best_gap) {
-        best_gap = gap;
+      const double own = std::max(own_max[static_cast<std::size_t>(f)], 0.25 * floor[f]);
+      const double ratio = x[static_cast<std::size_t>(f)] / own;
+      if (std::isfinite(ratio) && ratio >= best_ratio) {
+        best_ratio = ratio;
         best = f;
       }
     }
@@ -238,7 +241,8 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
       ++out.other_scans_inseparable;
       continue;
     }
-    set_limit(out.thresholds, best, 0.5 * (own_max[static_cast<std::size_t>(best)] + x[static_cast<std::size_t>(best)]));
+    const double own = std::max(own_max[static_cast<std::size_t>(best)], 0.25 * floor[best]);
+    set_limit(out.thresholds, best, std::sqrt(own * x[static_cast<std::size_t>(best)]));
     ++out.other_scans_rejected;
   }
   return out;
@@ -453,6 +457,18 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
     const double b = best->report.evidence_m2;
     const double r = runner->report.evidence_m2;
     clear = b <= params_.margin_ratio * r && r - b >= params_.margin_floor_m2;
+  }
+  // A look-alike of the winner that failed only narrowly (every figure within near_fail_factor of its limit) is no
+  // clear margin either: between twins a hair decides, and a hair is noise.
+  if (best != nullptr && clear) {
+    const TemplateModel* bt = template_of(best->class_index);
+    for (std::size_t j = 0; j < k && clear && bt != nullptr; ++j) {
+      const Candidate& c = candidates_[j];
+      if (!c.evaluated || c.passed || &c == best) continue;
+      if (std::find(bt->confusable.begin(), bt->confusable.end(), c.class_index) == bt->confusable.end()) continue;
+      const TemplateModel* ct = template_of(c.class_index);
+      if (ct != nullptr && near_pass(c.report, ct->thresholds, params_.near_fail_factor)) clear = false;
+    }
   }
   if (best != nullptr && clear && settled) {
     const double p1 = svm_best_first[0].probability;

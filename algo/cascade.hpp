@@ -35,6 +35,9 @@ struct CascadeParams {
   // rib: hundreds of mm^2 against the tens a matching template leaves.
   double margin_ratio = 0.5;
   double margin_floor_m2 = 100e-6;
+  // A look-alike of the winner that failed with every figure within this factor of its limit leaves no clear margin
+  // either (the scan is unknown).
+  double near_fail_factor = 1.5;
 
   // Two-way check (see Cascade). A template cell counts as seen when the scan has a surface within blob_window_m
   // (x-y, rounded to whole cells, at least one) whose depth is within depth_tolerance_m of the template's; the same

@@ -26,7 +26,7 @@ bool PartIsolator::cell_of(const ScanPoint& p, std::size_t& index) const {
   return true;
 }
 
-IsolationReport PartIsolator::isolate(ScanBuffer& part) {
+IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, double scanned_x1_m) {
   IsolationReport report;
   const int nx = grid_.nx;
   const int ny = grid_.ny;
@@ -44,6 +44,13 @@ IsolationReport PartIsolator::isolate(ScanBuffer& part) {
     y_hi = std::max(y_hi, y);
   }
   if (x_hi < 0) return report;
+  // The scanned range's end cells (clamped to the grid): a piece reaching within border_cells of them is at the edge.
+  const auto cell_x = [&](double x_m) {
+    const double f = (x_m - grid_.origin_m.x()) / grid_.resolution_m;
+    return std::isfinite(f) ? static_cast<int>(std::clamp(std::floor(f), 0.0, static_cast<double>(nx - 1))) : 0;
+  };
+  const int edge_lo = cell_x(scanned_x0_m) + params_.border_cells;
+  const int edge_hi = cell_x(scanned_x1_m) - params_.border_cells;
   // Dilation by a square of bridge_cells (separable: rows, then columns) over the occupied box plus the radius.
   const int r = std::max(0, params_.bridge_cells);
   const int bx0 = std::max(0, x_lo - r), bx1 = std::min(nx - 1, x_hi + r);
@@ -90,7 +97,7 @@ IsolationReport PartIsolator::isolate(ScanBuffer& part) {
         const int cy = static_cast<int>(c / static_cast<std::size_t>(nx));
         if (occupied_[c] > 0) {
           ++piece_cells_[static_cast<std::size_t>(id)];
-          if (cx < params_.border_cells || cx >= nx - params_.border_cells) piece_border_[static_cast<std::size_t>(id)] = 1;
+          if (cx < edge_lo || cx > edge_hi) piece_border_[static_cast<std::size_t>(id)] = 1;
         }
         const int nxs[4] = {cx - 1, cx + 1, cx, cx};
         const int nys[4] = {cy, cy, cy - 1, cy + 1};

@@ -222,6 +222,7 @@ void read_rest(YamlSection& root, Config& cfg) {
     s.number("stop_ratio", cfg.cascade.stop_ratio, 0.0, 1.0, "");
     s.number("margin_ratio", cfg.cascade.margin_ratio, 0.0, 1.0, "");
     s.number("margin_floor_m2", cfg.cascade.margin_floor_m2, 0.0, 1.0, "m^2");
+    s.number("near_fail_factor", cfg.cascade.near_fail_factor, 1.0, 100.0, "");
     s.number("blob_window_m", cfg.cascade.blob_window_m, 0.0, 0.05, "m");
     s.number("depth_tolerance_m", cfg.cascade.depth_tolerance_m, 1e-4, 0.1, "m");
     s.integer("refine_iterations", cfg.cascade.refine_iterations, 0, 1000, "");

@@ -1,7 +1,9 @@
 // The production recogniser (see recognition.hpp).
 #include "app/recognition.hpp"
 
+#include <cmath>
 #include <filesystem>
+#include <limits>
 
 #include "algo/support.hpp"
 #include "app/calibration_file.hpp"
@@ -64,9 +66,16 @@ PrepareReport ScanPreparer::prepare(std::span<const algo::ScanPoint> raw) {
   part_.clear();
   grid_.clear();
   if (raw.empty()) return r;
-  for (const algo::ScanPoint& p : raw) (void)part_.push(p);  // a scan beyond capacity keeps what fits
+  double x0 = std::numeric_limits<double>::infinity(), x1 = -std::numeric_limits<double>::infinity();
+  for (const algo::ScanPoint& p : raw) {
+    (void)part_.push(p);  // a scan beyond capacity keeps what fits
+    if (std::isfinite(p.x)) {
+      x0 = std::min(x0, static_cast<double>(p.x));
+      x1 = std::max(x1, static_cast<double>(p.x));
+    }
+  }
   r.support_points = algo::remove_support(part_, support_, support_threshold_m_);
-  const algo::IsolationReport isolated = isolator_.isolate(part_);
+  const algo::IsolationReport isolated = isolator_.isolate(part_, x0, x1);
   r.stray_points = isolated.dropped_points;
   r.stray_pieces = isolated.dropped_pieces;
   r.part_points = part_.size();

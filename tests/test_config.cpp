@@ -109,6 +109,7 @@ TEST_CASE("Given the shipped config file, when it is loaded, then it is valid an
   CHECK(cfg->cascade.stop_ratio == d.cascade.stop_ratio);
   CHECK(cfg->cascade.margin_ratio == d.cascade.margin_ratio);
   CHECK(cfg->cascade.margin_floor_m2 == d.cascade.margin_floor_m2);
+  CHECK(cfg->cascade.near_fail_factor == d.cascade.near_fail_factor);
   CHECK(cfg->cascade.weak_evidence_weight == d.cascade.weak_evidence_weight);
   CHECK(cfg->cascade.band_elongation == d.cascade.band_elongation);
   CHECK(cfg->cascade.band_contact_max == d.cascade.band_contact_max);

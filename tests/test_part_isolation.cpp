@@ -57,10 +57,16 @@ SCENARIO("A neighbour's part at the field's edge and loose specks are separated 
     std::vector<ScanPoint> points;
     add_sheet(points, 0.10, 0.55, 0.20, 0.90, 0.20, kPart);
     const int part_points = static_cast<int>(points.size());
-    WHEN("a 40 mm sheet strip enters from the grid's right end, 20 mm away from the plate") {
-      add_sheet(points, 0.57, 0.6512, 0.30, 0.80, 0.21, kStray);
+    WHEN("the same strip ends 30 mm before the scanned range does (a piece of the part's own cut-off?)") {
+      add_sheet(points, 0.57, 0.61, 0.30, 0.80, 0.21, kStray);
       algo::ScanBuffer b = buffer_of(points);
-      const algo::IsolationReport r = isolator.isolate(b);
+      const algo::IsolationReport r = isolator.isolate(b, 0.0165, 0.64);
+      THEN("it stays: only material at the field's edge is a neighbour's") { CHECK(r.dropped_pieces == 0); }
+    }
+    WHEN("a 40 mm sheet strip enters from the scanned range's right end, 20 mm away from the plate") {
+      add_sheet(points, 0.57, 0.61, 0.30, 0.80, 0.21, kStray);
+      algo::ScanBuffer b = buffer_of(points);
+      const algo::IsolationReport r = isolator.isolate(b, 0.0165, 0.61);
       THEN("the strip is dropped and every plate point stays") {
         CHECK(r.pieces == 2);
         CHECK(r.dropped_pieces == 1);
@@ -72,7 +78,7 @@ SCENARIO("A neighbour's part at the field's edge and loose specks are separated 
       add_sheet(points, 0.02, 0.024, 0.05, 0.052, 0.1, kSpeck);
       add_sheet(points, 0.30, 0.302, 0.97, 0.972, 0.1, kSpeck);
       algo::ScanBuffer b = buffer_of(points);
-      (void)isolator.isolate(b);
+      (void)isolator.isolate(b, 0.0165, 0.635);
       THEN("they go, the plate stays whole") {
         CHECK(count_tag(b, kSpeck) == 0);
         CHECK(count_tag(b, kPart) == part_points);
@@ -86,7 +92,7 @@ SCENARIO("A neighbour's part at the field's edge and loose specks are separated 
     const int part_points = static_cast<int>(points.size());
     WHEN("it is isolated") {
       algo::ScanBuffer b = buffer_of(points);
-      const algo::IsolationReport r = isolator.isolate(b);
+      const algo::IsolationReport r = isolator.isolate(b, 0.0165, 0.635);
       THEN("both halves stay: neither reaches the field's edge") {
         CHECK(r.pieces == 2);
         CHECK(r.dropped_pieces == 0);
@@ -106,7 +112,7 @@ SCENARIO("A neighbour's part at the field's edge and loose specks are separated 
     }
     WHEN("it is isolated") {
       algo::ScanBuffer b = buffer_of(points);
-      const algo::IsolationReport r = isolator.isolate(b);
+      const algo::IsolationReport r = isolator.isolate(b, 0.0165, 0.635);
       THEN("it is one piece and nothing is dropped") {
         CHECK(r.pieces == 1);
         CHECK(b.size() == points.size());
