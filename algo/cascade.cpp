@@ -19,6 +19,10 @@ constexpr float kEmptyHi = -std::numeric_limits<float>::infinity();
 constexpr std::uint8_t kMissing = 1;
 constexpr std::uint8_t kExtra = 2;
 constexpr std::uint8_t kVisited = 4;  // blob_evidence: the cell belongs to the blob being filled
+// blob_evidence: an enclosed missing blob whose surroundings (probed just beyond the window) hold scan material in
+// fewer than kSparseRing of at least kMinRingProbes probes lies in a region of lost data (glare), not at a hole.
+constexpr double kSparseRing = 0.5;
+constexpr int kMinRingProbes = 8;
 // Scan points leave the grid's x-y box when the pose turns and shifts them back into the template frame; the thesis'
 // pose range is +-50 mm and +-5 deg (6.5), so 0.1 m of margin keeps every plausible point on the raster.
 constexpr double kRasterMarginM = 0.1;
@@ -1057,6 +1061,7 @@ Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, b
       stack_[top++] = seed;
       double sx = 0, sy = 0, sxx = 0, sxy = 0, syy = 0;
       int boundary = 0, contact = 0;
+      int probes = 0, dense = 0;  // missing blobs: the scan's material just beyond the window around the blob
       while (top > 0) {
         const std::int32_t c = stack_[--top];
         blob_cells_[count++] = c;
@@ -1086,6 +1091,20 @@ Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, b
           ++boundary;
           const bool touches = extra ? s_lo_[n] <= s_hi_[n] : mask_a_[n] == 0;
           if (touches) ++contact;
+          if (!extra && !touches) {
+            // Probe the template cell window + 2 cells out in this direction: beside a hole the scan has (the part
+            // is another) the sheet is dense there; beside a piece of a glare band the few surviving points are not.
+            const int step = window_cells_ + 2;
+            const int px = cx + (k == 0 ? -step : k == 1 ? step : 0);
+            const int py = cy + (k == 2 ? -step : k == 3 ? step : 0);
+            if (px >= roi.x0 && px < roi.x1 && py >= roi.y0 && py < roi.y1) {
+              const std::size_t q = static_cast<std::size_t>(py) * static_cast<std::size_t>(w) + static_cast<std::size_t>(px);
+              if (mask_a_[q] != 0) {
+                ++probes;
+                if (s_lo_[q] <= s_hi_[q]) ++dense;
+              }
+            }
+          }
         }
       }
       for (std::size_t j = 0; j < count; ++j) {
@@ -1093,6 +1112,11 @@ Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, b
       }
       const double area = static_cast<double>(count);
       double weight = 1.0;
+      // An enclosed missing piece in sparse surroundings is what is left of a band of lost data, not a hole.
+      if (!extra && contact == 0 && probes >= kMinRingProbes &&
+          static_cast<double>(dense) < kSparseRing * static_cast<double>(probes)) {
+        weight = params_.weak_evidence_weight;
+      }
       if (count >= 3 && contact > 0 && boundary > 0) {
         const double mx = sx / area, my = sy / area;
         const double cxx = sxx / area - mx * mx + 1.0 / 12.0;  // + a cell's own extent
