@@ -28,7 +28,7 @@ struct CascadeParams {
   double accept_p1 = 0.70;
   double accept_p2_max = 0.06;
   int pm_candidates = 16;
-  double verify_budget_ms = 60.0;
+  double verify_budget_ms = 200.0;
   double stop_ratio = 0.5;
   // Two passing candidates: the winner's evidence (MatchReport::evidence_m2) must be at most margin_ratio times the
   // runner-up's and smaller by at least margin_floor_m2; else "ambiguous" (unknown). Near twins differ by a hole or a
