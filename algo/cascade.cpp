@@ -223,14 +223,11 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
   //    evidence margin make such a scan unknown rather than a guess.
   constexpr double kClearSeparation = 2.0;
   for (const MatchReport& r : other_classes) {
-    const auto x = figures_of(r);
-    auto l = limits_of(out.thresholds);
-    bool passes = true;
-    for (int f = 0; f < kFigures; ++f) passes = passes && x[static_cast<std::size_t>(f)] <= l[static_cast<std::size_t>(f)];
-    if (!passes) {
+    if (!r.passes(out.thresholds)) {
       ++out.other_scans_rejected;
       continue;
     }
+    const auto x = figures_of(r);
     int best = -1;
     double best_ratio = kClearSeparation;
     for (int f = 0; f < kFigures; ++f) {
@@ -614,7 +611,7 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
           std::min(std::max(rt.x1, rs.x1) + w, width_), std::min(std::max(rt.y1, rs.y1) + w, height_)};
   if (rt.empty() && rs.empty()) roi = {0, 0, 0, 0};
 
-  int template_cells = 0, scan_cells = 0, missing_cells = 0, extra_cells = 0;
+  int template_cells = 0, scan_cells = 0;
   double missing_weighted = 0.0, extra_weighted = 0.0;
   if (!roi.empty()) {
     if (params_.level_depth) level_scan_depth(roi, centre_m, r);
@@ -633,7 +630,6 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
           ++template_cells;
           if (!(t_hi_[i] >= w_lo_[i] - tol && t_lo_[i] <= w_hi_[i] + tol)) {
             f = kMissing;
-            ++missing_cells;
           }
         }
         flags_[i] = f;
@@ -649,7 +645,6 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
           ++scan_cells;
           if (!(s_hi_[i] >= w_lo_[i] - tol && s_lo_[i] <= w_hi_[i] + tol)) {
             flags_[i] |= kExtra;
-            ++extra_cells;
           }
         }
       }
@@ -663,8 +658,6 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
     extra_weighted = extra.total_cells;
     reset_scan(roi);
   }
-  (void)missing_cells;
-  (void)extra_cells;
   r.template_cells = template_cells;
   r.scan_cells = scan_cells;
   r.coverage = template_cells > 0 ? std::max(0.0, 1.0 - missing_weighted / template_cells) : 0.0;
