@@ -19,10 +19,57 @@ constexpr float kEmptyHi = -std::numeric_limits<float>::infinity();
 constexpr std::uint8_t kMissing = 1;
 constexpr std::uint8_t kExtra = 2;
 constexpr std::uint8_t kVisited = 4;  // blob_evidence: the cell belongs to the blob being filled
-// blob_evidence: an enclosed missing blob whose surroundings (probed just beyond the window) hold scan material in
-// fewer than kSparseRing of at least kMinRingProbes probes lies in a region of lost data (glare), not at a hole.
-constexpr double kSparseRing = 0.5;
-constexpr int kMinRingProbes = 8;
+constexpr std::uint8_t kLost = 8;     // mark_lost_data: a missing cell in a region of lost data (glare residue)
+constexpr std::uint8_t kGrouped = 16;  // mark_lost_data: the cell belongs to the group being filled
+// mark_lost_data: a template cell is "sparse" when the scan occupies fewer than kSparseShare x the scan's typical
+// share of the template cells in its window; a group of missing and sparse cells in which at least kMinPorosity of
+// the cells, and kMinLostPoints cells, still hold scan points (the few a glare band leaves: 1-3 % of the cells
+// where 97-99 % of the points are lost) is lost data. A hole the scan has is empty inside: its group holds no point.
+constexpr double kSparseShare = 0.35;
+constexpr double kMinPorosity = 0.005;
+constexpr std::size_t kMinLostPoints = 5;
+constexpr int kMinLostGroupCells = 12;
+constexpr double kBandFringeCells = 1.5;  // a lost band's cells reach this far beyond its edge (the window)
+
+// Second moments of a set of cells, for its elongation (major / minor axis of the equivalent ellipse).
+struct CellMoments {
+  double n = 0, sx = 0, sy = 0, sxx = 0, sxy = 0, syy = 0;
+  void add(int x, int y) {
+    n += 1.0;
+    sx += x;
+    sy += y;
+    sxx += static_cast<double>(x) * x;
+    sxy += static_cast<double>(x) * y;
+    syy += static_cast<double>(y) * y;
+  }
+  [[nodiscard]] double elongation() const {
+    const double mx = sx / n, my = sy / n;
+    const double cxx = sxx / n - mx * mx + 1.0 / 12.0;  // + a cell's own extent
+    const double cyy = syy / n - my * my + 1.0 / 12.0;
+    const double cxy = sxy / n - mx * my;
+    const double tr = 0.5 * (cxx + cyy);
+    const double det = std::sqrt(std::max(0.0, 0.25 * (cxx - cyy) * (cxx - cyy) + cxy * cxy));
+    return std::sqrt((tr + det) / std::max(tr - det, 1.0 / 12.0));
+  }
+  // Width across the major axis, cells: a band of width w has variance w^2 / 12 across.
+  [[nodiscard]] double minor_width() const {
+    const double mx = sx / n, my = sy / n;
+    const double cxx = sxx / n - mx * mx + 1.0 / 12.0;
+    const double cyy = syy / n - my * my + 1.0 / 12.0;
+    const double cxy = sxy / n - mx * my;
+    const double tr = 0.5 * (cxx + cyy);
+    const double det = std::sqrt(std::max(0.0, 0.25 * (cxx - cyy) * (cxx - cyy) + cxy * cxy));
+    return std::sqrt(12.0 * std::max(tr - det, 1.0 / 12.0));
+  }
+  // Unit direction across the major axis (the band's normal).
+  [[nodiscard]] Eigen::Vector2d minor_axis() const {
+    const double mx = sx / n, my = sy / n;
+    const double cxx = sxx / n - mx * mx, cyy = syy / n - my * my, cxy = sxy / n - mx * my;
+    const double major = 0.5 * std::atan2(2.0 * cxy, cxx - cyy);  // angle of the major axis
+    return {-std::sin(major), std::cos(major)};
+  }
+  [[nodiscard]] Eigen::Vector2d mean() const { return {sx / n, sy / n}; }
+};
 // Scan points leave the grid's x-y box when the pose turns and shifts them back into the template frame; the thesis'
 // pose range is +-50 mm and +-5 deg (6.5), so 0.1 m of margin keeps every plausible point on the raster.
 constexpr double kRasterMarginM = 0.1;
@@ -289,6 +336,7 @@ Cascade::Cascade(const CascadeParams& params, const PerfectMatchParams& pm_param
   stack_.assign(cells, 0);
   mask_a_.assign(cells, 0);
   mask_b_.assign(cells, 0);
+  mask_s_.assign(cells, 0);
   edt_in_.assign(cells, 0);
   edt_out_.assign(cells, 0.0F);
   outline_.assign(cells, Eigen::Vector2d::Zero());
@@ -343,6 +391,8 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
       o.missing_area_m2 = c.report.missing_area_m2;
       o.extra_area_m2 = c.report.extra_area_m2;
       o.evidence_m2 = c.report.evidence_m2;
+      o.coverage = c.report.coverage;
+      o.outliers = c.report.scan_outliers;
       const TemplateModel* t = template_of(c.class_index);
       if (t == nullptr) {
         o.rejected_by = RejectReason::kNoTemplate;
@@ -617,6 +667,8 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
     if (params_.level_depth) level_scan_depth(roi, centre_m, r);
     // The template's closed region (mask_a_): where a blob's boundary touches the other side (blob_evidence).
     outline_mask(t_lo_, t_hi_, roi);
+    // ... and the scan's (mask_s_): a sampling gap inside either is neither side's edge.
+    closed_mask(s_lo_, s_hi_, roi, mask_s_);
     const auto tol = static_cast<float>(params_.depth_tolerance_m);
 
     // Missing: template cells with no compatible scan depth within the window.
@@ -650,12 +702,17 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
       }
     }
     const double cell_area_m2 = resolution_m_ * resolution_m_;
+    mark_lost_data(roi);
     const BlobEvidence missing = blob_evidence(roi, kMissing, false);
     const BlobEvidence extra = blob_evidence(roi, kExtra, true);
     r.missing_area_m2 = missing.largest_cells * cell_area_m2;
     r.extra_area_m2 = extra.largest_cells * cell_area_m2;
     missing_weighted = missing.total_cells;
     extra_weighted = extra.total_cells;
+    for (int y = roi.y0; y < roi.y1; ++y) {  // flags are clear between checks (outline_mask uses them as scratch)
+      std::uint8_t* row = flags_.data() + static_cast<std::size_t>(y) * static_cast<std::size_t>(width_);
+      std::fill(row + roi.x0, row + roi.x1, std::uint8_t{0});
+    }
     reset_scan(roi);
   }
   r.template_cells = template_cells;
@@ -679,10 +736,33 @@ Cascade::Roi Cascade::grow(const Roi& roi, int cells) const {
 }
 
 void Cascade::outline_mask(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi) {
-  // mask_a_ = the closing (3 x 3 dilation, then erosion) of the occupied cells: fills the single empty cells a scan's
-  // one-profile-per-cell sampling leaves without moving the outline. mask_b_ = its outline cells (a 4-neighbour
-  // outside the closed mask, or the box's edge). Both 3 x 3 filters are separable (rows, then columns); cells beyond
-  // the box count as empty.
+  // mask_a_ = the closed mask of the occupied cells (closed_mask), mask_b_ = its outline cells (a 4-neighbour
+  // outside the closed mask, or the box's edge).
+  closed_mask(lo, hi, roi, mask_a_);
+  const auto w = static_cast<std::size_t>(width_);
+  const int n = roi.x1 - roi.x0;
+  auto row_of = [&](std::vector<std::uint8_t>& m, int y) {
+    return m.data() + static_cast<std::size_t>(y) * w + roi.x0;
+  };
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    const std::uint8_t* up = y > roi.y0 ? row_of(mask_a_, y - 1) : nullptr;
+    const std::uint8_t* mid = row_of(mask_a_, y);
+    const std::uint8_t* down = y + 1 < roi.y1 ? row_of(mask_a_, y + 1) : nullptr;
+    std::uint8_t* d = row_of(mask_b_, y);
+    for (int x = 0; x < n; ++x) {
+      const bool inner = x > 0 && x + 1 < n && up != nullptr && down != nullptr && mid[x - 1] != 0 && mid[x + 1] != 0 &&
+                         up[x] != 0 && down[x] != 0;
+      d[x] = mid[x] != 0 && !inner ? 1 : 0;
+    }
+  }
+  for (int y = roi.y0; y < roi.y1; ++y) std::fill(row_of(flags_, y), row_of(flags_, y) + n, std::uint8_t{0});
+}
+
+void Cascade::closed_mask(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi,
+                          std::vector<std::uint8_t>& out) {
+  // out = the closing (3 x 3 dilation, then erosion) of the occupied cells: fills the single empty cells a scan's
+  // one-profile-per-cell sampling leaves without moving the outline. Both 3 x 3 filters are separable (rows, then
+  // columns); cells beyond the box count as empty. mask_b_ holds the dilation, flags_ the row pass (both scratch).
   const auto w = static_cast<std::size_t>(width_);
   const int n = roi.x1 - roi.x0;
   auto row_of = [&](std::vector<std::uint8_t>& m, int y) {
@@ -714,26 +794,14 @@ void Cascade::outline_mask(const std::vector<float>& lo, const std::vector<float
   };
   for (int y = roi.y0; y < roi.y1; ++y) {
     const std::size_t row = static_cast<std::size_t>(y) * w;
-    std::uint8_t* a = row_of(mask_a_, y);
+    std::uint8_t* a = row_of(out, y);
     for (int x = 0; x < n; ++x) {
       const std::size_t i = row + static_cast<std::size_t>(roi.x0 + x);
       a[x] = lo[i] <= hi[i] ? 1 : 0;
     }
   }
-  filter3(mask_a_, mask_b_, true);
-  filter3(mask_b_, mask_a_, false);
-  for (int y = roi.y0; y < roi.y1; ++y) {
-    const std::uint8_t* up = y > roi.y0 ? row_of(mask_a_, y - 1) : nullptr;
-    const std::uint8_t* mid = row_of(mask_a_, y);
-    const std::uint8_t* down = y + 1 < roi.y1 ? row_of(mask_a_, y + 1) : nullptr;
-    std::uint8_t* d = row_of(mask_b_, y);
-    for (int x = 0; x < n; ++x) {
-      const bool inner = x > 0 && x + 1 < n && up != nullptr && down != nullptr && mid[x - 1] != 0 && mid[x + 1] != 0 &&
-                         up[x] != 0 && down[x] != 0;
-      d[x] = mid[x] != 0 && !inner ? 1 : 0;
-    }
-  }
-  for (int y = roi.y0; y < roi.y1; ++y) std::fill(row_of(flags_, y), row_of(flags_, y) + n, std::uint8_t{0});
+  filter3(out, mask_b_, true);
+  filter3(mask_b_, out, false);
 }
 
 void Cascade::prepare_scan_outline(std::span<const ScanPoint> scan) {
@@ -1052,19 +1120,19 @@ Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, b
       std::size_t top = 0;
       std::size_t count = 0;
       stack_[top++] = seed;
-      double sx = 0, sy = 0, sxx = 0, sxy = 0, syy = 0;
+      CellMoments moments;
       int boundary = 0, contact = 0;
-      int probes = 0, dense = 0;  // missing blobs: the scan's material just beyond the window around the blob
+      std::size_t lost = 0;  // missing cells mark_lost_data found in a region of lost data
+      std::size_t conflict = 0;  // cells both surfaces cover, at depths that disagree
       while (top > 0) {
         const std::int32_t c = stack_[--top];
         blob_cells_[count++] = c;
+        const auto ci = static_cast<std::size_t>(c);
+        if ((flags_[ci] & kLost) != 0) ++lost;
+        if (extra ? t_lo_[ci] <= t_hi_[ci] : s_lo_[ci] <= s_hi_[ci]) ++conflict;
         const int cx = c % w;
         const int cy = c / w;
-        sx += cx;
-        sy += cy;
-        sxx += static_cast<double>(cx) * cx;
-        sxy += static_cast<double>(cx) * cy;
-        syy += static_cast<double>(cy) * cy;
+        moments.add(cx, cy);
         const std::int32_t neighbours[4] = {c - 1, c + 1, c - w, c + w};
         const bool inside[4] = {cx > roi.x0, cx + 1 < roi.x1, cy > roi.y0, cy + 1 < roi.y1};
         for (int k = 0; k < 4; ++k) {
@@ -1081,23 +1149,12 @@ Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, b
             continue;
           }
           if ((f & kVisited) != 0) continue;  // in this blob already
+          // A sampling gap (an empty cell inside the side's closed mask) is no edge: it would make an edge strip
+          // with a few gaps look like a band touching the other side only at its ends.
+          if (extra ? !(s_lo_[n] <= s_hi_[n]) && mask_s_[n] != 0 : !(t_lo_[n] <= t_hi_[n]) && mask_a_[n] != 0) continue;
           ++boundary;
           const bool touches = extra ? s_lo_[n] <= s_hi_[n] : mask_a_[n] == 0;
           if (touches) ++contact;
-          if (!extra && !touches) {
-            // Probe the template cell window + 2 cells out in this direction: beside a hole the scan has (the part
-            // is another) the sheet is dense there; beside a piece of a glare band the few surviving points are not.
-            const int step = window_cells_ + 2;
-            const int px = cx + (k == 0 ? -step : k == 1 ? step : 0);
-            const int py = cy + (k == 2 ? -step : k == 3 ? step : 0);
-            if (px >= roi.x0 && px < roi.x1 && py >= roi.y0 && py < roi.y1) {
-              const std::size_t q = static_cast<std::size_t>(py) * static_cast<std::size_t>(w) + static_cast<std::size_t>(px);
-              if (mask_a_[q] != 0) {
-                ++probes;
-                if (s_lo_[q] <= s_hi_[q]) ++dense;
-              }
-            }
-          }
         }
       }
       for (std::size_t j = 0; j < count; ++j) {
@@ -1105,21 +1162,16 @@ Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, b
       }
       const double area = static_cast<double>(count);
       double weight = 1.0;
-      // An enclosed missing piece in sparse surroundings is what is left of a band of lost data, not a hole.
-      if (!extra && contact == 0 && probes >= kMinRingProbes &&
-          static_cast<double>(dense) < kSparseRing * static_cast<double>(probes)) {
-        weight = params_.weak_evidence_weight;
-      }
-      if (count >= 3 && contact > 0 && boundary > 0) {
-        const double mx = sx / area, my = sy / area;
-        const double cxx = sxx / area - mx * mx + 1.0 / 12.0;  // + a cell's own extent
-        const double cyy = syy / area - my * my + 1.0 / 12.0;
-        const double cxy = sxy / area - mx * my;
-        const double tr = 0.5 * (cxx + cyy);
-        const double det = std::sqrt(std::max(0.0, 0.25 * (cxx - cyy) * (cxx - cyy) + cxy * cxy));
-        const double elongation = std::sqrt((tr + det) / std::max(tr - det, 1.0 / 12.0));
+      // Mostly depths that disagree (a rib, a flange the other lacks): contradiction, whatever its shape. Otherwise
+      // absence: a missing piece mostly inside a region of lost data (a glare band's residue) is not evidence of a
+      // hole, and a thin band touching the other side only at its ends (below) is glare, a chain or a hook.
+      const bool contradiction = 2 * conflict >= count;
+      if (!contradiction && !extra && 2 * lost >= count) weight = params_.weak_evidence_weight;
+      if (!contradiction && count >= 3 && contact > 0 && boundary > 0) {
+        const double elongation = moments.elongation();
         const double contact_share = static_cast<double>(contact) / boundary;
-        if (elongation >= params_.band_elongation && contact_share <= params_.band_contact_max) {
+        if (elongation >= params_.band_elongation && contact_share <= params_.band_contact_max &&
+            moments.minor_width() * resolution_m_ <= params_.band_max_width_m) {
           weight = params_.weak_evidence_weight;
         }
       }
@@ -1128,6 +1180,133 @@ Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, b
     }
   }
   return out;
+}
+
+void Cascade::mark_lost_data(const Roi& roi) {
+  // Glare or a dark patch leaves a band where most, not all, points are lost: the window-based "seen" test turns it
+  // into many small enclosed missing pieces, each shaped like a hole. What tells them from a hole the scan really has
+  // is what lies between them: cells the scan still touches, but far more sparsely than elsewhere on the part. So
+  // the template cells that are missing or sparse are grouped (4-connected), and a group in which a noticeable share
+  // of the cells still holds scan material is lost data: its missing cells get kLost. A real hole's group is the
+  // hole and the empty cells at its rim, with no point inside.
+  // Window counts (box sums over the check window) reuse the range buffers, free once both directions are flagged:
+  // tmp_lo_ / w_lo_ count the scan-occupied template cells, tmp_hi_ / w_hi_ the template cells.
+  const int r = window_cells_;
+  const auto w = static_cast<std::size_t>(width_);
+  auto occupied = [&](std::size_t i) { return s_lo_[i] <= s_hi_[i] && (flags_[i] & kExtra) == 0; };
+  double template_cells = 0.0, occupied_cells = 0.0;
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    const std::size_t row = static_cast<std::size_t>(y) * w;
+    for (int x = roi.x0; x < roi.x1; ++x) {
+      float occ = 0.0F, tpl = 0.0F;
+      for (int d = -r; d <= r; ++d) {
+        const int xx = x + d;
+        if (xx < roi.x0 || xx >= roi.x1) continue;
+        const std::size_t j = row + static_cast<std::size_t>(xx);
+        if (t_lo_[j] <= t_hi_[j]) {
+          tpl += 1.0F;
+          if (occupied(j)) occ += 1.0F;
+        }
+      }
+      tmp_lo_[row + static_cast<std::size_t>(x)] = occ;
+      tmp_hi_[row + static_cast<std::size_t>(x)] = tpl;
+      const std::size_t i = row + static_cast<std::size_t>(x);
+      if (t_lo_[i] <= t_hi_[i]) {
+        template_cells += 1.0;
+        if (occupied(i)) occupied_cells += 1.0;
+      }
+    }
+  }
+  if (template_cells <= 0.0) return;
+  const double typical = occupied_cells / template_cells;
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    const std::size_t row = static_cast<std::size_t>(y) * w;
+    for (int x = roi.x0; x < roi.x1; ++x) {
+      float occ = 0.0F, tpl = 0.0F;
+      for (int d = -r; d <= r; ++d) {
+        const int yy = y + d;
+        if (yy < roi.y0 || yy >= roi.y1) continue;
+        const std::size_t j = static_cast<std::size_t>(yy) * w + static_cast<std::size_t>(x);
+        occ += tmp_lo_[j];
+        tpl += tmp_hi_[j];
+      }
+      w_lo_[row + static_cast<std::size_t>(x)] = occ;
+      w_hi_[row + static_cast<std::size_t>(x)] = tpl;
+    }
+  }
+  // A missing cell the scan does cover, at another depth (a rib the template lacks), is contradiction, not loss:
+  // it neither joins a group nor becomes lost data.
+  auto in_group = [&](std::size_t i) {
+    if (!(t_lo_[i] <= t_hi_[i]) || (flags_[i] & kGrouped) != 0) return false;
+    if ((flags_[i] & kMissing) != 0) return !(s_lo_[i] <= s_hi_[i]);
+    return static_cast<double>(w_lo_[i]) < kSparseShare * typical * static_cast<double>(w_hi_[i]);
+  };
+  const int wi = width_;
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    for (int x = roi.x0; x < roi.x1; ++x) {
+      const auto seed = static_cast<std::size_t>(y * wi + x);
+      if ((flags_[seed] & kMissing) == 0 || !in_group(seed)) continue;
+      flags_[seed] |= kGrouped;
+      std::size_t top = 0, count = 0, with_points = 0;
+      CellMoments moments;
+      int boundary = 0, contact = 0;
+      stack_[top++] = static_cast<std::int32_t>(seed);
+      while (top > 0) {
+        const std::int32_t c = stack_[--top];
+        blob_cells_[count++] = c;
+        const auto ci = static_cast<std::size_t>(c);
+        if ((flags_[ci] & kMissing) == 0 && occupied(ci)) ++with_points;  // a seen cell, sparse: glare's residue
+        const int cx = c % wi;
+        const int cy = c / wi;
+        moments.add(cx, cy);
+        const std::int32_t neighbours[4] = {c - 1, c + 1, c - wi, c + wi};
+        const bool inside[4] = {cx > roi.x0, cx + 1 < roi.x1, cy > roi.y0, cy + 1 < roi.y1};
+        for (int k = 0; k < 4; ++k) {
+          const auto n = static_cast<std::size_t>(neighbours[k]);
+          if (inside[k] && (flags_[n] & kGrouped) != 0) continue;  // in this group already
+          if (inside[k] && in_group(n)) {
+            flags_[n] |= kGrouped;
+            stack_[top++] = neighbours[k];
+            continue;
+          }
+          if (inside[k] && !(t_lo_[n] <= t_hi_[n]) && mask_a_[n] != 0) continue;  // a sampling gap (blob_evidence)
+          ++boundary;
+          if (!inside[k] || mask_a_[n] == 0) ++contact;
+        }
+      }
+      if (count < static_cast<std::size_t>(kMinLostGroupCells)) continue;
+      // Porous (points survive inside), or a band across the part that the residue cut into enclosed pieces: both
+      // are lost data.
+      const bool porous = with_points >= kMinLostPoints &&
+                          static_cast<double>(with_points) >= kMinPorosity * static_cast<double>(count);
+      const bool band = contact > 0 && moments.elongation() >= params_.band_elongation &&
+                        static_cast<double>(contact) <= params_.band_contact_max * static_cast<double>(boundary) &&
+                        moments.minor_width() * resolution_m_ <= params_.band_max_width_m;
+      const bool lost = porous || band;
+      if (!lost) continue;
+      // A band's loss has straight edges: what sticks out of it (a hole the band crosses, wider than the band) is
+      // not lost, it is a hole seen beside the band. The band's half width is twice the median distance of its cells
+      // from the axis (uniform across a band), which the few cells of such a bulge do not move; plus the window's
+      // fringe.
+      double half_width = std::numeric_limits<double>::infinity();
+      const Eigen::Vector2d normal = moments.minor_axis();
+      const Eigen::Vector2d centre = moments.mean();
+      auto across = [&](std::int32_t c) {
+        return std::abs((static_cast<double>(c % wi) - centre.x()) * normal.x() +
+                        (static_cast<double>(c / wi) - centre.y()) * normal.y());
+      };
+      if (moments.elongation() >= params_.band_elongation) {
+        for (std::size_t j = 0; j < count; ++j) tmp_lo_[j] = static_cast<float>(across(blob_cells_[j]));
+        const auto mid = tmp_lo_.begin() + static_cast<std::ptrdiff_t>(count / 2);
+        std::nth_element(tmp_lo_.begin(), mid, tmp_lo_.begin() + static_cast<std::ptrdiff_t>(count));
+        half_width = 2.0 * static_cast<double>(*mid) + kBandFringeCells;
+      }
+      for (std::size_t j = 0; j < count; ++j) {
+        std::uint8_t& f = flags_[static_cast<std::size_t>(blob_cells_[j])];
+        if ((f & kMissing) != 0 && across(blob_cells_[j]) <= half_width) f |= kLost;
+      }
+    }
+  }
 }
 
 void Cascade::reset_scan(const Roi& roi) {

@@ -89,6 +89,9 @@ struct CascadeParams {
   double weak_evidence_weight = 0.0;
   double band_elongation = 3.0;
   double band_contact_max = 0.35;
+  // ... and no wider than this (glare bands of strength 1 are 15-35 mm, chains 6-10 mm): a wider region beyond a
+  // template's outline is a larger part, not an artefact.
+  double band_max_width_m = 0.045;
   // learn_thresholds(): an own-class scan whose figure lies more than robust_k robust standard deviations (1.4826
   // MAD) above the median disagrees with the others (glare, a stray edge, a wrong part taught): it is flagged and
   // does not widen the thresholds.
@@ -253,6 +256,8 @@ class Cascade {
                                     int* inliers) const;
   [[nodiscard]] PlanarPose refine_on_outline(const Eigen::Vector2d& centre_m, const PlanarPose& start, double& rms_m);
   void outline_mask(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi);
+  void closed_mask(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi,
+                   std::vector<std::uint8_t>& out);
   [[nodiscard]] Roi grow(const Roi& roi, int cells) const;
   [[nodiscard]] Roi rasterise_template(const TemplateModel& model);
   [[nodiscard]] Roi rasterise_scan(std::span<const ScanPoint> scan, const Eigen::Vector2d& centre_m,
@@ -261,6 +266,8 @@ class Cascade {
   void window_range(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi);
   // Flood-fills the blobs of `bit` (kMissing, or kExtra with `extra`) and weighs each by its shape
   // (CascadeParams::weak_evidence_weight).
+  // Marks the missing cells that lie in a region of lost data (kLost): see the definition.
+  void mark_lost_data(const Roi& roi);
   [[nodiscard]] BlobEvidence blob_evidence(const Roi& roi, std::uint8_t bit, bool extra);
   [[nodiscard]] MatchReport check_at(const Eigen::Vector2d& centre_m, std::span<const ScanPoint> scan,
                                      const PlanarPose& pose, const Roi& template_box);
@@ -283,6 +290,7 @@ class Cascade {
   std::vector<std::int32_t> stack_;     // flood fill, one entry per cell at most
   // Outline refinement: masks, the template outline's distance transform over a box, the scan's outline points.
   std::vector<std::uint8_t> mask_a_, mask_b_;
+  std::vector<std::uint8_t> mask_s_;  // two-way check: the scan's closed mask
   std::vector<std::uint8_t> edt_in_;
   std::vector<float> edt_out_;  // distance to the template outline, cells, over edt_box_
   EdtScratch edt_scratch_;

@@ -97,6 +97,8 @@ struct CandidateOutcome {
   double missing_area_m2 = std::numeric_limits<double>::quiet_NaN();
   double extra_area_m2 = std::numeric_limits<double>::quiet_NaN();
   double evidence_m2 = std::numeric_limits<double>::quiet_NaN();  // weighted evidence against it (ties, margins)
+  double coverage = std::numeric_limits<double>::quiet_NaN();      // share of its template the scan covers
+  double outliers = std::numeric_limits<double>::quiet_NaN();      // share of the scan its template does not explain
   double ms = 0.0;
 };
 

@@ -96,7 +96,8 @@ std::string decision_json(const std::string& scan, const algo::Decision& d, std:
                                         : "\"" + std::string(algo::to_string(c.rejected_by)) + "\"")
       << ", \"value\": " << json_number(c.value) << ", \"limit\": " << json_number(c.limit)
       << ", \"pm_error\": " << json_number(c.pm_error) << ", \"missing_mm2\": " << json_number(c.missing_area_m2 * 1e6)
-      << ", \"extra_mm2\": " << json_number(c.extra_area_m2 * 1e6) << ", \"ms\": " << json_number(c.ms) << "}";
+      << ", \"extra_mm2\": " << json_number(c.extra_area_m2 * 1e6) << ", \"coverage\": " << json_number(c.coverage)
+      << ", \"outliers\": " << json_number(c.outliers) << ", \"ms\": " << json_number(c.ms) << "}";
   }
   o << "]}";
   return o.str();

@@ -427,6 +427,21 @@ SCENARIO("The two-way check sees one pressed rib more or less, which a flat x-y 
         CHECK(v4_on_v3.extra_area_m2 > rib_top_m2);
       }
     }
+    WHEN("the ribbed_v4 scan has a glare band across all ribs that leaves 3 % of the points, checked against v3") {
+      float cy = 0.0F;
+      auto scan4 = sample_part(part("ribbed_v4"), kTestPose, 43);
+      for (const ScanPoint& p : scan4) cy += p.y;
+      cy /= static_cast<float>(scan4.size());
+      std::mt19937_64 rng(44);
+      std::uniform_real_distribution<double> u(0.0, 1.0);
+      std::erase_if(scan4, [&](const ScanPoint& p) { return std::abs(p.y - cy) < 0.012 && u(rng) >= 0.03; });
+      const MatchReport r = cascade.two_way_check(model_of(*t3, 0, 1), scan4, true_relative_pose(*t3, kTestPose));
+      THEN("the rib it lacks still counts fully: depths that disagree are contradiction, never lost data") {
+        INFO("missing " << r.missing_area_m2 * 1e6 << " extra " << r.extra_area_m2 * 1e6 << " mm^2; rib top "
+                        << rib_top_m2 * 1e6);
+        CHECK(r.missing_area_m2 + r.extra_area_m2 > rib_top_m2);
+      }
+    }
     WHEN("the same is done with an unbounded depth tolerance (a flat x-y mask)") {
       CascadeParams flat;
       flat.depth_tolerance_m = 1.0;
@@ -713,6 +728,48 @@ std::vector<ScanPoint> without_band(std::vector<ScanPoint> scan, double x0_m, do
   std::erase_if(scan, [&](const ScanPoint& p) { return p.x >= x0_m && p.x <= x1_m; });
   return scan;
 }
+// Glare that leaves a few points: in x0..x1 only `keep` of the points survive (seeded).
+std::vector<ScanPoint> with_glare_residue(std::vector<ScanPoint> scan, double x0_m, double x1_m, double keep,
+                                          std::uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  std::erase_if(scan, [&](const ScanPoint& p) { return p.x >= x0_m && p.x <= x1_m && u(rng) >= keep; });
+  return scan;
+}
+// A tab of material `length_m` long and `width_m` wide on the sheet's plane sticking out of the part's right edge at
+// its mid-height.
+std::vector<ScanPoint> with_tab_on_right(std::vector<ScanPoint> scan, double width_m, double length_m) {
+  float zsum = 0.0F, ysum = 0.0F, right = -1e9F;
+  for (const ScanPoint& p : scan) {
+    zsum += p.z;
+    ysum += p.y;
+  }
+  const float n = static_cast<float>(scan.size());
+  const float cy = ysum / n;
+  for (const ScanPoint& p : scan) {
+    if (std::abs(p.y - cy) < 0.5 * width_m) right = std::max(right, p.x);
+  }
+  for (double x = 0.0022; x < length_m; x += 0.0022) {
+    for (double y = -0.5 * width_m; y <= 0.5 * width_m; y += 0.0016) {
+      scan.push_back({right + static_cast<float>(x), cy + static_cast<float>(y), zsum / n, 0, 0});
+    }
+  }
+  return scan;
+}
+// A pressed rib the part did not have, x0..x1 by y0..y1: its points come `proud_m` nearer the camera, and the
+// laser's shadow of its long walls takes `shadow_m` on either side.
+std::vector<ScanPoint> with_rib(std::vector<ScanPoint> scan, const Eigen::AlignedBox2d& rib, double proud_m,
+                                double shadow_m) {
+  std::erase_if(scan, [&](const ScanPoint& p) {
+    const bool beside = (p.x >= rib.min().x() - shadow_m && p.x < rib.min().x()) ||
+                        (p.x > rib.max().x() && p.x <= rib.max().x() + shadow_m);
+    return beside && p.y >= rib.min().y() && p.y <= rib.max().y();
+  });
+  for (ScanPoint& p : scan) {
+    if (rib.contains(Eigen::Vector2d(p.x, p.y))) p.z += static_cast<float>(proud_m);
+  }
+  return scan;
+}
 std::vector<ScanPoint> with_dropouts(std::vector<ScanPoint> scan, double share, std::uint64_t seed) {
   std::mt19937_64 rng(seed);
   std::uniform_real_distribution<double> u(0.0, 1.0);
@@ -758,6 +815,46 @@ SCENARIO("Evidence is judged by its shape: data loss and hangers weigh little, a
         INFO("missing " << r.missing_area_m2 * 1e6 << " mm2 (max " << m.thresholds.max_missing_area_m2 * 1e6
                         << "), coverage " << r.coverage << " (max uncovered " << m.thresholds.max_uncovered << ")");
         CHECK(r.passes(m.thresholds));
+      }
+    }
+    WHEN("a 20 mm glare band crosses the part and 3 % of its points survive, scattered") {
+      const auto scan = with_glare_residue(clean, cx - 0.06, cx - 0.04, 0.03, 806);
+      const MatchReport r = cat.cascade().evaluate(m, scan);
+      THEN("it is accepted: the pieces between the surviving points are lost data, not holes") {
+        INFO("missing " << r.missing_area_m2 * 1e6 << " mm2 (max " << m.thresholds.max_missing_area_m2 * 1e6
+                        << "), coverage " << r.coverage << " (max uncovered " << m.thresholds.max_uncovered << ")");
+        CHECK(r.passes(m.thresholds));
+      }
+    }
+    WHEN("the scan is of plate_5h and a glare band that leaves 3 % of the points crosses it beside the hole") {
+      // (A band over the hole itself would hide it: what no point shows cannot be told; the README says so.)
+      const auto scan = with_glare_residue(sample_part(part("plate_5h"), kTestPose, 807), cx - 0.1, cx - 0.07, 0.03,
+                                           808);
+      const MatchReport r = cat.cascade().evaluate(m, scan);
+      THEN("it is not taken for plate_4h: the empty hole next to lost data is still a hole") {
+        INFO("missing " << r.missing_area_m2 * 1e6 << " mm2, coverage " << r.coverage);
+        CHECK_FALSE(r.passes(m.thresholds));
+      }
+    }
+    WHEN("a 52 mm wide tab sticks 185 mm out of its right edge (another part's shape, not a chain)") {
+      const MatchReport r = cat.cascade().evaluate(m, with_tab_on_right(clean, 0.052, 0.185));
+      THEN("the block weighs fully and rejects it: a band that wide is material, not an artefact") {
+        INFO("extra " << r.extra_area_m2 * 1e6 << " mm2 (max " << m.thresholds.max_extra_area_m2 * 1e6 << ")");
+        CHECK(r.extra_area_m2 > 0.5 * 0.052 * 0.185);
+        CHECK_FALSE(r.passes(m.thresholds));
+      }
+    }
+    WHEN("the scan has a 20 mm rib the template lacks, its walls shadowed (a long empty strip either side)") {
+      float cy = 0.0F;
+      for (const ScanPoint& p : clean) cy += p.y;
+      cy /= static_cast<float>(clean.size());
+      // From the bottom edge up to 100 mm below the top: open at one end, like a glare band touching the outline.
+      const Eigen::AlignedBox2d rib(Eigen::Vector2d(cx + 0.05, cy - 0.5), Eigen::Vector2d(cx + 0.07, cy + 0.25));
+      const MatchReport r = cat.cascade().evaluate(m, with_rib(clean, rib, 0.02, 0.006));
+      THEN("the rib weighs fully and rejects it: depths that disagree are contradiction, whatever their shape") {
+        INFO("missing " << r.missing_area_m2 * 1e6 << " extra " << r.extra_area_m2 * 1e6 << " mm2");
+        CHECK(r.missing_area_m2 + r.extra_area_m2 > 0.5 * 0.02 * 0.5);
+        CHECK_FALSE(r.passes(m.thresholds));
       }
     }
     WHEN("5 % of the points drop out") {

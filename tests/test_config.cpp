@@ -113,6 +113,7 @@ TEST_CASE("Given the shipped config file, when it is loaded, then it is valid an
   CHECK(cfg->cascade.weak_evidence_weight == d.cascade.weak_evidence_weight);
   CHECK(cfg->cascade.band_elongation == d.cascade.band_elongation);
   CHECK(cfg->cascade.band_contact_max == d.cascade.band_contact_max);
+  CHECK(cfg->cascade.band_max_width_m == d.cascade.band_max_width_m);
   CHECK(cfg->cascade.robust_k == d.cascade.robust_k);
   CHECK(cfg->cascade.blob_window_m == d.cascade.blob_window_m);
   CHECK(cfg->cascade.depth_tolerance_m == d.cascade.depth_tolerance_m);
