@@ -98,6 +98,11 @@ std::string manifest_text(const Manifest& m) {
       for (const std::string& c : p.confusable) list += (list.empty() ? "" : ",") + c;
       t << "    confusable: " << quoted(list) << "\n";
     }
+    if (!p.flagged.empty()) {
+      std::string list;
+      for (const std::string& f : p.flagged) list += (list.empty() ? "" : ",") + f;
+      t << "    flagged: " << quoted(list) << "\n";
+    }
     t << "    scans:" << (p.scans.empty() ? " []" : "") << "\n";
     for (const ScanEntry& s : p.scans) {
       t << "      - {file: " << quoted(s.file) << ", crc32: \"" << hex32(s.crc32) << "\", source: " << quoted(s.source)
@@ -213,6 +218,8 @@ Expected<Manifest> parse_manifest(const std::string& path, const std::string& by
         }
       }
     }
+    std::string flagged;
+    p.text("flagged", flagged, true);  // optional: none flagged, or trained before scans were flagged
     {
       YamlSection t = p.section("thresholds");
       t.boolean("learnt", e.thresholds.learnt);
@@ -238,6 +245,17 @@ Expected<Manifest> parse_manifest(const std::string& path, const std::string& by
       if (!safe_relative(se.file)) s.error("file", "must be a path inside the database");
       s.finish();
       e.scans.push_back(std::move(se));
+    }
+    {
+      std::stringstream in(flagged);
+      for (std::string file; std::getline(in, file, ',');) {
+        const bool known = std::any_of(e.scans.begin(), e.scans.end(), [&](const ScanEntry& se) { return se.file == file; });
+        if (!known) {
+          p.error("flagged", "'" + file + "' is not one of the part's scans");
+        } else {
+          e.flagged.push_back(file);
+        }
+      }
     }
     p.finish();
     m.parts.push_back(std::move(e));

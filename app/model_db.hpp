@@ -49,6 +49,9 @@ struct PartEntry {
   }
   // Look-alikes learnt at training (algo::near_pass): verified too whenever this part passes. Names of parts.
   std::vector<std::string> confusable;
+  // Taught scans (ScanEntry::file) the last training found disagreeing with the others (algo::learn_thresholds): they
+  // did not widen the thresholds; `parts list` / `show` name them so the operator can look (glare, the wrong part).
+  std::vector<std::string> flagged;
 };
 
 struct SvmEntry {

@@ -153,8 +153,8 @@ Expected<TemplateChoice> choose_template(const Config& config, ScanPreparer& pre
 }
 
 void print_part(const ModelDb& db, const PartEntry& p, bool detail) {
-  std::printf("%-24s %6d %6zu  %-5s %s\n", p.name.c_str(), p.id, p.scans.size(), p.thresholds.learnt ? "yes" : "no",
-              p.taught_at.c_str());
+  std::printf("%-24s %6d %6zu %7zu  %-5s %s\n", p.name.c_str(), p.id, p.scans.size(), p.flagged.size(),
+              p.thresholds.learnt ? "yes" : "no", p.taught_at.c_str());
   if (!detail) return;
   auto info = read_template_info(db.path_of(p.template_file));
   if (info) {
@@ -178,7 +178,11 @@ void print_part(const ModelDb& db, const PartEntry& p, bool detail) {
                 p.thresholds.max_error, p.thresholds.max_missing_area_m2 * 1e6, p.thresholds.max_uncovered * 100.0,
                 p.thresholds.max_extra_area_m2 * 1e6, p.thresholds.max_outliers * 100.0);
   }
-  for (const ScanEntry& s : p.scans) std::printf("  scan         %s  (%s)\n", s.file.c_str(), s.source.c_str());
+  for (const ScanEntry& s : p.scans) {
+    const bool flagged = std::find(p.flagged.begin(), p.flagged.end(), s.file) != p.flagged.end();
+    std::printf("  scan         %s  (%s)%s\n", s.file.c_str(), s.source.c_str(),
+                flagged ? "  FLAGGED: disagrees with the others, left out of the thresholds" : "");
+  }
 }
 
 }  // namespace
@@ -335,7 +339,7 @@ int run_parts(const std::vector<std::string>& words, const Config& config, const
   auto db = ModelDb::open(models_dir, grid_spec(config), false);
   if (!db) return fail(kExitUsage, db.error().message);
   if (action == "list" && args.positional.size() == 1) {
-    std::printf("%-24s %6s %6s  %-5s %s\n", "part", "id", "scans", "thr", "taught");
+    std::printf("%-24s %6s %6s %7s  %-5s %s\n", "part", "id", "scans", "flagged", "thr", "taught");
     for (const PartEntry& p : db->manifest().parts) print_part(*db, p, false);
     const std::string stale = db->svm_stale_reason();
     if (stale.empty()) {

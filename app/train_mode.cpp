@@ -321,6 +321,7 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
   if (!others) return fail(kExitFailure, "thresholds: " + others.error().message);
   std::vector<PartThresholds> thresholds;
   std::vector<algo::TemplateThresholds> learnt_thresholds;
+  std::vector<std::vector<std::string>> flagged(m.parts.size());
   for (std::size_t c = 0; c < taught->own_matches.size(); ++c) {
     const algo::ThresholdLearning learnt =
         algo::learn_thresholds(taught->own_matches[c], (*others)[c], cascade_params(config));
@@ -328,7 +329,9 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
     learnt_thresholds.push_back(t);
     thresholds.push_back({true, t.max_error, t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered, t.max_outliers});
     const PartEntry& part = m.parts[c];
+    flagged[c].clear();
     for (const int i : learnt.flagged) {
+      flagged[c].push_back(part.scans[static_cast<std::size_t>(i)].file);
       const algo::MatchReport& r = taught->own_matches[c][static_cast<std::size_t>(i)];
       std::printf("warning: %s: taught scan %s disagrees with the other scans of the part (PM error %.3g, missing "
                   "%.0f mm2, extra %.0f mm2): it does not widen the thresholds; check it (glare, a stray part, the "
@@ -388,6 +391,7 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
   for (std::size_t c = 0; c < mm.parts.size(); ++c) {
     mm.parts[c].thresholds = thresholds[c];
     mm.parts[c].confusable.assign(confusable[c].begin(), confusable[c].end());
+    mm.parts[c].flagged = flagged[c];
   }
   if (auto ok = db->save(); !ok) {
     std::error_code ec;

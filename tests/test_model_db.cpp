@@ -323,6 +323,31 @@ TEST_CASE("a manifest that was edited or damaged is refused") {
   CHECK(wrong.error().message.find("149x250x91") != std::string::npos);
 }
 
+TEST_CASE("scans flagged at training survive a save and must name scans of the part", "[model_db]") {
+  const SmallCell cell = SmallCell::named("flagged");
+  app::ModelDb db = *app::ModelDb::open(cell.models, app::grid_spec(cell.config), true);
+  app::PartEntry p;
+  p.name = "plate";
+  p.id = 3;
+  p.template_file = "templates/plate.dmap";
+  p.scans.push_back({"scans/plate/00001.ply", 0x1234abcdU, "test"});
+  p.scans.push_back({"scans/plate/00002.ply", 0x1234abceU, "test"});
+  p.flagged = {"scans/plate/00002.ply"};
+  db.manifest().parts.push_back(p);
+  REQUIRE(db.save().ok());
+  auto reopened = app::ModelDb::open(cell.models, app::grid_spec(cell.config), false);
+  REQUIRE(reopened.ok());
+  CHECK(reopened->manifest().parts.at(0).flagged == std::vector<std::string>{"scans/plate/00002.ply"});
+
+  // A flagged name that is not one of the part's scans (saved through the API, so the checksum holds): refused,
+  // the key named.
+  reopened->manifest().parts.at(0).flagged = {"scans/plate/00003.ply"};
+  REQUIRE(reopened->save().ok());
+  auto refused = app::ModelDb::open(cell.models, app::grid_spec(cell.config), false);
+  REQUIRE_FALSE(refused.ok());
+  CHECK(refused.error().message.find("flagged") != std::string::npos);
+}
+
 // Not a test of its own ([.]: ctest runs it by name as the fixture "plc_db", tests/CMakeLists.txt): the small trained
 // database that tests/test_run_plc.py runs `cellsight run --sim` with, in the build folder. Three parts, two of them
 // differing by one hole; channel_u stays untaught, so the run must report it as unknown.
