@@ -268,20 +268,33 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
     return fail(kExitUsage, "the database " + models_dir + " has " + std::to_string(m.parts.size()) +
                                 " part(s); the SVM needs at least two taught parts");
   }
+  // A part taught with few scans (5 is a normal first teach) lowers the folds to its training scans rather than
+  // being refused: cross-validation needs at least two, and one scan must stay back for the test.
+  constexpr int kMinFolds = 2;
   int min_scans = INT32_MAX;
   for (const PartEntry& p : m.parts) {
     const int n = static_cast<int>(p.scans.size());
     const int train_n = static_cast<int>(std::lround(config.svm.train_fraction * n));
-    if (train_n < params.folds || n - train_n < 1) {
+    if (train_n < kMinFolds || n - train_n < 1) {
+      int need = kMinFolds + 1;
+      while (static_cast<int>(std::lround(config.svm.train_fraction * need)) < kMinFolds ||
+             need - static_cast<int>(std::lround(config.svm.train_fraction * need)) < 1) {
+        ++need;
+      }
       return fail(kExitUsage, "part '" + p.name + "' has " + std::to_string(n) + " scans: with train_fraction " +
-                                  std::to_string(config.svm.train_fraction) + " and " + std::to_string(params.folds) +
-                                  "-fold cross-validation it needs at least " +
-                                  std::to_string(static_cast<int>(std::ceil(params.folds / config.svm.train_fraction)) + 1) +
-                                  " (teach more: cellsight teach --part " + p.name + " ...)");
+                                  std::to_string(config.svm.train_fraction) + " it needs at least " +
+                                  std::to_string(need) + " (two for cross-validation, one held back for the test; " +
+                                  "teach more: cellsight teach --part " + p.name + " ...)");
     }
     min_scans = std::min(min_scans, n);
   }
   const int train_per_class = static_cast<int>(std::lround(config.svm.train_fraction * min_scans));
+  if (train_per_class < params.folds) {
+    std::printf("note: %d-fold cross-validation instead of %d: the part with the fewest scans has %d for training "
+                "(teach more scans for the configured folds)\n",
+                train_per_class, params.folds, train_per_class);
+    params.folds = train_per_class;
+  }
 
   const std::string* calibration_arg = args.value("--calibration");
   auto support = load_support_plane(calibration_arg ? *calibration_arg : default_calibration_path(config));

@@ -323,6 +323,26 @@ TEST_CASE("a manifest that was edited or damaged is refused") {
   CHECK(wrong.error().message.find("149x250x91") != std::string::npos);
 }
 
+TEST_CASE("a part taught with few scans lowers the folds; too few for any test is refused with the count needed",
+          "[cycle]") {
+  const SmallCell cell = SmallCell::named("few");  // 3-fold CV configured
+  REQUIRE(cell.run("teach --sim --part plate_4h --count 3").exit_code == 0);
+  REQUIRE(cell.run("teach --sim --part bracket_l --count 2").exit_code == 0);
+  // Given 2 scans of bracket_l (one to train, one to test): no cross-validation is possible.
+  const Run refused = cell.run("train");
+  INFO(refused.output);
+  CHECK(refused.exit_code == 2);
+  CHECK(refused.output.find("'bracket_l' has 2 scans") != std::string::npos);
+  CHECK(refused.output.find("at least 3") != std::string::npos);
+  // Given 3 each (two to train): 2-fold instead of 3, said so, and a model that classifies.
+  REQUIRE(cell.run("teach --sim --part bracket_l --count 1 --seed 3").exit_code == 0);
+  const Run trained = cell.run("train");
+  INFO(trained.output);
+  REQUIRE(trained.exit_code == 0);
+  CHECK(trained.output.find("2-fold cross-validation instead of 3") != std::string::npos);
+  CHECK(cell.run("parts list").output.find("stale") == std::string::npos);
+}
+
 TEST_CASE("scans flagged at training survive a save and must name scans of the part", "[model_db]") {
   const SmallCell cell = SmallCell::named("flagged");
   app::ModelDb db = *app::ModelDb::open(cell.models, app::grid_spec(cell.config), true);
