@@ -29,7 +29,11 @@ constexpr double kSparseShare = 0.35;
 constexpr double kMinPorosity = 0.005;
 constexpr std::size_t kMinLostPoints = 5;
 constexpr int kMinLostGroupCells = 12;
-constexpr double kBandFringeCells = 1.5;  // a lost band's cells reach this far beyond its edge (the window)
+constexpr double kBandFringeCells = 1.5;
+// measure_size: columns / rows this close to the template's ends are left out (a turned part's edge is slanted
+// there); fewer than kMinSizeLines usable ones measure nothing.
+constexpr int kSizeEndCells = 3;
+constexpr int kMinSizeLines = 8;  // a lost band's cells reach this far beyond its edge (the window)
 
 // Second moments of a set of cells, for its elongation (major / minor axis of the equivalent ellipse).
 struct CellMoments {
@@ -150,13 +154,20 @@ struct OutlineField {
 
 namespace {
 
-// The five gated figures of a report, in TemplateThresholds order.
-constexpr int kFigures = 5;
-[[nodiscard]] std::array<double, kFigures> figures_of(const MatchReport& r) {
-  return {r.pm.error, r.missing_area_m2, r.extra_area_m2, 1.0 - r.coverage, r.scan_outliers};
+// The six gated figures of a report, in TemplateThresholds order (the size's deviation needs the template's centres).
+constexpr int kFigures = 6;
+constexpr int kSizeFigure = 5;
+[[nodiscard]] std::array<double, kFigures> figures_of(const MatchReport& r, const TemplateThresholds& t) {
+  return {r.pm.error,        r.missing_area_m2, r.extra_area_m2, 1.0 - r.coverage, r.scan_outliers,
+          t.size_deviation(r.size_dx_m, r.size_dy_m)};
 }
 [[nodiscard]] std::array<double, kFigures> limits_of(const TemplateThresholds& t) {
-  return {t.max_error, t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered, t.max_outliers};
+  return {t.max_error, t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered, t.max_outliers, t.max_size_dev_m};
+}
+// Whether a figure fails its limit: NaN fails, except the size's (unmeasured; MatchReport::check_passes).
+[[nodiscard]] bool fails(int figure, double value, double limit) {
+  if (figure == kSizeFigure) return value > limit;
+  return !(value <= limit);
 }
 void set_limit(TemplateThresholds& t, int figure, double v) {
   switch (figure) {
@@ -172,14 +183,17 @@ void set_limit(TemplateThresholds& t, int figure, double v) {
     case 3:
       t.max_uncovered = v;
       break;
-    default:
+    case 4:
       t.max_outliers = v;
+      break;
+    default:
+      t.max_size_dev_m = v;
       break;
   }
 }
-constexpr RejectReason kFigureReason[kFigures] = {RejectReason::kPmError, RejectReason::kMissingArea,
+constexpr RejectReason kFigureReason[kFigures] = {RejectReason::kPmError,   RejectReason::kMissingArea,
                                                   RejectReason::kExtraArea, RejectReason::kUncovered,
-                                                  RejectReason::kOutliers};
+                                                  RejectReason::kOutliers,  RejectReason::kSize};
 
 [[nodiscard]] double median_of(std::vector<double> v) {
   if (v.empty()) return 0.0;
@@ -191,10 +205,10 @@ constexpr RejectReason kFigureReason[kFigures] = {RejectReason::kPmError, Reject
 }  // namespace
 
 RejectReason first_failed_gate(const MatchReport& report, const TemplateThresholds& t, double& value, double& limit) {
-  const auto f = figures_of(report);
+  const auto f = figures_of(report, t);
   const auto l = limits_of(t);
   for (int i = 0; i < kFigures; ++i) {
-    if (!(f[static_cast<std::size_t>(i)] <= l[static_cast<std::size_t>(i)])) {  // NaN fails
+    if (fails(i, f[static_cast<std::size_t>(i)], l[static_cast<std::size_t>(i)])) {
       value = f[static_cast<std::size_t>(i)];
       limit = l[static_cast<std::size_t>(i)];
       return kFigureReason[i];
@@ -205,10 +219,10 @@ RejectReason first_failed_gate(const MatchReport& report, const TemplateThreshol
 }
 
 bool near_pass(const MatchReport& report, const TemplateThresholds& t, double factor) {
-  const auto f = figures_of(report);
+  const auto f = figures_of(report, t);
   const auto l = limits_of(t);
   for (int i = 0; i < kFigures; ++i) {
-    if (!(f[static_cast<std::size_t>(i)] <= factor * l[static_cast<std::size_t>(i)])) return false;
+    if (fails(i, f[static_cast<std::size_t>(i)], factor * l[static_cast<std::size_t>(i)])) return false;
   }
   return true;
 }
@@ -216,18 +230,31 @@ bool near_pass(const MatchReport& report, const TemplateThresholds& t, double fa
 ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::span<const MatchReport> other_classes,
                                    const CascadeParams& params) {
   ThresholdLearning out;
-  const double factor[kFigures] = {params.error_factor, params.area_factor, params.area_factor, params.share_factor,
-                                   params.share_factor};
-  const double floor[kFigures] = {params.error_floor, params.area_floor_m2, params.area_floor_m2, params.share_floor,
-                                  params.share_floor};
+  const double factor[kFigures] = {params.error_factor, params.area_factor,  params.area_factor,
+                                   params.share_factor, params.share_factor, params.size_factor};
+  const double floor[kFigures] = {params.error_floor, params.area_floor_m2, params.area_floor_m2,
+                                  params.share_floor, params.share_floor,   params.size_floor_m};
+  // 0. The size's centres: the own class's medians (all its scans: a median is not moved by the few that disagree).
+  {
+    std::vector<double> dx, dy;
+    for (const MatchReport& r : own_class) {
+      if (std::isfinite(r.size_dx_m)) dx.push_back(r.size_dx_m);
+      if (std::isfinite(r.size_dy_m)) dy.push_back(r.size_dy_m);
+    }
+    out.thresholds.size_centre_x_m = median_of(dx);
+    out.thresholds.size_centre_y_m = median_of(dy);
+  }
+  const TemplateThresholds& centres = out.thresholds;
   // 1. Robust agreement: per figure the median and the MAD of the own class; a scan above median + k sigma on any
   //    figure disagrees. Sigma never goes below a quarter of the floor, so scans that are all alike do not flag the
   //    one that is a hair above them.
   std::vector<char> disagrees(own_class.size(), 0);
-  for (int f = 0; f < kFigures; ++f) {
+  // (Not by the size: sampling makes its own-class values two-valued where the part lies square to the sampling, one
+  // step apart, which a robust sigma of the majority would call disagreement.)
+  for (int f = 0; f < kSizeFigure; ++f) {
     std::vector<double> v;
     for (const MatchReport& r : own_class) {
-      const double x = figures_of(r)[static_cast<std::size_t>(f)];
+      const double x = figures_of(r, centres)[static_cast<std::size_t>(f)];
       if (std::isfinite(x)) v.push_back(x);
     }
     if (v.size() < 3) continue;  // too few to tell who disagrees
@@ -236,8 +263,8 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
     const double sigma = std::max(1.4826 * median_of(v), 0.25 * floor[f]);
     const double cut = med + params.robust_k * sigma;
     for (std::size_t i = 0; i < own_class.size(); ++i) {
-      const double x = figures_of(own_class[i])[static_cast<std::size_t>(f)];
-      if (!(x <= cut)) disagrees[i] = 1;
+      const double x = figures_of(own_class[i], centres)[static_cast<std::size_t>(f)];
+      if (fails(f, x, cut)) disagrees[i] = 1;
     }
   }
   // Never flag the majority: with half or more disagreeing the "others" are no reference.
@@ -251,7 +278,7 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
       out.flagged.push_back(static_cast<int>(i));
       continue;
     }
-    const auto x = figures_of(own_class[i]);
+    const auto x = figures_of(own_class[i], centres);
     for (int f = 0; f < kFigures; ++f) {
       if (std::isfinite(x[static_cast<std::size_t>(f)])) {
         own_max[static_cast<std::size_t>(f)] = std::max(own_max[static_cast<std::size_t>(f)], x[static_cast<std::size_t>(f)]);
@@ -260,7 +287,7 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
   }
   for (int f = 0; f < kFigures; ++f) {
     double v = own_max[static_cast<std::size_t>(f)] * factor[f] + floor[f];
-    if (f >= 3) v = std::min(1.0, v);
+    if (f == 3 || f == 4) v = std::min(1.0, v);  // shares
     set_limit(out.thresholds, f, v);
   }
   // 3. Margin to the runner-up: an other-class scan that would pass is pushed out by the figure on which it stands
@@ -274,7 +301,7 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
       ++out.other_scans_rejected;
       continue;
     }
-    const auto x = figures_of(r);
+    const auto x = figures_of(r, out.thresholds);
     int best = -1;
     double best_ratio = kClearSeparation;
     for (int f = 0; f < kFigures; ++f) {
@@ -337,6 +364,14 @@ Cascade::Cascade(const CascadeParams& params, const PerfectMatchParams& pm_param
   mask_a_.assign(cells, 0);
   mask_b_.assign(cells, 0);
   mask_s_.assign(cells, 0);
+  col_lo_.assign(static_cast<std::size_t>(width_), kEmptyLo);
+  col_hi_.assign(static_cast<std::size_t>(width_), kEmptyHi);
+  row_lo_.assign(static_cast<std::size_t>(height_), kEmptyLo);
+  row_hi_.assign(static_cast<std::size_t>(height_), kEmptyHi);
+  const auto lines = static_cast<std::size_t>(std::max(width_, height_));
+  size_lo_.assign(lines, 0);
+  size_hi_.assign(lines, 0);
+  size_work_.assign(lines, 0.0);
   edt_in_.assign(cells, 0);
   edt_out_.assign(cells, 0.0F);
   outline_.assign(cells, Eigen::Vector2d::Zero());
@@ -394,6 +429,7 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
       o.coverage = c.report.coverage;
       o.outliers = c.report.scan_outliers;
       const TemplateModel* t = template_of(c.class_index);
+      if (t != nullptr) o.size_dev_m = t->thresholds.size_deviation(c.report.size_dx_m, c.report.size_dy_m);
       if (t == nullptr) {
         o.rejected_by = RejectReason::kNoTemplate;
       } else if (!c.passed) {
@@ -509,16 +545,21 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
     const double r = runner->report.evidence_m2;
     clear = b <= params_.margin_ratio * r && r - b >= params_.margin_floor_m2;
   }
-  // A look-alike of the winner that failed only narrowly (every figure within near_fail_factor of its limit) is no
-  // clear margin either: between twins a hair decides, and a hair is noise.
+  // A look-alike of the winner that failed only narrowly (every figure within near_fail_factor of its limit) counts
+  // as a runner-up that passed: the winner needs the same clear margin of evidence over it. Between twins a hair
+  // decides, and a hair is noise; but a winner with next to no evidence against it beside a look-alike with a
+  // hole's worth (a near twin's scan, a glare band that left the true part narrowly failing would not) is decided.
   if (best != nullptr && clear) {
     const TemplateModel* bt = template_of(best->class_index);
+    const double b = best->report.evidence_m2;
     for (std::size_t j = 0; j < k && clear && bt != nullptr; ++j) {
       const Candidate& c = candidates_[j];
       if (!c.evaluated || c.passed || &c == best) continue;
       if (std::find(bt->confusable.begin(), bt->confusable.end(), c.class_index) == bt->confusable.end()) continue;
       const TemplateModel* ct = template_of(c.class_index);
-      if (ct != nullptr && near_pass(c.report, ct->thresholds, params_.near_fail_factor)) clear = false;
+      if (ct == nullptr || !near_pass(c.report, ct->thresholds, params_.near_fail_factor)) continue;
+      const double r = c.report.evidence_m2;
+      if (!(b <= params_.margin_ratio * r && r - b >= params_.margin_floor_m2)) clear = false;
     }
   }
   if (best != nullptr && clear && settled) {
@@ -702,6 +743,7 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
       }
     }
     const double cell_area_m2 = resolution_m_ * resolution_m_;
+    measure_size(roi, r);
     mark_lost_data(roi);
     const BlobEvidence missing = blob_evidence(roi, kMissing, false);
     const BlobEvidence extra = blob_evidence(roi, kExtra, true);
@@ -980,6 +1022,11 @@ Cascade::Roi Cascade::rasterise_scan(std::span<const ScanPoint> scan, const Eige
   int outside = 0;
   float* lo = s_lo_.data();
   float* hi = s_hi_.data();
+  // The scan's own extent per raster column (y, continuous cell units) and row (x), for the outer size.
+  std::fill(col_lo_.begin(), col_lo_.end(), kEmptyLo);
+  std::fill(col_hi_.begin(), col_hi_.end(), kEmptyHi);
+  std::fill(row_lo_.begin(), row_lo_.end(), kEmptyLo);
+  std::fill(row_hi_.begin(), row_hi_.end(), kEmptyHi);
   for (const ScanPoint& p : scan) {
     const double fx = axx * p.x + axy * p.y + bx;
     const double fy = ayx * p.x + ayy * p.y + by;
@@ -992,6 +1039,11 @@ Cascade::Roi Cascade::rasterise_scan(std::span<const ScanPoint> scan, const Eige
     const std::size_t i = static_cast<std::size_t>(y) * w + static_cast<std::size_t>(x);
     lo[i] = std::min(lo[i], p.z);
     hi[i] = std::max(hi[i], p.z);
+    const auto xs = static_cast<std::size_t>(x), ys = static_cast<std::size_t>(y);
+    col_lo_[xs] = std::min(col_lo_[xs], static_cast<float>(fy));
+    col_hi_[xs] = std::max(col_hi_[xs], static_cast<float>(fy));
+    row_lo_[ys] = std::min(row_lo_[ys], static_cast<float>(fx));
+    row_hi_[ys] = std::max(row_hi_[ys], static_cast<float>(fx));
     x0 = std::min(x0, x);
     x1 = std::max(x1, x);
     y0 = std::min(y0, y);
@@ -1182,6 +1234,54 @@ Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, b
   return out;
 }
 
+void Cascade::measure_size(const Roi& roi, MatchReport& r) {
+  // Per template column: the scan's height there (its points' own y extent, continuous) less the template's (its
+  // occupied cells' centres: a surface spanning [a, b] gives floor(b) - floor(a), b - a on average); the median over
+  // the columns that both hold, away from the template's left and right ends (slanted there by a turn). The same
+  // per row for the width. Extents do not move with the pose, so Perfect Match splitting a 5 mm difference into
+  // 2.5 mm at either edge (which no area sees) leaves it whole here. Glare, a chain or a hook spoils some columns;
+  // the trimmed mean does not mind.
+  auto measure = [&](bool columns, double& out_m) {
+    const int a0 = columns ? roi.x0 : roi.y0, a1 = columns ? roi.x1 : roi.y1;  // along the axis measured across
+    const int b0 = columns ? roi.y0 : roi.x0, b1 = columns ? roi.y1 : roi.x1;
+    const std::vector<float>& s_lo = columns ? col_lo_ : row_lo_;
+    const std::vector<float>& s_hi = columns ? col_hi_ : row_hi_;
+    int first = a1, last = a0 - 1;  // the template's span along a
+    std::size_t n = 0;
+    for (int a = a0; a < a1; ++a) {
+      int lo = b1, hi = b0 - 1;
+      for (int b = b0; b < b1; ++b) {
+        const std::size_t i = columns ? static_cast<std::size_t>(b) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(a)
+                                      : static_cast<std::size_t>(a) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(b);
+        if (t_lo_[i] <= t_hi_[i]) {
+          lo = std::min(lo, b);
+          hi = std::max(hi, b);
+        }
+      }
+      size_lo_[static_cast<std::size_t>(a)] = lo;
+      size_hi_[static_cast<std::size_t>(a)] = hi;
+      if (hi >= lo) {
+        first = std::min(first, a);
+        last = std::max(last, a);
+      }
+    }
+    for (int a = first + kSizeEndCells; a <= last - kSizeEndCells; ++a) {
+      const auto k = static_cast<std::size_t>(a);
+      if (!(size_hi_[k] >= size_lo_[k]) || !(s_lo[k] <= s_hi[k])) continue;
+      size_work_[n++] = static_cast<double>(s_hi[k] - s_lo[k]) - static_cast<double>(size_hi_[k] - size_lo_[k]);
+    }
+    if (n < static_cast<std::size_t>(kMinSizeLines)) return;
+    // The interquartile mean, not the median: a template edge a little turned against the raster makes its
+    // extents a staircase of two values, whose median jumps by a whole cell with the share of either.
+    std::sort(size_work_.begin(), size_work_.begin() + static_cast<std::ptrdiff_t>(n));
+    double sum = 0.0;
+    for (std::size_t j = n / 4; j < n - n / 4; ++j) sum += size_work_[j];
+    out_m = sum / static_cast<double>(n - 2 * (n / 4)) * resolution_m_;
+  };
+  measure(true, r.size_dy_m);
+  measure(false, r.size_dx_m);
+}
+
 void Cascade::mark_lost_data(const Roi& roi) {
   // Glare or a dark patch leaves a band where most, not all, points are lost: the window-based "seen" test turns it
   // into many small enclosed missing pieces, each shaped like a hole. What tells them from a hole the scan really has
@@ -1234,20 +1334,51 @@ void Cascade::mark_lost_data(const Roi& roi) {
       w_hi_[row + static_cast<std::size_t>(x)] = tpl;
     }
   }
+  // The template's outside (mask_b_, free here): what the box's edge reaches through cells outside its closed mask.
+  // The rest of those cells are its holes, which a group passes through: a glare band crossing a hole is one band,
+  // not a long piece and a short one the hole cut off (which alone would look like a notch at the edge).
+  const int wi = width_;
+  {
+    std::size_t top = 0;
+    for (int y = roi.y0; y < roi.y1; ++y) {
+      for (int x = roi.x0; x < roi.x1; ++x) {
+        const auto i = static_cast<std::size_t>(y * wi + x);
+        mask_b_[i] = 0;
+        const bool edge = x == roi.x0 || y == roi.y0 || x + 1 == roi.x1 || y + 1 == roi.y1;
+        if (edge && mask_a_[i] == 0) stack_[top++] = static_cast<std::int32_t>(i);
+      }
+    }
+    for (std::size_t k = 0; k < top; ++k) mask_b_[static_cast<std::size_t>(stack_[k])] = 1;
+    while (top > 0) {
+      const std::int32_t c = stack_[--top];
+      const int cx = c % wi, cy = c / wi;
+      const std::int32_t neighbours[4] = {c - 1, c + 1, c - wi, c + wi};
+      const bool inside[4] = {cx > roi.x0, cx + 1 < roi.x1, cy > roi.y0, cy + 1 < roi.y1};
+      for (int k = 0; k < 4; ++k) {
+        const auto n = static_cast<std::size_t>(neighbours[k]);
+        if (inside[k] && mask_a_[n] == 0 && mask_b_[n] == 0) {
+          mask_b_[n] = 1;
+          stack_[top++] = neighbours[k];
+        }
+      }
+    }
+  }
+  auto template_hole = [&](std::size_t i) { return mask_a_[i] == 0 && mask_b_[i] == 0; };
   // A missing cell the scan does cover, at another depth (a rib the template lacks), is contradiction, not loss:
   // it neither joins a group nor becomes lost data.
   auto in_group = [&](std::size_t i) {
-    if (!(t_lo_[i] <= t_hi_[i]) || (flags_[i] & kGrouped) != 0) return false;
+    if ((flags_[i] & kGrouped) != 0) return false;
+    if (template_hole(i)) return true;
+    if (!(t_lo_[i] <= t_hi_[i])) return false;
     if ((flags_[i] & kMissing) != 0) return !(s_lo_[i] <= s_hi_[i]);
     return static_cast<double>(w_lo_[i]) < kSparseShare * typical * static_cast<double>(w_hi_[i]);
   };
-  const int wi = width_;
   for (int y = roi.y0; y < roi.y1; ++y) {
     for (int x = roi.x0; x < roi.x1; ++x) {
       const auto seed = static_cast<std::size_t>(y * wi + x);
       if ((flags_[seed] & kMissing) == 0 || !in_group(seed)) continue;
       flags_[seed] |= kGrouped;
-      std::size_t top = 0, count = 0, with_points = 0;
+      std::size_t top = 0, count = 0, with_points = 0, template_count = 0;
       CellMoments moments;
       int boundary = 0, contact = 0;
       stack_[top++] = static_cast<std::int32_t>(seed);
@@ -1255,6 +1386,7 @@ void Cascade::mark_lost_data(const Roi& roi) {
         const std::int32_t c = stack_[--top];
         blob_cells_[count++] = c;
         const auto ci = static_cast<std::size_t>(c);
+        if (t_lo_[ci] <= t_hi_[ci]) ++template_count;
         if ((flags_[ci] & kMissing) == 0 && occupied(ci)) ++with_points;  // a seen cell, sparse: glare's residue
         const int cx = c % wi;
         const int cy = c / wi;
@@ -1271,14 +1403,14 @@ void Cascade::mark_lost_data(const Roi& roi) {
           }
           if (inside[k] && !(t_lo_[n] <= t_hi_[n]) && mask_a_[n] != 0) continue;  // a sampling gap (blob_evidence)
           ++boundary;
-          if (!inside[k] || mask_a_[n] == 0) ++contact;
+          if (!inside[k] || mask_b_[n] != 0) ++contact;
         }
       }
-      if (count < static_cast<std::size_t>(kMinLostGroupCells)) continue;
+      if (template_count < static_cast<std::size_t>(kMinLostGroupCells)) continue;
       // Porous (points survive inside), or a band across the part that the residue cut into enclosed pieces: both
       // are lost data.
       const bool porous = with_points >= kMinLostPoints &&
-                          static_cast<double>(with_points) >= kMinPorosity * static_cast<double>(count);
+                          static_cast<double>(with_points) >= kMinPorosity * static_cast<double>(template_count);
       const bool band = contact > 0 && moments.elongation() >= params_.band_elongation &&
                         static_cast<double>(contact) <= params_.band_contact_max * static_cast<double>(boundary) &&
                         moments.minor_width() * resolution_m_ <= params_.band_max_width_m;

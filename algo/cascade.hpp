@@ -3,8 +3,11 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstdint>
+#include <limits>
 #include <span>
 #include <vector>
 
@@ -92,6 +95,13 @@ struct CascadeParams {
   // ... and no wider than this (glare bands of strength 1 are 15-35 mm, chains 6-10 mm): a wider region beyond a
   // template's outline is a larger part, not an artefact.
   double band_max_width_m = 0.045;
+  // Outer size (TemplateThresholds::max_size_dev_m): the own-class maximum deviation * size_factor + size_floor_m.
+  // A scan's extent is sampled: across profiles at the profile spacing (2.2 mm), along them at the sensor's row
+  // spacing (~1.6 mm), so a scan whose part lies square to the sampling is off by up to a step (its own scans show
+  // it in their maximum); a turned part averages it out over the lines. A part 5 mm taller deviates by ~5 mm: the
+  // maximum plus a floor, not a multiple, keeps the gate under that.
+  double size_factor = 1.0;
+  double size_floor_m = 0.0015;
   // learn_thresholds(): an own-class scan whose figure lies more than robust_k robust standard deviations (1.4826
   // MAD) above the median disagrees with the others (glare, a stray edge, a wrong part taught): it is flagged and
   // does not widen the thresholds.
@@ -106,6 +116,16 @@ struct TemplateThresholds {
   double max_extra_area_m2 = 0.0;    // largest connected scan area the template lacks
   double max_uncovered = 0.0;        // share of the template's cells the scan lacks (1 - coverage), all blobs together
   double max_outliers = 0.0;         // share of the scan's cells the template lacks (scan_outliers)
+  // Outer size: the scan's width and height less the template's (MatchReport::size_dx_m / size_dy_m) are expected at
+  // these centres (own-class medians: sampling and the template's cells bias them); a deviation beyond
+  // max_size_dev_m on either fails. The default never fails (thresholds learnt before the size was measured).
+  double size_centre_x_m = 0.0;
+  double size_centre_y_m = 0.0;
+  double max_size_dev_m = std::numeric_limits<double>::infinity();
+  // The larger deviation of a report's width / height from the centres; NaN when the report could not measure them.
+  [[nodiscard]] double size_deviation(double dx_m, double dy_m) const {
+    return std::max(std::abs(dx_m - size_centre_x_m), std::abs(dy_m - size_centre_y_m));
+  }
 };
 
 // One taught class as the cascade sees it. Borrows everything (the real map is a memory-mapped template file).
@@ -137,14 +157,22 @@ struct MatchReport {
   double depth_slope_y = 0.0;
   PlanarPose check_pose{};     // the pose the reported check ran at (Perfect Match's or the outline pose)
   double outline_rms_m = 0.0;  // outline distances within the final cutoff, at the outline pose
+  // Outer size: the median over the template's rows of the scan's width there less the template's (dx), and over
+  // its columns of the heights (dy), metres. A part 5 mm taller shows dy ~ +5 mm whatever the pose (an extent does
+  // not move with the part), which the cell-based areas cannot see. NaN when too few rows / columns hold both.
+  double size_dx_m = std::numeric_limits<double>::quiet_NaN();
+  double size_dy_m = std::numeric_limits<double>::quiet_NaN();
   int template_cells = 0;
   int scan_cells = 0;
   // Weighted evidence against the template: the largest weighted missing plus extra blob (see CascadeParams).
   double evidence_m2 = 0.0;
   // The two-way check's part of the thresholds. Written so that NaN fails.
   [[nodiscard]] bool check_passes(const TemplateThresholds& t) const {
+    // The size is the one figure an unmeasurable (NaN) value passes: a scan too fragmentary to measure it fails the
+    // areas and shares anyway.
     return missing_area_m2 <= t.max_missing_area_m2 && extra_area_m2 <= t.max_extra_area_m2 &&
-           1.0 - coverage <= t.max_uncovered && scan_outliers <= t.max_outliers;
+           1.0 - coverage <= t.max_uncovered && scan_outliers <= t.max_outliers &&
+           !(t.size_deviation(size_dx_m, size_dy_m) > t.max_size_dev_m);
   }
   [[nodiscard]] bool passes(const TemplateThresholds& t) const { return pm.error <= t.max_error && check_passes(t); }
 };
@@ -266,6 +294,8 @@ class Cascade {
   void window_range(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi);
   // Flood-fills the blobs of `bit` (kMissing, or kExtra with `extra`) and weighs each by its shape
   // (CascadeParams::weak_evidence_weight).
+  // MatchReport::size_dx_m / size_dy_m from the rasters (see the definition).
+  void measure_size(const Roi& roi, MatchReport& r);
   // Marks the missing cells that lie in a region of lost data (kLost): see the definition.
   void mark_lost_data(const Roi& roi);
   [[nodiscard]] BlobEvidence blob_evidence(const Roi& roi, std::uint8_t bit, bool extra);
@@ -291,6 +321,10 @@ class Cascade {
   // Outline refinement: masks, the template outline's distance transform over a box, the scan's outline points.
   std::vector<std::uint8_t> mask_a_, mask_b_;
   std::vector<std::uint8_t> mask_s_;  // two-way check: the scan's closed mask
+  // Outer size: the scan's continuous extent per raster column (y) and row (x); the template's per line; medians.
+  std::vector<float> col_lo_, col_hi_, row_lo_, row_hi_;
+  std::vector<int> size_lo_, size_hi_;
+  std::vector<double> size_work_;
   std::vector<std::uint8_t> edt_in_;
   std::vector<float> edt_out_;  // distance to the template outline, cells, over edt_box_
   EdtScratch edt_scratch_;

@@ -56,6 +56,7 @@ enum class RejectReason : std::uint8_t {
   kExtraArea,     // the scan has material where the template has none (a template hole covered)
   kUncovered,     // too much of the template unseen, all places together
   kOutliers,      // too much of the scan off the template, all places together
+  kSize,          // outer size (width or height) off the template's by more than its own scans vary (5 mm taller)
   kAmbiguous,     // passed, but another candidate passed as well without a clear margin
   kNotVerified,   // ranked too low: the verification budget or the candidate limit ended first
 };
@@ -76,6 +77,8 @@ enum class RejectReason : std::uint8_t {
       return "uncovered";
     case RejectReason::kOutliers:
       return "outliers";
+    case RejectReason::kSize:
+      return "size";
     case RejectReason::kAmbiguous:
       return "ambiguous";
     case RejectReason::kNotVerified:
@@ -99,6 +102,7 @@ struct CandidateOutcome {
   double evidence_m2 = std::numeric_limits<double>::quiet_NaN();  // weighted evidence against it (ties, margins)
   double coverage = std::numeric_limits<double>::quiet_NaN();      // share of its template the scan covers
   double outliers = std::numeric_limits<double>::quiet_NaN();      // share of the scan its template does not explain
+  double size_dev_m = std::numeric_limits<double>::quiet_NaN();    // outer size off its template's (TemplateThresholds)
   double ms = 0.0;
 };
 

@@ -97,7 +97,8 @@ std::string decision_json(const std::string& scan, const algo::Decision& d, std:
       << ", \"value\": " << json_number(c.value) << ", \"limit\": " << json_number(c.limit)
       << ", \"pm_error\": " << json_number(c.pm_error) << ", \"missing_mm2\": " << json_number(c.missing_area_m2 * 1e6)
       << ", \"extra_mm2\": " << json_number(c.extra_area_m2 * 1e6) << ", \"coverage\": " << json_number(c.coverage)
-      << ", \"outliers\": " << json_number(c.outliers) << ", \"ms\": " << json_number(c.ms) << "}";
+      << ", \"outliers\": " << json_number(c.outliers) << ", \"size_dev_mm\": " << json_number(c.size_dev_m * 1e3)
+      << ", \"ms\": " << json_number(c.ms) << "}";
   }
   o << "]}";
   return o.str();
@@ -110,7 +111,10 @@ std::string unknown_reason_text(const algo::Decision& d, const ClassNames& names
     const algo::CandidateOutcome& c = d.candidates[static_cast<std::size_t>(i)];
     if (!c.verified) continue;
     char buf[200];
-    if (c.rejected_by == algo::RejectReason::kPmError || c.rejected_by == algo::RejectReason::kUncovered ||
+    if (c.rejected_by == algo::RejectReason::kSize) {
+      std::snprintf(buf, sizeof buf, "; %s (p %.2f): size %.1f > %.1f mm", names(c.class_index).c_str(), c.probability,
+                    c.value * 1e3, c.limit * 1e3);
+    } else if (c.rejected_by == algo::RejectReason::kPmError || c.rejected_by == algo::RejectReason::kUncovered ||
         c.rejected_by == algo::RejectReason::kOutliers) {
       std::snprintf(buf, sizeof buf, "; %s (p %.2f): %s %.3g > %.3g", names(c.class_index).c_str(), c.probability,
                     std::string(algo::to_string(c.rejected_by)).c_str(), c.value, c.limit);

@@ -92,7 +92,9 @@ std::string manifest_text(const Manifest& m) {
       << ", max_missing_area_m2: " << num(p.thresholds.max_missing_area_m2)
       << ", max_extra_area_m2: " << num(p.thresholds.max_extra_area_m2)
       << ", max_uncovered: " << num(p.thresholds.max_uncovered) << ", max_outliers: " << num(p.thresholds.max_outliers)
-      << "}\n";
+      << ", size_centre_x_m: " << num(p.thresholds.size_centre_x_m)
+      << ", size_centre_y_m: " << num(p.thresholds.size_centre_y_m)
+      << ", max_size_dev_m: " << num(p.thresholds.max_size_dev_m) << "}\n";
     if (!p.confusable.empty()) {
       std::string list;
       for (const std::string& c : p.confusable) list += (list.empty() ? "" : ",") + c;
@@ -225,7 +227,8 @@ Expected<Manifest> parse_manifest(const std::string& path, const std::string& by
       t.boolean("learnt", e.thresholds.learnt);
       // Learnt limits are used as they stand: none may be left to a default. Limits from a version that learnt fewer
       // of them count as not learnt, so the database says 'run cellsight train' instead of refusing to open.
-      for (const char* key : {"max_error", "max_missing_area_m2", "max_extra_area_m2", "max_uncovered", "max_outliers"}) {
+      for (const char* key : {"max_error", "max_missing_area_m2", "max_extra_area_m2", "max_uncovered", "max_outliers",
+                              "size_centre_x_m", "size_centre_y_m", "max_size_dev_m"}) {
         if (!t.has(key)) e.thresholds.learnt = false;
       }
       t.number("max_error", e.thresholds.max_error, 0.0, 1.0, "");
@@ -233,6 +236,9 @@ Expected<Manifest> parse_manifest(const std::string& path, const std::string& by
       t.number("max_extra_area_m2", e.thresholds.max_extra_area_m2, 0.0, 100.0, "m2");
       t.number("max_uncovered", e.thresholds.max_uncovered, 0.0, 1.0, "");
       t.number("max_outliers", e.thresholds.max_outliers, 0.0, 1.0, "");
+      t.number("size_centre_x_m", e.thresholds.size_centre_x_m, -1.0, 1.0, "m");
+      t.number("size_centre_y_m", e.thresholds.size_centre_y_m, -1.0, 1.0, "m");
+      t.number("max_size_dev_m", e.thresholds.max_size_dev_m, 0.0, 1.0, "m");
       t.finish();
     }
     for (YamlSection s : p.list("scans")) {

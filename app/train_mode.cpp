@@ -340,7 +340,8 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
         algo::learn_thresholds(taught->own_matches[c], (*others)[c], cascade_params(config));
     const algo::TemplateThresholds& t = learnt.thresholds;
     learnt_thresholds.push_back(t);
-    thresholds.push_back({true, t.max_error, t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered, t.max_outliers});
+    thresholds.push_back({true, t.max_error, t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered, t.max_outliers,
+                          t.size_centre_x_m, t.size_centre_y_m, t.max_size_dev_m});
     const PartEntry& part = m.parts[c];
     flagged[c].clear();
     for (const int i : learnt.flagged) {

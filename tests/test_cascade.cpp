@@ -857,6 +857,21 @@ SCENARIO("Evidence is judged by its shape: data loss and hangers weigh little, a
         CHECK_FALSE(r.passes(m.thresholds));
       }
     }
+    WHEN("the scan is of a twin 5 mm taller (the same holes, about two grid cells more sheet)") {
+      sim::PartSpec taller = part("plate_4h");
+      taller.height_mm += 5.0;
+      const MatchReport r = cat.cascade().evaluate(m, sample_part(taller, kTestPose, 809));
+      double value = 0.0, limit = 0.0;
+      const algo::RejectReason reason = algo::first_failed_gate(r, m.thresholds, value, limit);
+      THEN("the outer size rejects it, which no area can: the fit splits the 5 mm into 2.5 mm at either edge") {
+        INFO("size dx " << r.size_dx_m * 1e3 << " dy " << r.size_dy_m * 1e3 << " mm; centres "
+                        << m.thresholds.size_centre_x_m * 1e3 << ", " << m.thresholds.size_centre_y_m * 1e3
+                        << "; limit " << m.thresholds.max_size_dev_m * 1e3 << " mm; missing "
+                        << r.missing_area_m2 * 1e6 << " extra " << r.extra_area_m2 * 1e6 << " mm2");
+        CHECK(reason == algo::RejectReason::kSize);
+        CHECK(r.size_dy_m - m.thresholds.size_centre_y_m == Approx(0.005).margin(0.0017));
+      }
+    }
     WHEN("5 % of the points drop out") {
       const MatchReport r = cat.cascade().evaluate(m, with_dropouts(clean, 0.05, 802));
       THEN("it is accepted") { CHECK(r.passes(m.thresholds)); }
