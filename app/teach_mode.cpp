@@ -2,6 +2,8 @@
 #include "app/teach_mode.hpp"
 
 #include <algorithm>
+#include <cmath>
+#include <cstdint>
 #include <limits>
 #include <optional>
 #include <cstdio>
@@ -76,6 +78,92 @@ struct TemplateChoice {
   TemplateModel model;
 };
 
+// Consensus template (issue 10: "built from the taught scans, not taken blindly from one"): the chosen scan keeps
+// every point; a cell it leaves empty (with a cell of margin, so its own edges do not grow) takes the other scans'
+// points there when at least half of the others have material in it. Each other scan is moved onto the chosen one
+// by its Perfect Match / outline pose and levelled in depth as the two-way check does. Material that only a few
+// scans show (a stray edge, a neighbour's part, a chain that swung in) stays out; glare, dropouts and the laser's
+// shadows of that one pass are filled.
+constexpr std::size_t kMinConsensusScans = 4;
+struct Consensus {
+  std::vector<algo::ScanPoint> points;
+  std::size_t added_points = 0;
+  std::size_t added_cells = 0;
+};
+Consensus consensus_points(const Config& config, ScanPreparer& preparer, algo::Cascade& cascade,
+                           const std::vector<TaughtScan>& scans, const TemplateChoice& chosen) {
+  const algo::GridSpec g = grid_spec(config);
+  const auto nx = static_cast<std::size_t>(g.nx), ny = static_cast<std::size_t>(g.ny);
+  const double inv = 1.0 / g.resolution_m;
+  auto cell_of = [&](double x, double y, std::size_t& out) {
+    const double fx = (x - g.origin_m.x()) * inv, fy = (y - g.origin_m.y()) * inv;
+    if (!(fx >= 0.0 && fy >= 0.0 && fx < static_cast<double>(nx) && fy < static_cast<double>(ny))) return false;
+    out = static_cast<std::size_t>(fy) * nx + static_cast<std::size_t>(fx);
+    return true;
+  };
+  Consensus out;
+  (void)preparer.prepare(scans[chosen.index].points);
+  out.points.assign(preparer.part_points().begin(), preparer.part_points().end());
+  std::vector<std::uint8_t> own(nx * ny, 0);  // the chosen scan's cells, grown by one
+  for (const algo::ScanPoint& p : out.points) {
+    std::size_t c = 0;
+    if (!cell_of(p.x, p.y, c)) continue;
+    const std::size_t cx = c % nx, cy = c / nx;
+    for (std::size_t y = cy > 0 ? cy - 1 : 0; y <= std::min(cy + 1, ny - 1); ++y) {
+      for (std::size_t x = cx > 0 ? cx - 1 : 0; x <= std::min(cx + 1, nx - 1); ++x) own[y * nx + x] = 1;
+    }
+  }
+  algo::TemplateModel view;
+  view.class_index = 0;
+  view.map = chosen.model.map.view();
+  view.centroid_m = chosen.model.centroid_m;
+  view.surface_points = chosen.model.surface_points;
+  const Eigen::Vector2d c = chosen.model.centroid_m;
+  std::vector<std::vector<algo::ScanPoint>> moved;
+  std::vector<std::uint16_t> votes(nx * ny, 0);
+  std::vector<std::uint32_t> last(nx * ny, UINT32_MAX);  // count each scan once per cell
+  for (std::size_t j = 0; j < scans.size(); ++j) {
+    if (j == chosen.index) continue;
+    (void)preparer.prepare(scans[j].points);
+    const algo::MatchReport r = cascade.evaluate(view, preparer.part_points());
+    if (!std::isfinite(r.pm.error)) continue;
+    // p_template = c + R(-theta)(p - c - t) (DESIGN.md's pose inverted); z less the check's depth plane.
+    const double ct = std::cos(r.check_pose.theta_rad), st = std::sin(r.check_pose.theta_rad);
+    std::vector<algo::ScanPoint> pts;
+    pts.reserve(preparer.part_points().size());
+    for (algo::ScanPoint p : preparer.part_points()) {
+      const double dx = p.x - c.x() - r.check_pose.x_m, dy = p.y - c.y() - r.check_pose.y_m;
+      const double x = c.x() + ct * dx + st * dy, y = c.y() - st * dx + ct * dy;
+      const double dz = r.depth_offset_m + r.depth_slope_x * (x - c.x()) + r.depth_slope_y * (y - c.y());
+      p.x = static_cast<float>(x);
+      p.y = static_cast<float>(y);
+      p.z = static_cast<float>(p.z - dz);
+      std::size_t cell = 0;
+      if (cell_of(x, y, cell) && last[cell] != j) {
+        last[cell] = static_cast<std::uint32_t>(j);
+        ++votes[cell];
+      }
+      pts.push_back(p);
+    }
+    moved.push_back(std::move(pts));
+  }
+  const auto quorum = static_cast<std::uint16_t>(std::max<std::size_t>(2, (moved.size() + 1) / 2));
+  std::vector<std::uint8_t> counted(nx * ny, 0);
+  for (const auto& pts : moved) {
+    for (const algo::ScanPoint& p : pts) {
+      std::size_t cell = 0;
+      if (!cell_of(p.x, p.y, cell) || own[cell] != 0 || votes[cell] < quorum) continue;
+      out.points.push_back(p);
+      ++out.added_points;
+      if (counted[cell] == 0) {
+        counted[cell] = 1;
+        ++out.added_cells;
+      }
+    }
+  }
+  return out;
+}
+
 // The template scan: candidates in order of how close their part's point count is to the median of the taught
 // scans (a glare band or a cut-off part has fewer points), built and checked against the other scans (Perfect Match
 // + the two-way check) until one leaves a median evidence within the cascade's area floor; else the best of the
@@ -140,6 +228,34 @@ Expected<TemplateChoice> choose_template(const Config& config, ScanPreparer& pre
   if (!best) return make_error(first_error.empty() ? std::string("no scan") : first_error);
   std::printf("template: %s (median evidence of the other %zu scans against it %.0f mm2)\n",
               scans[best->index].source.c_str(), scans.size() - 1, best_median * 1e6);
+  if (scans.size() >= kMinConsensusScans) {
+    // Consensus: fill the chosen scan's gaps from the others, then judge every scan against the result.
+    auto merged = consensus_points(config, preparer, cascade, scans, *best);
+    if (merged.added_points > 0) {
+      auto model = build_template(merged.points, grid_spec(config));
+      if (model) {
+        std::printf("template: completed from the other scans where at least half of them agree and it has none "
+                    "(%zu cells, %.0f mm2: glare, dropouts, shadows of that pass)\n",
+                    merged.added_cells, static_cast<double>(merged.added_cells) * config.grid.resolution_m *
+                                            config.grid.resolution_m * 1e6);
+        best->model = std::move(*model);
+        algo::TemplateModel view;
+        view.class_index = 0;
+        view.map = best->model.map.view();
+        view.centroid_m = best->model.centroid_m;
+        view.surface_points = best->model.surface_points;
+        std::vector<double> others;
+        for (std::size_t j = 0; j < scans.size(); ++j) {
+          (void)preparer.prepare(scans[j].points);
+          best_evidence[j] = cascade.evaluate(view, preparer.part_points()).evidence_m2;
+          if (j != best->index) others.push_back(best_evidence[j]);
+        }
+        std::nth_element(others.begin(), others.begin() + static_cast<std::ptrdiff_t>(others.size() / 2),
+                         others.end());
+        best_median = others[others.size() / 2];
+      }
+    }
+  }
   const double disagree = std::max(kDisagreeFactor * best_median, cp.area_floor_m2);
   for (std::size_t j = 0; j < scans.size(); ++j) {
     if (j != best->index && best_evidence[j] > disagree) {
@@ -177,6 +293,7 @@ void print_part(const ModelDb& db, const PartEntry& p, bool detail) {
     std::printf("  accepts      PM error <= %.3g, missing <= %.0f mm2 (%.2f %% in all), extra <= %.0f mm2 (%.2f %% in all)\n",
                 p.thresholds.max_error, p.thresholds.max_missing_area_m2 * 1e6, p.thresholds.max_uncovered * 100.0,
                 p.thresholds.max_extra_area_m2 * 1e6, p.thresholds.max_outliers * 100.0);
+    std::printf("  size         width and height within %.1f mm of its own scans'\n", p.thresholds.max_size_dev_m * 1e3);
   }
   for (const ScanEntry& s : p.scans) {
     const bool flagged = std::find(p.flagged.begin(), p.flagged.end(), s.file) != p.flagged.end();
