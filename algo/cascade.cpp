@@ -743,8 +743,8 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
       }
     }
     const double cell_area_m2 = resolution_m_ * resolution_m_;
-    measure_size(roi, r);
     mark_lost_data(roi);
+    measure_size(roi, r);
     const BlobEvidence missing = blob_evidence(roi, kMissing, false);
     const BlobEvidence extra = blob_evidence(roi, kExtra, true);
     r.missing_area_m2 = missing.largest_cells * cell_area_m2;
@@ -1235,6 +1235,7 @@ Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, b
 }
 
 void Cascade::measure_size(const Roi& roi, MatchReport& r) {
+  // (After mark_lost_data: lines ending in lost data are left out.)
   // Per template column: the scan's height there (its points' own y extent, continuous) less the template's (its
   // occupied cells' centres: a surface spanning [a, b] gives floor(b) - floor(a), b - a on average); the median over
   // the columns that both hold, away from the template's left and right ends (slanted there by a turn). The same
@@ -1265,12 +1266,30 @@ void Cascade::measure_size(const Roi& roi, MatchReport& r) {
         last = std::max(last, a);
       }
     }
+    // Lost data within reach of a line's end (the window and a cell: glare that leaves a few points is "seen"
+    // right at the edge, lost just inside it).
+    const int reach = window_cells_ + 2;
+    auto lost_near = [&](int a, int end, int inward) {
+      for (int d = 0; d <= reach; ++d) {
+        const int b = end + inward * d;
+        if (b < b0 || b >= b1) break;
+        const std::size_t i = columns ? static_cast<std::size_t>(b) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(a)
+                                      : static_cast<std::size_t>(a) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(b);
+        if ((flags_[i] & kLost) != 0) return true;
+      }
+      return false;
+    };
+    std::size_t lines = 0;
     for (int a = first + kSizeEndCells; a <= last - kSizeEndCells; ++a) {
       const auto k = static_cast<std::size_t>(a);
       if (!(size_hi_[k] >= size_lo_[k]) || !(s_lo[k] <= s_hi[k])) continue;
+      ++lines;
+      // A line whose end lies in lost data (glare along an edge) does not show where the scan's edge is.
+      if (lost_near(a, size_lo_[k], 1) || lost_near(a, size_hi_[k], -1)) continue;
       size_work_[n++] = static_cast<double>(s_hi[k] - s_lo[k]) - static_cast<double>(size_hi_[k] - size_lo_[k]);
     }
-    if (n < static_cast<std::size_t>(kMinSizeLines)) return;
+    // Most lines ending in lost data: the few left may be its ragged edge, not the part's.
+    if (n < static_cast<std::size_t>(kMinSizeLines) || 2 * n < lines) return;
     // The interquartile mean, not the median: a template edge a little turned against the raster makes its
     // extents a staircase of two values, whose median jumps by a whole cell with the share of either.
     std::sort(size_work_.begin(), size_work_.begin() + static_cast<std::ptrdiff_t>(n));
