@@ -503,6 +503,10 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
         bool wanted = candidates_[j].probability >= params_.stop_ratio * best_p && params_.stop_ratio > 0.0;
         for (std::size_t q = 0; q < k && !wanted; ++q) {
           if (!candidates_[q].passed) continue;
+          if (candidates_[q].report.lost_area_m2 >= params_.verify_all_lost_m2) {
+            wanted = true;  // it may pass only because what tells it from a twin is lost
+            break;
+          }
           const TemplateModel* t = template_of(candidates_[q].class_index);
           if (t == nullptr) continue;
           wanted = std::find(t->confusable.begin(), t->confusable.end(), candidates_[j].class_index) !=
@@ -750,6 +754,7 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
     r.missing_area_m2 = missing.largest_cells * cell_area_m2;
     r.extra_area_m2 = extra.largest_cells * cell_area_m2;
     missing_weighted = missing.total_cells;
+    r.lost_area_m2 = missing.weak_cells * cell_area_m2;
     extra_weighted = extra.total_cells;
     for (int y = roi.y0; y < roi.y1; ++y) {  // flags are clear between checks (outline_mask uses them as scratch)
       std::uint8_t* row = flags_.data() + static_cast<std::size_t>(y) * static_cast<std::size_t>(width_);
@@ -1229,6 +1234,7 @@ Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, b
       }
       out.largest_cells = std::max(out.largest_cells, weight * area);
       out.total_cells += weight * area;
+      out.weak_cells += (1.0 - weight) * area;
     }
   }
   return out;

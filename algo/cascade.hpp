@@ -95,6 +95,10 @@ struct CascadeParams {
   // ... and no wider than this (glare bands of strength 1 are 15-35 mm, chains 6-10 mm): a wider region beyond a
   // template's outline is a larger part, not an artefact.
   double band_max_width_m = 0.045;
+  // A passing candidate whose check counted this much template area as lost data may pass only because the data
+  // that tells it from a twin is lost (a glare band over the one rib they differ by): then every candidate is
+  // verified (within the budget), not only its learnt look-alikes, and any other that passes needs the margin.
+  double verify_all_lost_m2 = 0.0003;
   // Outer size (TemplateThresholds::max_size_dev_m): the own-class maximum deviation * size_factor + size_floor_m.
   // A scan's extent is sampled: across profiles at the profile spacing (2.2 mm), along them at the sensor's row
   // spacing (~1.6 mm), so a scan whose part lies square to the sampling is off by up to a step (its own scans show
@@ -166,6 +170,9 @@ struct MatchReport {
   int scan_cells = 0;
   // Weighted evidence against the template: the largest weighted missing plus extra blob (see CascadeParams).
   double evidence_m2 = 0.0;
+  // Template area the scan lacks that counted as lost data (glare, a dropout band): where it lies, a feature that
+  // tells this part from a twin may be hidden (CascadeParams::verify_all_lost_m2).
+  double lost_area_m2 = 0.0;
   // The two-way check's part of the thresholds. Written so that NaN fails.
   [[nodiscard]] bool check_passes(const TemplateThresholds& t) const {
     // The size is the one figure an unmeasurable (NaN) value passes: a scan too fragmentary to measure it fails the
@@ -269,6 +276,7 @@ class Cascade {
   struct BlobEvidence {
     double largest_cells = 0.0;  // weighted area of the heaviest blob
     double total_cells = 0.0;    // weighted area of all blobs
+    double weak_cells = 0.0;     // area the shape rules weighed down (lost data, thin bands)
   };
 
   // Perfect Match + check of the scan set in matcher_; false when the deadline passed before it could start.

@@ -237,6 +237,7 @@ void read_rest(YamlSection& root, Config& cfg) {
     s.number("band_elongation", cfg.cascade.band_elongation, 1.0, 1000.0, "");
     s.number("band_contact_max", cfg.cascade.band_contact_max, 0.0, 1.0, "");
     s.number("band_max_width_m", cfg.cascade.band_max_width_m, 0.0, 1.0, "m");
+    s.number("verify_all_lost_m2", cfg.cascade.verify_all_lost_m2, 0.0, 1.0, "m^2");
     s.number("size_factor", cfg.cascade.size_factor, 1.0, 100.0, "");
     s.number("size_floor_m", cfg.cascade.size_floor_m, 0.0, 1.0, "m");
     s.number("robust_k", cfg.cascade.robust_k, 1.0, 100.0, "");

@@ -114,6 +114,7 @@ TEST_CASE("Given the shipped config file, when it is loaded, then it is valid an
   CHECK(cfg->cascade.band_elongation == d.cascade.band_elongation);
   CHECK(cfg->cascade.band_contact_max == d.cascade.band_contact_max);
   CHECK(cfg->cascade.band_max_width_m == d.cascade.band_max_width_m);
+  CHECK(cfg->cascade.verify_all_lost_m2 == d.cascade.verify_all_lost_m2);
   CHECK(cfg->cascade.size_factor == d.cascade.size_factor);
   CHECK(cfg->cascade.size_floor_m == d.cascade.size_floor_m);
   CHECK(cfg->cascade.robust_k == d.cascade.robust_k);
