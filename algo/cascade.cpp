@@ -7,6 +7,7 @@
 #include <cmath>
 #include <limits>
 #include <numbers>
+#include <utility>
 
 namespace cellsight::algo {
 
@@ -46,25 +47,22 @@ struct CellMoments {
     sxy += static_cast<double>(x) * y;
     syy += static_cast<double>(y) * y;
   }
-  [[nodiscard]] double elongation() const {
-    const double mx = sx / n, my = sy / n;
-    const double cxx = sxx / n - mx * mx + 1.0 / 12.0;  // + a cell's own extent
-    const double cyy = syy / n - my * my + 1.0 / 12.0;
-    const double cxy = sxy / n - mx * my;
-    const double tr = 0.5 * (cxx + cyy);
-    const double det = std::sqrt(std::max(0.0, 0.25 * (cxx - cyy) * (cxx - cyy) + cxy * cxy));
-    return std::sqrt((tr + det) / std::max(tr - det, 1.0 / 12.0));
-  }
-  // Width across the major axis, cells: a band of width w has variance w^2 / 12 across.
-  [[nodiscard]] double minor_width() const {
+  // Variances along the major and the minor axis, each with a cell's own extent (1/12) added.
+  [[nodiscard]] std::pair<double, double> axis_variances() const {
     const double mx = sx / n, my = sy / n;
     const double cxx = sxx / n - mx * mx + 1.0 / 12.0;
     const double cyy = syy / n - my * my + 1.0 / 12.0;
     const double cxy = sxy / n - mx * my;
     const double tr = 0.5 * (cxx + cyy);
     const double det = std::sqrt(std::max(0.0, 0.25 * (cxx - cyy) * (cxx - cyy) + cxy * cxy));
-    return std::sqrt(12.0 * std::max(tr - det, 1.0 / 12.0));
+    return {tr + det, std::max(tr - det, 1.0 / 12.0)};
   }
+  [[nodiscard]] double elongation() const {
+    const auto [major, minor] = axis_variances();
+    return std::sqrt(major / minor);
+  }
+  // Width across the major axis, cells: a band of width w has variance w^2 / 12 across.
+  [[nodiscard]] double minor_width() const { return std::sqrt(12.0 * axis_variances().second); }
   // Unit direction across the major axis (the band's normal).
   [[nodiscard]] Eigen::Vector2d minor_axis() const {
     const double mx = sx / n, my = sy / n;
@@ -1249,6 +1247,11 @@ void Cascade::measure_size(const Roi& roi, MatchReport& r) {
   // 2.5 mm at either edge (which no area sees) leaves it whole here. Glare, a chain or a hook spoils some columns;
   // the trimmed mean does not mind.
   auto measure = [&](bool columns, double& out_m) {
+    // Raster index of the cell at position a along the measured axis, b across it.
+    auto cell = [&](int a, int b) {
+      return columns ? static_cast<std::size_t>(b) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(a)
+                     : static_cast<std::size_t>(a) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(b);
+    };
     const int a0 = columns ? roi.x0 : roi.y0, a1 = columns ? roi.x1 : roi.y1;  // along the axis measured across
     const int b0 = columns ? roi.y0 : roi.x0, b1 = columns ? roi.y1 : roi.x1;
     const std::vector<float>& s_lo = columns ? col_lo_ : row_lo_;
@@ -1258,8 +1261,7 @@ void Cascade::measure_size(const Roi& roi, MatchReport& r) {
     for (int a = a0; a < a1; ++a) {
       int lo = b1, hi = b0 - 1;
       for (int b = b0; b < b1; ++b) {
-        const std::size_t i = columns ? static_cast<std::size_t>(b) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(a)
-                                      : static_cast<std::size_t>(a) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(b);
+        const std::size_t i = cell(a, b);
         if (t_lo_[i] <= t_hi_[i]) {
           lo = std::min(lo, b);
           hi = std::max(hi, b);
@@ -1279,8 +1281,7 @@ void Cascade::measure_size(const Roi& roi, MatchReport& r) {
       for (int d = 0; d <= reach; ++d) {
         const int b = end + inward * d;
         if (b < b0 || b >= b1) break;
-        const std::size_t i = columns ? static_cast<std::size_t>(b) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(a)
-                                      : static_cast<std::size_t>(a) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(b);
+        const std::size_t i = cell(a, b);
         if ((flags_[i] & kLost) != 0) return true;
       }
       return false;

@@ -73,6 +73,16 @@ Expected<std::vector<TaughtScan>> import_scans(const std::vector<std::string>& f
   return scans;
 }
 
+// The cascade's view of a template being built (class 0: teach checks one part against itself).
+algo::TemplateModel view_of(const TemplateModel& model) {
+  algo::TemplateModel view;
+  view.class_index = 0;
+  view.map = model.map.view();
+  view.centroid_m = model.centroid_m;
+  view.surface_points = model.surface_points;
+  return view;
+}
+
 struct TemplateChoice {
   std::size_t index = 0;
   TemplateModel model;
@@ -113,11 +123,7 @@ Consensus consensus_points(const Config& config, ScanPreparer& preparer, algo::C
       for (std::size_t x = cx > 0 ? cx - 1 : 0; x <= std::min(cx + 1, nx - 1); ++x) own[y * nx + x] = 1;
     }
   }
-  algo::TemplateModel view;
-  view.class_index = 0;
-  view.map = chosen.model.map.view();
-  view.centroid_m = chosen.model.centroid_m;
-  view.surface_points = chosen.model.surface_points;
+  const algo::TemplateModel view = view_of(chosen.model);
   const Eigen::Vector2d c = chosen.model.centroid_m;
   std::vector<std::vector<algo::ScanPoint>> moved;
   std::vector<std::uint16_t> votes(nx * ny, 0);
@@ -200,11 +206,7 @@ Expected<TemplateChoice> choose_template(const Config& config, ScanPreparer& pre
       if (first_error.empty()) first_error = scans[i].source + ": " + model.error().message;
       continue;
     }
-    algo::TemplateModel view;
-    view.class_index = 0;
-    view.map = model->map.view();
-    view.centroid_m = model->centroid_m;
-    view.surface_points = model->surface_points;
+    const algo::TemplateModel view = view_of(*model);
     std::vector<double> evidence(scans.size(), 0.0);
     std::vector<double> others;
     for (std::size_t j = 0; j < scans.size(); ++j) {
@@ -239,11 +241,7 @@ Expected<TemplateChoice> choose_template(const Config& config, ScanPreparer& pre
                     merged.added_cells, static_cast<double>(merged.added_cells) * config.grid.resolution_m *
                                             config.grid.resolution_m * 1e6);
         best->model = std::move(*model);
-        algo::TemplateModel view;
-        view.class_index = 0;
-        view.map = best->model.map.view();
-        view.centroid_m = best->model.centroid_m;
-        view.surface_points = best->model.surface_points;
+        const algo::TemplateModel view = view_of(best->model);
         std::vector<double> others;
         for (std::size_t j = 0; j < scans.size(); ++j) {
           (void)preparer.prepare(scans[j].points);
