@@ -6,6 +6,37 @@
 
 namespace cellsight::algo {
 
+namespace {
+
+// One line of a square dilation (or erosion) of src into dst over the box: half-width r cells along x or y; cells
+// outside the box count as empty.
+void line_pass(const std::vector<std::uint8_t>& src, std::vector<std::uint8_t>& dst, int nx, const CellBox& b, int r,
+               bool dilate, bool along_x) {
+  for (int y = b.y0; y <= b.y1; ++y) {
+    for (int x = b.x0; x <= b.x1; ++x) {
+      bool v = !dilate;
+      for (int d = -r; d <= r; ++d) {
+        const int xx = along_x ? x + d : x, yy = along_x ? y : y + d;
+        const bool s = xx >= b.x0 && xx <= b.x1 && yy >= b.y0 && yy <= b.y1 &&
+                       src[static_cast<std::size_t>(yy) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(xx)] != 0;
+        v = dilate ? (v || s) : (v && s);
+      }
+      dst[static_cast<std::size_t>(y) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(x)] = v ? 1 : 0;
+    }
+  }
+}
+
+// Square dilation (or erosion) of src into dst, separable: rows into tmp, then columns. dst may be src (src is only
+// read by the row pass). Written here rather than with cv::dilate / cv::erode so the buffers stay the preallocated
+// ones and the box limits the work.
+void square_pass(const std::vector<std::uint8_t>& src, std::vector<std::uint8_t>& dst, std::vector<std::uint8_t>& tmp,
+                 int nx, const CellBox& b, int r, bool dilate) {
+  line_pass(src, tmp, nx, b, r, dilate, true);
+  line_pass(tmp, dst, nx, b, r, dilate, false);
+}
+
+}  // namespace
+
 PartIsolator::PartIsolator(const GridSpec& grid, const IsolationParams& params) : grid_(grid), params_(params) {
   const auto cells = static_cast<std::size_t>(grid.nx) * static_cast<std::size_t>(grid.ny);
   occupied_.assign(cells, 0);
@@ -15,6 +46,10 @@ PartIsolator::PartIsolator(const GridSpec& grid, const IsolationParams& params) 
   piece_cells_.assign(cells, 0);
   piece_border_.assign(cells, 0);
   piece_keep_.assign(cells, 0);
+  mask_.assign(cells, 0);
+  closed_.assign(cells, 0);
+  opened_.assign(cells, 0);
+  scratch_.assign(cells, 0);
 }
 
 bool PartIsolator::cell_of(const ScanPoint& p, std::size_t& index) const {
@@ -26,23 +61,30 @@ bool PartIsolator::cell_of(const ScanPoint& p, std::size_t& index) const {
   return true;
 }
 
+CellBox PartIsolator::occupied_box(const ScanBuffer& part, bool count) {
+  const auto nx = static_cast<std::size_t>(grid_.nx);
+  if (count) std::fill(occupied_.begin(), occupied_.end(), 0);
+  CellBox b{grid_.nx, -1, grid_.ny, -1};
+  for (const ScanPoint& p : part.points()) {
+    std::size_t i = 0;
+    if (!cell_of(p, i)) continue;
+    if (count) ++occupied_[i];
+    const int x = static_cast<int>(i % nx);
+    const int y = static_cast<int>(i / nx);
+    b.x0 = std::min(b.x0, x);
+    b.x1 = std::max(b.x1, x);
+    b.y0 = std::min(b.y0, y);
+    b.y1 = std::max(b.y1, y);
+  }
+  return b;
+}
+
 IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, double scanned_x1_m) {
   IsolationReport report;
   const int nx = grid_.nx;
   const int ny = grid_.ny;
-  std::fill(occupied_.begin(), occupied_.end(), 0);
-  int x_lo = nx, x_hi = -1, y_lo = ny, y_hi = -1;
-  for (const ScanPoint& p : part.points()) {
-    std::size_t i = 0;
-    if (!cell_of(p, i)) continue;
-    ++occupied_[i];
-    const int x = static_cast<int>(i % static_cast<std::size_t>(nx));
-    const int y = static_cast<int>(i / static_cast<std::size_t>(nx));
-    x_lo = std::min(x_lo, x);
-    x_hi = std::max(x_hi, x);
-    y_lo = std::min(y_lo, y);
-    y_hi = std::max(y_hi, y);
-  }
+  const CellBox box = occupied_box(part, true);
+  const int x_lo = box.x0, x_hi = box.x1, y_lo = box.y0, y_hi = box.y1;
   if (x_hi < 0) return report;
   // The scanned range's end cells (clamped to the grid): a piece reaching within border_cells of them is at the edge.
   const auto cell_x = [&](double x_m) {
@@ -130,6 +172,69 @@ IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, dou
     if (!cell_of(p, i)) return true;
     const std::int32_t id = label_[i];
     return id < 0 || piece_keep_[static_cast<std::size_t>(id)] != 0;
+  });
+  return report;
+}
+
+HangerReport PartIsolator::remove_hanger(ScanBuffer& part, double scanned_y1_m) {
+  HangerReport report;
+  const int nx = grid_.nx;
+  const int ny = grid_.ny;
+  const double fy = (scanned_y1_m - grid_.origin_m.y()) / grid_.resolution_m;
+  if (!std::isfinite(fy)) return report;
+  const int top = static_cast<int>(std::clamp(std::floor(fy), 0.0, static_cast<double>(ny - 1)));
+  const int reach = top - params_.border_cells;  // a hanger has cells at or above this row
+  const CellBox box = occupied_box(part, false);
+  const int x_lo = box.x0, x_hi = box.x1, y_lo = box.y0, y_hi = box.y1;
+  if (x_hi < 0 || y_hi < reach) return report;  // the usual case: nothing comes near the top
+  // A square of 2 r + 1 cells does not fit in a hanger up to hanger_max_width_m wide.
+  const int r = std::max(1, static_cast<int>(std::ceil(0.5 * params_.hanger_max_width_m / grid_.resolution_m)));
+  const CellBox b{std::max(0, x_lo - r - 2), std::min(nx - 1, x_hi + r + 2), std::max(0, y_lo - r - 2),
+              std::min(ny - 1, y_hi + r + 2)};
+  auto at = [nx](int x, int y) { return static_cast<std::size_t>(y) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(x); };
+  for (int y = b.y0; y <= b.y1; ++y) {
+    for (int x = b.x0; x <= b.x1; ++x) mask_[at(x, y)] = 0;
+  }
+  for (const ScanPoint& p : part.points()) {
+    std::size_t i = 0;
+    if (cell_of(p, i)) mask_[i] = 1;
+  }
+  // Closing by one cell (the profiles' sampling gaps), then the opening.
+  square_pass(mask_, closed_, scratch_, nx, b, 1, true);
+  square_pass(closed_, closed_, scratch_, nx, b, 1, false);
+  square_pass(closed_, opened_, scratch_, nx, b, r, false);
+  square_pass(opened_, opened_, scratch_, nx, b, r, true);
+  // The residue (occupied or closed, not kept by the opening) connected (8-way) to a residue cell near the top.
+  const auto residue = [&](std::size_t c) { return (mask_[c] != 0 || closed_[c] != 0) && opened_[c] == 0; };
+  std::size_t depth = 0;
+  for (int y = std::max(b.y0, reach); y <= b.y1; ++y) {
+    for (int x = b.x0; x <= b.x1; ++x) {
+      const std::size_t c = at(x, y);
+      if ((mask_[c] & 2U) != 0 || !residue(c)) continue;
+      mask_[c] |= 2U;
+      stack_[depth++] = static_cast<std::int32_t>(c);
+      while (depth > 0) {
+        const auto s = static_cast<std::size_t>(stack_[--depth]);
+        ++report.removed_cells;
+        const int sx = static_cast<int>(s % static_cast<std::size_t>(nx));
+        const int sy = static_cast<int>(s / static_cast<std::size_t>(nx));
+        for (int dy = -1; dy <= 1; ++dy) {
+          for (int dx = -1; dx <= 1; ++dx) {
+            const int xx = sx + dx, yy = sy + dy;
+            if (xx < b.x0 || xx > b.x1 || yy < b.y0 || yy > b.y1) continue;
+            const std::size_t n = at(xx, yy);
+            if ((mask_[n] & 2U) != 0 || !residue(n)) continue;
+            mask_[n] |= 2U;
+            stack_[depth++] = static_cast<std::int32_t>(n);
+          }
+        }
+      }
+    }
+  }
+  if (report.removed_cells == 0) return report;
+  report.removed_points = part.filter([&](const ScanPoint& p) {
+    std::size_t i = 0;
+    return !cell_of(p, i) || (mask_[i] & 2U) == 0;
   });
   return report;
 }

@@ -20,12 +20,25 @@ struct IsolationParams {
   int border_cells = 3;
   // A piece with fewer cells than this share of the largest is clutter (specular outliers, a loose speck).
   double min_keep_share = 0.005;
+  // The hanger (the chain or hook the part hangs from) is material connected to the part that rises to the top of the
+  // scanned field and is narrower than this: it is cut off where it meets the part (remove_hanger). The shipped
+  // chains are 6-10 mm; a part is wider than this wherever it could reach the field's top.
+  double hanger_max_width_m = 0.016;
 };
 
 struct IsolationReport {
   int pieces = 0;               // connected pieces found (before dropping)
   int dropped_pieces = 0;
   std::size_t dropped_points = 0;
+};
+
+struct CellBox {
+  int x0, x1, y0, y1;  // inclusive grid cells; x1 < 0: empty
+};
+
+struct HangerReport {
+  std::size_t removed_points = 0;
+  int removed_cells = 0;
 };
 
 // Connected pieces of the part points' x-y occupancy on the grid's raster: the largest always stays; another piece
@@ -40,8 +53,17 @@ class PartIsolator {
   // scan, carrier included), carrier frame.
   IsolationReport isolate(ScanBuffer& part, double scanned_x0_m, double scanned_x1_m);  // never allocates
 
+  // Cuts off the hanger: material that reaches within border_cells of the scanned field's top (scanned_y1_m, the
+  // highest y the pass saw, carrier included; the grid's top if lower) and that an opening of the part's x-y
+  // occupancy (closed by one cell for the sampling) with a square of hanger_max_width_m removes. What the opening
+  // keeps (the part, its corners, any feature at least that wide) and thin features that do not reach the top
+  // (a tab, a web between windows) stay. Returns at once when no part cell comes near the top. Never allocates.
+  HangerReport remove_hanger(ScanBuffer& part, double scanned_y1_m);
+
  private:
   [[nodiscard]] bool cell_of(const ScanPoint& p, std::size_t& index) const;
+  // The cell box of the part's points on the grid; with count, occupied_ gets the points per cell.
+  CellBox occupied_box(const ScanBuffer& part, bool count);
 
   GridSpec grid_;
   IsolationParams params_;
@@ -52,6 +74,10 @@ class PartIsolator {
   std::vector<std::int32_t> piece_cells_;  // occupied cells per piece
   std::vector<std::uint8_t> piece_border_;
   std::vector<std::uint8_t> piece_keep_;
+  std::vector<std::uint8_t> mask_;     // remove_hanger: occupancy (bit 0), cut off (bit 1)
+  std::vector<std::uint8_t> closed_;   // remove_hanger: the occupancy closed by one cell
+  std::vector<std::uint8_t> opened_;   // remove_hanger: its opening
+  std::vector<std::uint8_t> scratch_;  // remove_hanger: a separable pass's rows
 };
 
 }  // namespace cellsight::algo

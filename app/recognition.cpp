@@ -43,6 +43,7 @@ std::string PrepareReport::describe() const {
          (stray_points > 0 ? std::to_string(stray_points) + " in " + std::to_string(stray_pieces) +
                                  " pieces not connected to the part, "
                            : std::string()) +
+         (hanger_points > 0 ? std::to_string(hanger_points) + " on the hanger, " : std::string()) +
          std::to_string(outside_points) + " of the part outside the grid, " + std::to_string(part_points) +
          " on the part";
 }
@@ -67,17 +68,20 @@ PrepareReport ScanPreparer::prepare(std::span<const algo::ScanPoint> raw) {
   grid_.clear();
   if (raw.empty()) return r;
   double x0 = std::numeric_limits<double>::infinity(), x1 = -std::numeric_limits<double>::infinity();
+  double y1 = -std::numeric_limits<double>::infinity();
   for (const algo::ScanPoint& p : raw) {
     (void)part_.push(p);  // a scan beyond capacity keeps what fits
-    if (std::isfinite(p.x)) {
+    if (std::isfinite(p.x) && std::isfinite(p.y)) {
       x0 = std::min(x0, static_cast<double>(p.x));
       x1 = std::max(x1, static_cast<double>(p.x));
+      y1 = std::max(y1, static_cast<double>(p.y));
     }
   }
   r.support_points = algo::remove_support(part_, support_, support_threshold_m_);
   const algo::IsolationReport isolated = isolator_.isolate(part_, x0, x1);
   r.stray_points = isolated.dropped_points;
   r.stray_pieces = isolated.dropped_pieces;
+  r.hanger_points = isolator_.remove_hanger(part_, y1).removed_points;
   r.part_points = part_.size();
   if (part_.size() == 0) {
     r.status = PrepareStatus::kNoPart;

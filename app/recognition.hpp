@@ -45,6 +45,7 @@ struct PrepareReport {
   std::size_t raw_points = 0, support_points = 0, outside_points = 0, part_points = 0;
   std::size_t stray_points = 0;  // not connected to the part (a neighbour's part at the field's edge, clutter)
   int stray_pieces = 0;
+  std::size_t hanger_points = 0;  // the chain or hook above the part, cut off where it meets the part
   [[nodiscard]] std::string describe() const;  // "12345 points, 2345 carrier, 0 outside the grid"
 };
 

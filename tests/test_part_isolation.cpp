@@ -120,3 +120,65 @@ SCENARIO("A neighbour's part at the field's edge and loose specks are separated 
     }
   }
 }
+
+SCENARIO("The chain the part hangs from is cut off where it meets the part; the part's own features stay",
+         "[isolation]") {
+  algo::PartIsolator isolator(grid(), algo::IsolationParams{});
+  constexpr std::uint16_t kChain = 4, kTab = 5;
+  constexpr double kFieldTop = 1.0;  // the highest y the pass saw
+  GIVEN("a 450 x 500 mm plate whose top edge is at y 0.70 m") {
+    std::vector<ScanPoint> points;
+    add_sheet(points, 0.10, 0.55, 0.20, 0.70, 0.20, kPart);
+    const int part_points = static_cast<int>(points.size());
+    WHEN("an 8 mm chain rises from its top edge to the field's top") {
+      add_sheet(points, 0.30, 0.308, 0.70, kFieldTop, 0.20, kChain);
+      algo::ScanBuffer b = buffer_of(points);
+      const algo::HangerReport r = isolator.remove_hanger(b, kFieldTop);
+      THEN("every chain point goes and every plate point stays") {
+        CHECK(count_tag(b, kChain) == 0);
+        CHECK(count_tag(b, kPart) == part_points);
+        CHECK(r.removed_points > 0);
+      }
+    }
+    WHEN("the chain is 12 mm wide, lost a profile and 5 % of its points") {
+      std::vector<ScanPoint> chain;
+      add_sheet(chain, 0.30, 0.312, 0.70, kFieldTop, 0.20, kChain);
+      std::mt19937_64 rng(3);
+      std::uniform_real_distribution<double> u(0.0, 1.0);
+      for (const ScanPoint& p : chain) {
+        if (u(rng) >= 0.05 && std::abs(p.x - 0.3044) > 0.0011) points.push_back(p);
+      }
+      algo::ScanBuffer b = buffer_of(points);
+      (void)isolator.remove_hanger(b, kFieldTop);
+      THEN("it still goes whole, the plate stays whole") {
+        CHECK(count_tag(b, kChain) == 0);
+        CHECK(count_tag(b, kPart) == part_points);
+      }
+    }
+    WHEN("the plate has a 10 mm tab on top that ends 100 mm below the field's top") {
+      add_sheet(points, 0.30, 0.310, 0.70, 0.90, 0.20, kTab);
+      algo::ScanBuffer b = buffer_of(points);
+      const std::size_t before = b.size();
+      const algo::HangerReport r = isolator.remove_hanger(b, kFieldTop);
+      THEN("the tab is the part's: nothing is cut") {
+        CHECK(r.removed_points == 0);
+        CHECK(b.size() == before);
+      }
+    }
+    WHEN("a 40 mm wide arm of the part itself reaches the field's top") {
+      add_sheet(points, 0.30, 0.34, 0.70, kFieldTop, 0.20, kTab);
+      algo::ScanBuffer b = buffer_of(points);
+      const std::size_t before = b.size();
+      (void)isolator.remove_hanger(b, kFieldTop);
+      THEN("it is wider than any hanger and stays") { CHECK(b.size() == before); }
+    }
+    WHEN("nothing rises above the plate") {
+      algo::ScanBuffer b = buffer_of(points);
+      const algo::HangerReport r = isolator.remove_hanger(b, kFieldTop);
+      THEN("nothing is cut") {
+        CHECK(r.removed_cells == 0);
+        CHECK(count_tag(b, kPart) == part_points);
+      }
+    }
+  }
+}
