@@ -79,7 +79,8 @@ CellBox PartIsolator::occupied_box(const ScanBuffer& part, bool count) {
   return b;
 }
 
-IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, double scanned_x1_m) {
+IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, double scanned_x1_m,
+                                      bool keep_edge_pieces) {
   IsolationReport report;
   const int nx = grid_.nx;
   const int ny = grid_.ny;
@@ -162,9 +163,11 @@ IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, dou
   const double min_cells = params_.min_keep_share * piece_cells_[static_cast<std::size_t>(largest)];
   for (int i = 0; i < pieces; ++i) {
     const auto u = static_cast<std::size_t>(i);
-    const bool keep = i == largest || (piece_border_[u] == 0 && piece_cells_[u] >= min_cells);
+    const bool large = piece_cells_[u] >= min_cells;
+    const bool keep = i == largest || (large && (piece_border_[u] == 0 || keep_edge_pieces));
     piece_keep_[u] = keep ? 1 : 0;
     report.dropped_pieces += keep ? 0 : 1;
+    report.edge_pieces += !keep && large ? 1 : 0;
   }
   if (report.dropped_pieces == 0) return report;
   report.dropped_points = part.filter([&](const ScanPoint& p) {

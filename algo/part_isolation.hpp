@@ -29,6 +29,7 @@ struct IsolationParams {
 struct IsolationReport {
   int pieces = 0;               // connected pieces found (before dropping)
   int dropped_pieces = 0;
+  int edge_pieces = 0;          // of the dropped: large enough, dropped only for reaching the field's edge
   std::size_t dropped_points = 0;
 };
 
@@ -51,7 +52,10 @@ class PartIsolator {
 
   // scanned_x0_m / scanned_x1_m: the x range the pass covered (its first and last profile: all points of the raw
   // scan, carrier included), carrier frame.
-  IsolationReport isolate(ScanBuffer& part, double scanned_x0_m, double scanned_x1_m);  // never allocates
+  // keep_edge_pieces: pieces at the field's edge stay (only tiny ones go): the second look when the part itself
+  // may have been cut by a glare band near its end (see ScanPreparer::prepare).
+  IsolationReport isolate(ScanBuffer& part, double scanned_x0_m, double scanned_x1_m,
+                          bool keep_edge_pieces = false);  // never allocates
 
   // Cuts off the hanger: material that reaches within border_cells of the scanned field's top (scanned_y1_m, the
   // highest y the pass saw, carrier included; the grid's top if lower) and that an opening of the part's x-y

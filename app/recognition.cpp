@@ -61,7 +61,7 @@ ScanPreparer::ScanPreparer(const Config& config, const algo::Plane& support, std
   depth_.create(spec.ny, spec.nx, CV_8UC1);
 }
 
-PrepareReport ScanPreparer::prepare(std::span<const algo::ScanPoint> raw) {
+PrepareReport ScanPreparer::prepare(std::span<const algo::ScanPoint> raw, bool keep_edge_pieces) {
   PrepareReport r;
   r.raw_points = raw.size();
   part_.clear();
@@ -78,9 +78,10 @@ PrepareReport ScanPreparer::prepare(std::span<const algo::ScanPoint> raw) {
     }
   }
   r.support_points = algo::remove_support(part_, support_, support_threshold_m_);
-  const algo::IsolationReport isolated = isolator_.isolate(part_, x0, x1);
+  const algo::IsolationReport isolated = isolator_.isolate(part_, x0, x1, keep_edge_pieces);
   r.stray_points = isolated.dropped_points;
   r.stray_pieces = isolated.dropped_pieces;
+  r.edge_pieces = isolated.edge_pieces;
   r.hanger_points = isolator_.remove_hanger(part_, y1).removed_points;
   r.part_points = part_.size();
   if (part_.size() == 0) {
@@ -251,6 +252,7 @@ class ModelRecogniser final : public Recogniser {
       }
     } else {
       d = cascade_.decide(probabilities, models_.templates.models, preparer_.part_points(), deadline);
+      if (d.class_index < 0 && r.edge_pieces > 0 && Clock::now() < deadline) d = second_look(points, d, deadline);
     }
     d.features_ms = std::chrono::duration<double, std::milli>(t1 - t0).count();
     d.svm_ms = svm_ms;
@@ -264,6 +266,18 @@ class ModelRecogniser final : public Recogniser {
   }
 
  private:
+  // A large piece at the field's end was dropped as a neighbour's part and no candidate passed. A glare band near the
+  // part's end cuts off a strip that looks just like that (issue 10), so the scan is decided once more with the
+  // piece kept; its answer counts only when a candidate passes. A neighbour's part kept adds material no template
+  // has (the two-way check rejects it), so this never turns a neighbour into an id. Allocation-free like the first.
+  algo::Decision second_look(std::span<const algo::ScanPoint> points, const algo::Decision& first,
+                             std::chrono::steady_clock::time_point deadline) {
+    if (preparer_.prepare(points, true).status != PrepareStatus::kOk) return first;
+    const std::span<const algo::ClassProbability> probabilities = models_.svm.predict(preparer_.features());
+    const algo::Decision d = cascade_.decide(probabilities, models_.templates.models, preparer_.part_points(), deadline);
+    return d.class_index >= 0 ? d : first;
+  }
+
   static std::size_t scan_builder_params_max_points(const Config& config) {
     return scan_builder_params(config).max_points;
   }

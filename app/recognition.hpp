@@ -45,6 +45,7 @@ struct PrepareReport {
   std::size_t raw_points = 0, support_points = 0, outside_points = 0, part_points = 0;
   std::size_t stray_points = 0;  // not connected to the part (a neighbour's part at the field's edge, clutter)
   int stray_pieces = 0;
+  int edge_pieces = 0;  // of stray_pieces: large ones dropped for reaching the field's edge (a neighbour's part?)
   std::size_t hanger_points = 0;  // the chain or hook above the part, cut off where it meets the part
   [[nodiscard]] std::string describe() const;  // "12345 points, 2345 carrier, 0 outside the grid"
 };
@@ -59,7 +60,8 @@ class ScanPreparer {
 
   ScanPreparer(const Config& config, const algo::Plane& support, std::size_t max_points);
 
-  [[nodiscard]] PrepareReport prepare(std::span<const algo::ScanPoint> raw);
+  // keep_edge_pieces: large pieces at the field's ends stay (see algo::PartIsolator::isolate).
+  [[nodiscard]] PrepareReport prepare(std::span<const algo::ScanPoint> raw, bool keep_edge_pieces = false);
   // The same from a part's points whose carrier is already gone (a synthetic training variant, algo/augment).
   [[nodiscard]] PrepareReport prepare_part(std::span<const algo::ScanPoint> part);
   // Valid after prepare() returned kOk. part_points() are in the carrier frame (what Perfect Match needs);

@@ -88,9 +88,30 @@ struct TemplateChoice {
   TemplateModel model;
 };
 
+// One 3 x 3 dilation (or erosion) of a 0/1 cell mask; cells beyond the raster count as empty. Teach time.
+std::vector<std::uint8_t> square3(const std::vector<std::uint8_t>& m, std::size_t nx, std::size_t ny, bool dilate) {
+  std::vector<std::uint8_t> out(m.size(), 0);
+  for (std::size_t y = 0; y < ny; ++y) {
+    for (std::size_t x = 0; x < nx; ++x) {
+      bool v = !dilate;
+      for (int dy = -1; dy <= 1; ++dy) {
+        for (int dx = -1; dx <= 1; ++dx) {
+          const auto xx = static_cast<std::ptrdiff_t>(x) + dx, yy = static_cast<std::ptrdiff_t>(y) + dy;
+          const bool inside = xx >= 0 && yy >= 0 && xx < static_cast<std::ptrdiff_t>(nx) && yy < static_cast<std::ptrdiff_t>(ny);
+          const bool set = inside && m[static_cast<std::size_t>(yy) * nx + static_cast<std::size_t>(xx)] != 0;
+          v = dilate ? (v || set) : (v && set);
+        }
+      }
+      out[y * nx + x] = v ? 1 : 0;
+    }
+  }
+  return out;
+}
+
 // Consensus template (issue 10: "built from the taught scans, not taken blindly from one"): the chosen scan keeps
-// every point; a cell it leaves empty (with a cell of margin, so its own edges do not grow) takes the other scans'
-// points there when at least half of the others have material in it. Each other scan is moved onto the chosen one
+// every point; where it has no solid material (its cells closed and then opened by 3 x 3, so the few points a glare
+// band leaves do not count) and no margin cell of it (its own edges do not grow), the cell takes the other scans'
+// points when at least half of the others have material in it. Each other scan is moved onto the chosen one
 // by its Perfect Match / outline pose and levelled in depth as the two-way check does. Material that only a few
 // scans show (a stray edge, a neighbour's part, a chain that swung in) stays out; glare, dropouts and the laser's
 // shadows of that one pass are filled.
@@ -114,15 +135,18 @@ Consensus consensus_points(const Config& config, ScanPreparer& preparer, algo::C
   Consensus out;
   (void)preparer.prepare(scans[chosen.index].points);
   out.points.assign(preparer.part_points().begin(), preparer.part_points().end());
-  std::vector<std::uint8_t> own(nx * ny, 0);  // the chosen scan's cells, grown by one
+  // The chosen scan's cells (2) and the ring one cell around them (1): the ring is not filled from the others at
+  // first, so the outline does not grow by their sub-cell offsets.
+  std::vector<std::uint8_t> occupied(nx * ny, 0);
   for (const algo::ScanPoint& p : out.points) {
     std::size_t c = 0;
-    if (!cell_of(p.x, p.y, c)) continue;
-    const std::size_t cx = c % nx, cy = c / nx;
-    for (std::size_t y = cy > 0 ? cy - 1 : 0; y <= std::min(cy + 1, ny - 1); ++y) {
-      for (std::size_t x = cx > 0 ? cx - 1 : 0; x <= std::min(cx + 1, nx - 1); ++x) own[y * nx + x] = 1;
-    }
+    if (cell_of(p.x, p.y, c)) occupied[c] = 1;
   }
+  const std::vector<std::uint8_t> solid =
+      square3(square3(square3(square3(occupied, nx, ny, true), nx, ny, false), nx, ny, false), nx, ny, true);
+  const std::vector<std::uint8_t> ring = square3(solid, nx, ny, true);
+  std::vector<std::uint8_t> own(nx * ny, 0);
+  for (std::size_t c = 0; c < own.size(); ++c) own[c] = solid[c] != 0 ? 3 : ring[c];
   const algo::TemplateModel view = view_of(chosen.model);
   const Eigen::Vector2d c = chosen.model.centroid_m;
   std::vector<std::vector<algo::ScanPoint>> moved;
@@ -154,16 +178,32 @@ Consensus consensus_points(const Config& config, ScanPreparer& preparer, algo::C
     moved.push_back(std::move(pts));
   }
   const auto quorum = static_cast<std::uint16_t>(std::max<std::size_t>(2, (moved.size() + 1) / 2));
-  std::vector<std::uint8_t> counted(nx * ny, 0);
-  for (const auto& pts : moved) {
-    for (const algo::ScanPoint& p : pts) {
-      std::size_t cell = 0;
-      if (!cell_of(p.x, p.y, cell) || own[cell] != 0 || votes[cell] < quorum) continue;
-      out.points.push_back(p);
-      ++out.added_points;
-      if (counted[cell] == 0) {
-        counted[cell] = 1;
-        ++out.added_cells;
+  std::vector<std::uint8_t> counted(nx * ny, 0);  // 1: filled beyond the ring, 2: a seam cell of the ring
+  // A ring cell next to a filled cell is the seam between the chosen scan's material and what the others filled
+  // (a glare band's edge in the chosen scan): filled as well, or the template keeps a one-cell gap along each edge of
+  // the band, which cuts a later scan's lost data into pieces that no longer look like a band.
+  const auto beside_filled = [&](std::size_t cell) {
+    const std::size_t cx = cell % nx, cy = cell / nx;
+    for (std::size_t y = cy > 0 ? cy - 1 : 0; y <= std::min(cy + 1, ny - 1); ++y) {
+      for (std::size_t x = cx > 0 ? cx - 1 : 0; x <= std::min(cx + 1, nx - 1); ++x) {
+        if (counted[y * nx + x] == 1) return true;
+      }
+    }
+    return false;
+  };
+  for (const std::uint8_t pass : {std::uint8_t{1}, std::uint8_t{2}}) {
+    for (const auto& pts : moved) {
+      for (const algo::ScanPoint& p : pts) {
+        std::size_t cell = 0;
+        if (!cell_of(p.x, p.y, cell) || votes[cell] < quorum) continue;
+        const bool take = pass == 1 ? own[cell] == 0 : own[cell] == 1 && counted[cell] != 1 && beside_filled(cell);
+        if (!take) continue;
+        out.points.push_back(p);
+        ++out.added_points;
+        if (counted[cell] == 0) {
+          counted[cell] = pass;
+          ++out.added_cells;
+        }
       }
     }
   }

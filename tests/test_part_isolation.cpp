@@ -67,10 +67,24 @@ SCENARIO("A neighbour's part at the field's edge and loose specks are separated 
       add_sheet(points, 0.57, 0.61, 0.30, 0.80, 0.21, kStray);
       algo::ScanBuffer b = buffer_of(points);
       const algo::IsolationReport r = isolator.isolate(b, 0.0165, 0.61);
-      THEN("the strip is dropped and every plate point stays") {
+      THEN("the strip is dropped, counted as an edge piece, and every plate point stays") {
         CHECK(r.pieces == 2);
         CHECK(r.dropped_pieces == 1);
+        CHECK(r.edge_pieces == 1);
         CHECK(count_tag(b, kStray) == 0);
+        CHECK(count_tag(b, kPart) == part_points);
+      }
+    }
+    WHEN("the same scan is isolated for the second look (a glare band may have cut the part's end off)") {
+      add_sheet(points, 0.57, 0.61, 0.30, 0.80, 0.21, kStray);
+      add_sheet(points, 0.30, 0.302, 0.97, 0.972, 0.1, kSpeck);
+      algo::ScanBuffer b = buffer_of(points);
+      const algo::IsolationReport r = isolator.isolate(b, 0.0165, 0.61, true);
+      THEN("the strip stays, the speck still goes") {
+        CHECK(r.edge_pieces == 0);
+        CHECK(r.dropped_pieces == 1);
+        CHECK(count_tag(b, kStray) > 0);
+        CHECK(count_tag(b, kSpeck) == 0);
         CHECK(count_tag(b, kPart) == part_points);
       }
     }
