@@ -22,6 +22,7 @@ constexpr std::uint8_t kExtra = 2;
 constexpr std::uint8_t kVisited = 4;  // blob_evidence: the cell belongs to the blob being filled
 constexpr std::uint8_t kLost = 8;     // mark_lost_data: a missing cell in a region of lost data (glare residue)
 constexpr std::uint8_t kGrouped = 16;  // mark_lost_data: the cell belongs to the group being filled
+constexpr std::uint8_t kResidue = 32;  // mark_lost_data: a template cell the scan holds, in a sparse window (glare)
 // mark_lost_data: a template cell is "sparse" when the scan occupies fewer than kSparseShare x the scan's typical
 // share of the template cells in its window; a group of missing and sparse cells in which at least kMinPorosity of
 // the cells, and kMinLostPoints cells, still hold scan points (the few a glare band leaves: 1-3 % of the cells
@@ -1286,6 +1287,19 @@ void Cascade::measure_size(const Roi& roi, MatchReport& r) {
       }
       return false;
     };
+    // Glare's residue (scan points in a sparse window) on the line or the window's lines around it, from the scan's
+    // outermost point out to the template's end: the band hides where the scan's edge is. A part that is really
+    // shorter has nothing beyond its edge.
+    auto residue_end = [&](int a, float scan_end, int template_end) {
+      const int from = std::clamp(static_cast<int>(std::floor(scan_end)), b0, b1 - 1);
+      const int lo = std::min(from, template_end), hi = std::max(from, template_end);
+      for (int aa = std::max(a0, a - window_cells_); aa <= std::min(a1 - 1, a + window_cells_); ++aa) {
+        for (int b = lo; b <= hi; ++b) {
+          if ((flags_[cell(aa, b)] & kResidue) != 0) return true;
+        }
+      }
+      return false;
+    };
     std::size_t lines = 0;
     for (int a = first + kSizeEndCells; a <= last - kSizeEndCells; ++a) {
       const auto k = static_cast<std::size_t>(a);
@@ -1293,6 +1307,7 @@ void Cascade::measure_size(const Roi& roi, MatchReport& r) {
       ++lines;
       // A line whose end lies in lost data (glare along an edge) does not show where the scan's edge is.
       if (lost_near(a, size_lo_[k], 1) || lost_near(a, size_hi_[k], -1)) continue;
+      if (residue_end(a, s_lo[k], size_lo_[k]) || residue_end(a, s_hi[k], size_hi_[k])) continue;
       size_work_[n++] = static_cast<double>(s_hi[k] - s_lo[k]) - static_cast<double>(size_hi_[k] - size_lo_[k]);
     }
     // Most lines ending in lost data: the few left may be its ragged edge, not the part's.
@@ -1360,6 +1375,16 @@ void Cascade::mark_lost_data(const Roi& roi) {
       w_hi_[row + static_cast<std::size_t>(x)] = tpl;
     }
   }
+  auto sparse = [&](std::size_t i) {
+    return static_cast<double>(w_lo_[i]) < kSparseShare * typical * static_cast<double>(w_hi_[i]);
+  };
+  // A scan point in a sparse window is what a glare band leaves (measure_size: a line's end there is no edge).
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    for (int x = roi.x0; x < roi.x1; ++x) {
+      const std::size_t i = static_cast<std::size_t>(y) * w + static_cast<std::size_t>(x);
+      if (t_lo_[i] <= t_hi_[i] && occupied(i) && sparse(i)) flags_[i] |= kResidue;
+    }
+  }
   // The template's outside (mask_b_, free here): what the box's edge reaches through cells outside its closed mask.
   // The rest of those cells are its holes, which a group passes through: a glare band crossing a hole is one band,
   // not a long piece and a short one the hole cut off (which alone would look like a notch at the edge).
@@ -1397,7 +1422,7 @@ void Cascade::mark_lost_data(const Roi& roi) {
     if (template_hole(i)) return true;
     if (!(t_lo_[i] <= t_hi_[i])) return false;
     if ((flags_[i] & kMissing) != 0) return !(s_lo_[i] <= s_hi_[i]);
-    return static_cast<double>(w_lo_[i]) < kSparseShare * typical * static_cast<double>(w_hi_[i]);
+    return sparse(i);
   };
   for (int y = roi.y0; y < roi.y1; ++y) {
     for (int x = roi.x0; x < roi.x1; ++x) {
