@@ -748,10 +748,11 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
     const double cell_area_m2 = resolution_m_ * resolution_m_;
     mark_lost_data(roi);
     measure_size(roi, r);
+    const double covered_hole = covered_hole_cells(roi);
     const BlobEvidence missing = blob_evidence(roi, kMissing, false);
     const BlobEvidence extra = blob_evidence(roi, kExtra, true);
     r.missing_area_m2 = missing.largest_cells * cell_area_m2;
-    r.extra_area_m2 = extra.largest_cells * cell_area_m2;
+    r.extra_area_m2 = std::max(extra.largest_cells, covered_hole) * cell_area_m2;
     missing_weighted = missing.total_cells;
     r.lost_area_m2 = missing.weak_cells * cell_area_m2;
     extra_weighted = extra.total_cells;
@@ -1155,6 +1156,51 @@ void Cascade::window_range(const std::vector<float>& lo, const std::vector<float
       }
     }
   }
+}
+
+double Cascade::covered_hole_cells(const Roi& roi) {
+  // A hole of the template where the scan has material is evidence against it even when that material is only the
+  // few points a glare band left: a hole has no point at all. The extra cells (scan material beyond the window's
+  // reach of any template surface: not the hole's rim) of each hole are counted; a hole with at least
+  // kMinLostPoints of them and kMinCoveredShare of its cells is covered, and weighs its whole area (a glare band over
+  // where plate_5h has its fifth hole tells a plate_4h scan from it, issue 10). The holes are the cells outside the
+  // template's closed mask that mark_lost_data's flood from the box's edge did not reach (mask_b_).
+  constexpr double kMinCoveredShare = 0.03;
+  constexpr std::size_t kMinHoleCells = 20;  // ~100 mm2: smaller holes lie within the window's reach of their rim
+  const int w = width_;
+  double largest = 0.0;
+  auto hole = [&](std::size_t i) { return mask_a_[i] == 0 && mask_b_[i] == 0 && (flags_[i] & kVisited) == 0; };
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    for (int x = roi.x0; x < roi.x1; ++x) {
+      const std::int32_t seed = y * w + x;
+      if (!hole(static_cast<std::size_t>(seed))) continue;
+      flags_[static_cast<std::size_t>(seed)] |= kVisited;
+      std::size_t top = 0, count = 0, covered = 0;
+      stack_[top++] = seed;
+      while (top > 0) {
+        const std::int32_t c = stack_[--top];
+        ++count;
+        if ((flags_[static_cast<std::size_t>(c)] & kExtra) != 0) ++covered;
+        const int cx = c % w, cy = c / w;
+        const std::int32_t neighbours[4] = {c - 1, c + 1, c - w, c + w};
+        const bool inside[4] = {cx > roi.x0, cx + 1 < roi.x1, cy > roi.y0, cy + 1 < roi.y1};
+        for (int k = 0; k < 4; ++k) {
+          if (!inside[k] || !hole(static_cast<std::size_t>(neighbours[k]))) continue;
+          flags_[static_cast<std::size_t>(neighbours[k])] |= kVisited;
+          stack_[top++] = neighbours[k];
+        }
+      }
+      if (count >= kMinHoleCells && covered >= kMinLostPoints &&
+          static_cast<double>(covered) >= kMinCoveredShare * static_cast<double>(count)) {
+        largest = std::max(largest, static_cast<double>(count));
+      }
+    }
+  }
+  for (int y = roi.y0; y < roi.y1; ++y) {  // blob_evidence needs kVisited clear
+    std::uint8_t* row = flags_.data() + static_cast<std::size_t>(y) * static_cast<std::size_t>(w);
+    for (int x = roi.x0; x < roi.x1; ++x) row[x] &= static_cast<std::uint8_t>(~kVisited);
+  }
+  return largest;
 }
 
 Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, bool extra) {

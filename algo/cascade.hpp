@@ -300,12 +300,15 @@ class Cascade {
                                    const PlanarPose& pose, int& outside_points);
   void level_scan_depth(const Roi& roi, const Eigen::Vector2d& centre_m, MatchReport& report);
   void window_range(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi);
-  // Flood-fills the blobs of `bit` (kMissing, or kExtra with `extra`) and weighs each by its shape
-  // (CascadeParams::weak_evidence_weight).
   // MatchReport::size_dx_m / size_dy_m from the rasters (see the definition).
   void measure_size(const Roi& roi, MatchReport& r);
   // Marks the missing cells that lie in a region of lost data (kLost): see the definition.
   void mark_lost_data(const Roi& roi);
+  // The largest of the template's holes (cells) that the scan's material covers, densely or porously (after
+  // mark_lost_data, before blob_evidence): see the definition.
+  [[nodiscard]] double covered_hole_cells(const Roi& roi);
+  // Flood-fills the blobs of `bit` (kMissing, or kExtra with `extra`) and weighs each by its shape
+  // (CascadeParams::weak_evidence_weight).
   [[nodiscard]] BlobEvidence blob_evidence(const Roi& roi, std::uint8_t bit, bool extra);
   [[nodiscard]] MatchReport check_at(const Eigen::Vector2d& centre_m, std::span<const ScanPoint> scan,
                                      const PlanarPose& pose, const Roi& template_box);
