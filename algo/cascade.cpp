@@ -1160,38 +1160,62 @@ void Cascade::window_range(const std::vector<float>& lo, const std::vector<float
 
 double Cascade::covered_hole_cells(const Roi& roi) {
   // A hole of the template where the scan has material is evidence against it even when that material is only the
-  // few points a glare band left: a hole has no point at all. The extra cells (scan material beyond the window's
-  // reach of any template surface: not the hole's rim) of each hole are counted; a hole with at least
-  // kMinLostPoints of them and kMinCoveredShare of its cells is covered, and weighs its whole area (a glare band over
-  // where plate_5h has its fifth hole tells a plate_4h scan from it, issue 10). The holes are the cells outside the
-  // template's closed mask that mark_lost_data's flood from the box's edge did not reach (mask_b_).
+  // few points a glare band left: a hole has no point at all. Per hole, the scan cells well inside it (extra: beyond
+  // the window's reach of any template surface, so not the rim) whose depth is the rim's (within the depth
+  // tolerance: the sheet's own plane, as glare's residue is) are counted; a hole with at least kMinLostPoints of them
+  // and kMinCoveredShare of its cells is covered and weighs its whole area (a glare band over where plate_5h has its
+  // fifth hole tells a plate_4h scan from it, issue 10). Only holes at least kMinHoleThickness cells thick
+  // (2 area / perimeter: a disc's radius, a slot's width) count: the thin shadows a rib's walls leave in a template
+  // are no holes, and a scan at another pose sees the wall there. The holes are the cells outside the template's
+  // closed mask that mark_lost_data's flood from the box's edge did not reach (mask_b_).
   constexpr double kMinCoveredShare = 0.03;
-  constexpr std::size_t kMinHoleCells = 20;  // ~100 mm2: smaller holes lie within the window's reach of their rim
+  constexpr std::size_t kMinHoleCells = 20;  // ~100 mm2
+  constexpr double kMinHoleThickness = 4.0;
+  const auto tol = static_cast<float>(params_.depth_tolerance_m);
   const int w = width_;
   double largest = 0.0;
-  auto hole = [&](std::size_t i) { return mask_a_[i] == 0 && mask_b_[i] == 0 && (flags_[i] & kVisited) == 0; };
+  auto hole = [&](std::size_t i) { return mask_a_[i] == 0 && mask_b_[i] == 0; };
   for (int y = roi.y0; y < roi.y1; ++y) {
     for (int x = roi.x0; x < roi.x1; ++x) {
       const std::int32_t seed = y * w + x;
-      if (!hole(static_cast<std::size_t>(seed))) continue;
+      if (!hole(static_cast<std::size_t>(seed)) || (flags_[static_cast<std::size_t>(seed)] & kVisited) != 0) continue;
       flags_[static_cast<std::size_t>(seed)] |= kVisited;
-      std::size_t top = 0, count = 0, covered = 0;
+      std::size_t top = 0, count = 0, perimeter = 0, rim_cells = 0;
+      double rim_depth = 0.0;
       stack_[top++] = seed;
       while (top > 0) {
         const std::int32_t c = stack_[--top];
-        ++count;
-        if ((flags_[static_cast<std::size_t>(c)] & kExtra) != 0) ++covered;
+        blob_cells_[count++] = c;
         const int cx = c % w, cy = c / w;
         const std::int32_t neighbours[4] = {c - 1, c + 1, c - w, c + w};
         const bool inside[4] = {cx > roi.x0, cx + 1 < roi.x1, cy > roi.y0, cy + 1 < roi.y1};
         for (int k = 0; k < 4; ++k) {
-          if (!inside[k] || !hole(static_cast<std::size_t>(neighbours[k]))) continue;
-          flags_[static_cast<std::size_t>(neighbours[k])] |= kVisited;
-          stack_[top++] = neighbours[k];
+          const auto n = static_cast<std::size_t>(neighbours[k]);
+          if (inside[k] && hole(n)) {
+            if ((flags_[n] & kVisited) == 0) {
+              flags_[n] |= kVisited;
+              stack_[top++] = neighbours[k];
+            }
+            continue;
+          }
+          ++perimeter;
+          if (inside[k] && t_lo_[n] <= t_hi_[n]) {
+            rim_depth += 0.5 * (static_cast<double>(t_lo_[n]) + static_cast<double>(t_hi_[n]));
+            ++rim_cells;
+          }
         }
       }
-      if (count >= kMinHoleCells && covered >= kMinLostPoints &&
-          static_cast<double>(covered) >= kMinCoveredShare * static_cast<double>(count)) {
+      if (count < kMinHoleCells || rim_cells == 0 ||
+          2.0 * static_cast<double>(count) < kMinHoleThickness * static_cast<double>(perimeter)) {
+        continue;
+      }
+      const auto rim = static_cast<float>(rim_depth / static_cast<double>(rim_cells));
+      std::size_t covered = 0;
+      for (std::size_t j = 0; j < count; ++j) {
+        const auto c = static_cast<std::size_t>(blob_cells_[j]);
+        if ((flags_[c] & kExtra) != 0 && s_hi_[c] >= rim - tol && s_lo_[c] <= rim + tol) ++covered;
+      }
+      if (covered >= kMinLostPoints && static_cast<double>(covered) >= kMinCoveredShare * static_cast<double>(count)) {
         largest = std::max(largest, static_cast<double>(count));
       }
     }
