@@ -1165,12 +1165,13 @@ double Cascade::covered_hole_cells(const Roi& roi) {
   // tolerance: the sheet's own plane, as glare's residue is) are counted; a hole with at least kMinLostPoints of them
   // and kMinCoveredShare of its cells is covered and weighs its whole area (a glare band over where plate_5h has its
   // fifth hole tells a plate_4h scan from it, issue 10). Only holes at least kMinHoleThickness cells thick
-  // (2 area / perimeter: a disc's radius, a slot's width) count: the thin shadows a rib's walls leave in a template
-  // are no holes, and a scan at another pose sees the wall there. The holes are the cells outside the template's
+  // (2 area / perimeter: a disc's radius, a slot's width) whose rim lies in one plane count: the shadows a rib's
+  // walls leave in a template are no holes, and a scan at another pose sees the wall there. The holes are the cells outside the template's
   // closed mask that mark_lost_data's flood from the box's edge did not reach (mask_b_).
   constexpr double kMinCoveredShare = 0.03;
   constexpr std::size_t kMinHoleCells = 20;  // ~100 mm2
   constexpr double kMinHoleThickness = 4.0;
+  constexpr float kMaxRimStep_m = 0.006F;  // above a cell's own depth spread and a swing's slope, below a rib's rise
   const auto tol = static_cast<float>(params_.depth_tolerance_m);
   const int w = width_;
   double largest = 0.0;
@@ -1182,6 +1183,7 @@ double Cascade::covered_hole_cells(const Roi& roi) {
       flags_[static_cast<std::size_t>(seed)] |= kVisited;
       std::size_t top = 0, count = 0, perimeter = 0, rim_cells = 0;
       double rim_depth = 0.0;
+      float rim_lo = kEmptyLo, rim_hi = kEmptyHi;
       stack_[top++] = seed;
       while (top > 0) {
         const std::int32_t c = stack_[--top];
@@ -1201,11 +1203,14 @@ double Cascade::covered_hole_cells(const Roi& roi) {
           ++perimeter;
           if (inside[k] && t_lo_[n] <= t_hi_[n]) {
             rim_depth += 0.5 * (static_cast<double>(t_lo_[n]) + static_cast<double>(t_hi_[n]));
+            rim_lo = std::min(rim_lo, t_lo_[n]);
+            rim_hi = std::max(rim_hi, t_hi_[n]);
             ++rim_cells;
           }
         }
       }
-      if (count < kMinHoleCells || rim_cells == 0 ||
+      // A rim that steps in depth (the sheet on one side, a rib's top on the other) bounds a laser shadow, not a hole.
+      if (count < kMinHoleCells || rim_cells == 0 || rim_hi - rim_lo >= kMaxRimStep_m ||
           2.0 * static_cast<double>(count) < kMinHoleThickness * static_cast<double>(perimeter)) {
         continue;
       }
