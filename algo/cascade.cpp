@@ -1435,6 +1435,9 @@ void Cascade::mark_lost_data(const Roi& roi) {
   }
   if (template_cells <= 0.0) return;
   const double typical = occupied_cells / template_cells;
+  auto sparse = [&](std::size_t i) {
+    return static_cast<double>(w_lo_[i]) < kSparseShare * typical * static_cast<double>(w_hi_[i]);
+  };
   for (int y = roi.y0; y < roi.y1; ++y) {
     const std::size_t row = static_cast<std::size_t>(y) * w;
     for (int x = roi.x0; x < roi.x1; ++x) {
@@ -1446,17 +1449,10 @@ void Cascade::mark_lost_data(const Roi& roi) {
         occ += tmp_lo_[j];
         tpl += tmp_hi_[j];
       }
-      w_lo_[row + static_cast<std::size_t>(x)] = occ;
-      w_hi_[row + static_cast<std::size_t>(x)] = tpl;
-    }
-  }
-  auto sparse = [&](std::size_t i) {
-    return static_cast<double>(w_lo_[i]) < kSparseShare * typical * static_cast<double>(w_hi_[i]);
-  };
-  // A scan point in a sparse window is what a glare band leaves (measure_size: a line's end there is no edge).
-  for (int y = roi.y0; y < roi.y1; ++y) {
-    for (int x = roi.x0; x < roi.x1; ++x) {
-      const std::size_t i = static_cast<std::size_t>(y) * w + static_cast<std::size_t>(x);
+      const std::size_t i = row + static_cast<std::size_t>(x);
+      w_lo_[i] = occ;
+      w_hi_[i] = tpl;
+      // A scan point in a sparse window is what a glare band leaves (measure_size: a line's end there is no edge).
       if (t_lo_[i] <= t_hi_[i] && occupied(i) && sparse(i)) flags_[i] |= kResidue;
     }
   }

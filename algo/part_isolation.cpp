@@ -26,16 +26,15 @@ void line_pass(const std::vector<std::uint8_t>& src, std::vector<std::uint8_t>& 
   }
 }
 
-// Square dilation (or erosion) of src into dst, separable: rows into tmp, then columns. dst may be src (src is only
-// read by the row pass). Written here rather than with cv::dilate / cv::erode so the buffers stay the preallocated
-// ones and the box limits the work.
-void square_pass(const std::vector<std::uint8_t>& src, std::vector<std::uint8_t>& dst, std::vector<std::uint8_t>& tmp,
-                 int nx, const CellBox& b, int r, bool dilate) {
-  line_pass(src, tmp, nx, b, r, dilate, true);
-  line_pass(tmp, dst, nx, b, r, dilate, false);
-}
-
 }  // namespace
+
+// Written here rather than with cv::dilate / cv::erode so the loop's buffers stay the preallocated ones and the box
+// limits the work. (dst may be src: src is only read by the row pass.)
+void square_morphology(const std::vector<std::uint8_t>& src, std::vector<std::uint8_t>& dst,
+                       std::vector<std::uint8_t>& tmp, int nx, const CellBox& box, int r, bool dilate) {
+  line_pass(src, tmp, nx, box, r, dilate, true);
+  line_pass(tmp, dst, nx, box, r, dilate, false);
+}
 
 PartIsolator::PartIsolator(const GridSpec& grid, const IsolationParams& params) : grid_(grid), params_(params) {
   const auto cells = static_cast<std::size_t>(grid.nx) * static_cast<std::size_t>(grid.ny);
@@ -94,40 +93,26 @@ IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, dou
   };
   const int edge_lo = cell_x(scanned_x0_m) + params_.border_cells;
   const int edge_hi = cell_x(scanned_x1_m) - params_.border_cells;
-  // Dilation by a square of bridge_cells (separable: rows, then columns) over the occupied box plus the radius.
+  // Dilation by a square of bridge_cells over the occupied box plus the radius.
   const int r = std::max(0, params_.bridge_cells);
   const int bx0 = std::max(0, x_lo - r), bx1 = std::min(nx - 1, x_hi + r);
   const int by0 = std::max(0, y_lo - r), by1 = std::min(ny - 1, y_hi + r);
   auto at = [nx](int x, int y) { return static_cast<std::size_t>(y) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(x); };
+  const CellBox b{bx0, bx1, by0, by1};
   for (int y = by0; y <= by1; ++y) {
     for (int x = bx0; x <= bx1; ++x) {
-      bool any = false;
-      for (int d = -r; d <= r && !any; ++d) {
-        const int xx = x + d;
-        any = xx >= 0 && xx < nx && occupied_[at(xx, y)] > 0;
-      }
-      bridged_[at(x, y)] = any ? 1 : 0;
+      mask_[at(x, y)] = occupied_[at(x, y)] > 0 ? 1 : 0;
       label_[at(x, y)] = -1;
     }
   }
-  // Columns: a cell is bridged when any cell within r rows is bridged along x (read from the row pass, kept in bit 1).
-  for (int y = by0; y <= by1; ++y) {
-    for (int x = bx0; x <= bx1; ++x) {
-      bool any = false;
-      for (int d = -r; d <= r && !any; ++d) {
-        const int yy = y + d;
-        any = yy >= by0 && yy <= by1 && (bridged_[at(x, yy)] & 1U) != 0;
-      }
-      if (any) bridged_[at(x, y)] |= 2U;
-    }
-  }
+  square_morphology(mask_, bridged_, scratch_, nx, b, r, true);
   // Pieces: 4-connected flood fill of the bridged cells; each piece counts its occupied cells and whether it reaches
   // the x border.
   int pieces = 0;
   for (int y = by0; y <= by1; ++y) {
     for (int x = bx0; x <= bx1; ++x) {
       const std::size_t seed = at(x, y);
-      if ((bridged_[seed] & 2U) == 0 || label_[seed] >= 0) continue;
+      if (bridged_[seed] == 0 || label_[seed] >= 0) continue;
       const int id = pieces++;
       piece_cells_[static_cast<std::size_t>(id)] = 0;
       piece_border_[static_cast<std::size_t>(id)] = 0;
@@ -147,7 +132,7 @@ IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, dou
         for (int k = 0; k < 4; ++k) {
           if (nxs[k] < bx0 || nxs[k] > bx1 || nys[k] < by0 || nys[k] > by1) continue;
           const std::size_t n = at(nxs[k], nys[k]);
-          if ((bridged_[n] & 2U) == 0 || label_[n] >= 0) continue;
+          if (bridged_[n] == 0 || label_[n] >= 0) continue;
           label_[n] = id;
           stack_[top++] = static_cast<std::int32_t>(n);
         }
@@ -203,10 +188,10 @@ HangerReport PartIsolator::remove_hanger(ScanBuffer& part, double scanned_y1_m) 
     if (cell_of(p, i)) mask_[i] = 1;
   }
   // Closing by one cell (the profiles' sampling gaps), then the opening.
-  square_pass(mask_, closed_, scratch_, nx, b, 1, true);
-  square_pass(closed_, closed_, scratch_, nx, b, 1, false);
-  square_pass(closed_, opened_, scratch_, nx, b, r, false);
-  square_pass(opened_, opened_, scratch_, nx, b, r, true);
+  square_morphology(mask_, closed_, scratch_, nx, b, 1, true);
+  square_morphology(closed_, closed_, scratch_, nx, b, 1, false);
+  square_morphology(closed_, opened_, scratch_, nx, b, r, false);
+  square_morphology(opened_, opened_, scratch_, nx, b, r, true);
   // The residue (occupied or closed, not kept by the opening) connected (8-way) to a residue cell near the top.
   const auto residue = [&](std::size_t c) { return (mask_[c] != 0 || closed_[c] != 0) && opened_[c] == 0; };
   std::size_t depth = 0;

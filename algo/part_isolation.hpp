@@ -37,6 +37,12 @@ struct CellBox {
   int x0, x1, y0, y1;  // inclusive grid cells; x1 < 0: empty
 };
 
+// Square dilation (or erosion) of a 0/1 cell mask src into dst over the box, half-width r cells, separable (rows into
+// tmp, then columns); cells outside the box count as empty. dst may be src. All three span the grid's nx-wide raster.
+// Never allocates.
+void square_morphology(const std::vector<std::uint8_t>& src, std::vector<std::uint8_t>& dst,
+                       std::vector<std::uint8_t>& tmp, int nx, const CellBox& box, int r, bool dilate);
+
 struct HangerReport {
   std::size_t removed_points = 0;
   int removed_cells = 0;
@@ -78,7 +84,7 @@ class PartIsolator {
   std::vector<std::int32_t> piece_cells_;  // occupied cells per piece
   std::vector<std::uint8_t> piece_border_;
   std::vector<std::uint8_t> piece_keep_;
-  std::vector<std::uint8_t> mask_;     // remove_hanger: occupancy (bit 0), cut off (bit 1)
+  std::vector<std::uint8_t> mask_;     // occupancy (bit 0); remove_hanger: cut off (bit 1)
   std::vector<std::uint8_t> closed_;   // remove_hanger: the occupancy closed by one cell
   std::vector<std::uint8_t> opened_;   // remove_hanger: its opening
   std::vector<std::uint8_t> scratch_;  // remove_hanger: a separable pass's rows

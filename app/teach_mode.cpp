@@ -9,6 +9,7 @@
 #include <cstdio>
 #include <filesystem>
 
+#include "algo/part_isolation.hpp"
 #include "algo/ply.hpp"
 #include "app/atomic_file.hpp"
 #include "app/calibration_file.hpp"
@@ -88,26 +89,6 @@ struct TemplateChoice {
   TemplateModel model;
 };
 
-// One 3 x 3 dilation (or erosion) of a 0/1 cell mask; cells beyond the raster count as empty. Teach time.
-std::vector<std::uint8_t> square3(const std::vector<std::uint8_t>& m, std::size_t nx, std::size_t ny, bool dilate) {
-  std::vector<std::uint8_t> out(m.size(), 0);
-  for (std::size_t y = 0; y < ny; ++y) {
-    for (std::size_t x = 0; x < nx; ++x) {
-      bool v = !dilate;
-      for (int dy = -1; dy <= 1; ++dy) {
-        for (int dx = -1; dx <= 1; ++dx) {
-          const auto xx = static_cast<std::ptrdiff_t>(x) + dx, yy = static_cast<std::ptrdiff_t>(y) + dy;
-          const bool inside = xx >= 0 && yy >= 0 && xx < static_cast<std::ptrdiff_t>(nx) && yy < static_cast<std::ptrdiff_t>(ny);
-          const bool set = inside && m[static_cast<std::size_t>(yy) * nx + static_cast<std::size_t>(xx)] != 0;
-          v = dilate ? (v || set) : (v && set);
-        }
-      }
-      out[y * nx + x] = v ? 1 : 0;
-    }
-  }
-  return out;
-}
-
 // Consensus template (issue 10: "built from the taught scans, not taken blindly from one"): the chosen scan keeps
 // every point; where it has no solid material (its cells closed and then opened by 3 x 3, so the few points a glare
 // band leaves do not count) and no margin cell of it (its own edges do not grow), the cell takes the other scans'
@@ -135,16 +116,21 @@ Consensus consensus_points(const Config& config, ScanPreparer& preparer, algo::C
   Consensus out;
   (void)preparer.prepare(scans[chosen.index].points);
   out.points.assign(preparer.part_points().begin(), preparer.part_points().end());
-  // The chosen scan's cells (2) and the ring one cell around them (1): the ring is not filled from the others at
-  // first, so the outline does not grow by their sub-cell offsets.
+  // The chosen scan's solid cells (own 3: its occupancy closed, then opened, by 3 x 3) and the ring one cell around
+  // them (own 1): the ring is not filled from the others at first, so the outline does not grow by their sub-cell
+  // offsets.
   std::vector<std::uint8_t> occupied(nx * ny, 0);
   for (const algo::ScanPoint& p : out.points) {
     std::size_t c = 0;
     if (cell_of(p.x, p.y, c)) occupied[c] = 1;
   }
-  const std::vector<std::uint8_t> solid =
-      square3(square3(square3(square3(occupied, nx, ny, true), nx, ny, false), nx, ny, false), nx, ny, true);
-  const std::vector<std::uint8_t> ring = square3(solid, nx, ny, true);
+  const algo::CellBox raster{0, g.nx - 1, 0, g.ny - 1};
+  std::vector<std::uint8_t> solid(nx * ny, 0), ring(nx * ny, 0), tmp(nx * ny, 0);
+  algo::square_morphology(occupied, solid, tmp, g.nx, raster, 1, true);
+  algo::square_morphology(solid, solid, tmp, g.nx, raster, 1, false);
+  algo::square_morphology(solid, solid, tmp, g.nx, raster, 1, false);
+  algo::square_morphology(solid, solid, tmp, g.nx, raster, 1, true);
+  algo::square_morphology(solid, ring, tmp, g.nx, raster, 1, true);
   std::vector<std::uint8_t> own(nx * ny, 0);
   for (std::size_t c = 0; c < own.size(); ++c) own[c] = solid[c] != 0 ? 3 : ring[c];
   const algo::TemplateModel view = view_of(chosen.model);
