@@ -32,6 +32,9 @@ constexpr double kMinPorosity = 0.005;
 constexpr std::size_t kMinLostPoints = 5;
 constexpr int kMinLostGroupCells = 12;
 constexpr double kBandFringeCells = 1.5;
+// mark_lost_data: a template depth step this high within the window is a relief wall, whose foot the laser shadow
+// hides in some poses and not in others (ribs rise 10 mm or more; a sheet's depth spread in a cell is ~2 mm).
+constexpr double kShadowStepM = 0.006;
 // measure_size: columns / rows this close to the template's ends are left out (a turned part's edge is slanted
 // there); fewer than kMinSizeLines usable ones measure nothing.
 constexpr int kSizeEndCells = 3;
@@ -1559,6 +1562,28 @@ void Cascade::mark_lost_data(const Roi& roi) {
         std::uint8_t& f = flags_[static_cast<std::size_t>(blob_cells_[j])];
         if ((f & kMissing) != 0 && across(blob_cells_[j]) <= half_width) f |= kLost;
       }
+    }
+  }
+  // Laser shadow: beside a relief wall (a rib, a flange) the line is hidden from the camera, or the camera from the
+  // line, over a strip whose width depends on the part's pose, so the taught scans and this one see the foot of the
+  // wall differently. A missing cell the scan has no point in, within the window of a depth step of the template
+  // (kShadowStep_m between its lowest and highest surface there), is lost data, not a hole. A hole the scan has beside
+  // a wall loses only its cells within the window; a rib the template lacks is covered by the scan (not empty here).
+  const auto step = static_cast<float>(kShadowStepM);
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    for (int x = roi.x0; x < roi.x1; ++x) {
+      const auto i = static_cast<std::size_t>(y * wi + x);
+      if ((flags_[i] & (kMissing | kLost)) != kMissing || s_lo_[i] <= s_hi_[i]) continue;
+      float lo = kEmptyLo, hi = kEmptyHi;
+      for (int yy = std::max(roi.y0, y - r); yy <= std::min(roi.y1 - 1, y + r); ++yy) {
+        for (int xx = std::max(roi.x0, x - r); xx <= std::min(roi.x1 - 1, x + r); ++xx) {
+          const auto j = static_cast<std::size_t>(yy * wi + xx);
+          if (!(t_lo_[j] <= t_hi_[j])) continue;
+          lo = std::min(lo, t_lo_[j]);
+          hi = std::max(hi, t_hi_[j]);
+        }
+      }
+      if (hi - lo >= step) flags_[i] |= kLost;
     }
   }
 }

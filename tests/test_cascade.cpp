@@ -444,6 +444,59 @@ SCENARIO("The two-way check sees one pressed rib more or less, which a flat x-y 
         CHECK(r.missing_area_m2 + r.extra_area_m2 > rib_top_m2);
       }
     }
+    WHEN("the ribbed_v4 scan lacks the foot of each rib's +x wall over 100 mm (a laser shadow), or has a hole there") {
+      const auto clean = sample_part(part("ribbed_v4"), kTestPose, 45);
+      // The sheet's depth is the median; rib tops lie 20 mm above it. A 1 mm x-y map of the rib tops tells which
+      // points of the wall's lower half and of the sheet lie within 12 mm to the +x side of a rib: the strip a wall
+      // hides from a camera beside it, in some poses and not in others.
+      std::vector<float> depths;
+      float cx = 0.0F, cy = 0.0F;
+      for (const ScanPoint& p : clean) {
+        depths.push_back(p.z);
+        cx += p.x;
+        cy += p.y;
+      }
+      cx /= static_cast<float>(clean.size());
+      cy /= static_cast<float>(clean.size());
+      std::nth_element(depths.begin(), depths.begin() + static_cast<std::ptrdiff_t>(depths.size() / 2), depths.end());
+      const float sheet = depths[depths.size() / 2];
+      std::set<std::pair<long, long>> rib;
+      for (const ScanPoint& p : clean) {
+        if (std::abs(p.z - sheet) > 0.010F) rib.emplace(std::lround(p.x * 1e3F), std::lround(p.y * 1e3F));
+      }
+      auto shadow = clean;
+      std::erase_if(shadow, [&](const ScanPoint& p) {
+        if (std::abs(p.y - cy) > 0.05F || std::abs(p.z - sheet) > 0.012F) return false;
+        const long x = std::lround(p.x * 1e3F), y = std::lround(p.y * 1e3F);
+        for (long d = 1; d <= 12; ++d) {
+          if (rib.count({x - d, y}) != 0) return true;
+        }
+        return false;
+      });
+      // A 24 mm hole in the sheet between the ribs at +45 mm and +135 mm (sheet from +65 to +115 mm), its rim 3 mm
+      // from the first rib's foot.
+      auto holed = clean;
+      std::erase_if(holed, [&](const ScanPoint& p) { return std::hypot(p.x - cx - 0.080F, p.y - cy) < 0.012F; });
+      const PlanarPose at = true_relative_pose(*t4, kTestPose);
+      const MatchReport own = cascade.two_way_check(model_of(*t4, 0, 1), shadow, at);
+      const MatchReport twin = cascade.two_way_check(model_of(*t3, 0, 1), shadow, true_relative_pose(*t3, kTestPose));
+      const MatchReport hole = cascade.two_way_check(model_of(*t4, 0, 1), holed, at);
+      const double hole_m2 = std::numbers::pi * 0.012 * 0.012;
+      THEN("the shadow is lost data, the hole beside the wall is missing all the same, the twin's rib counts in full") {
+        INFO("shadow: removed " << clean.size() - shadow.size() << " points; own: missing " << own.missing_area_m2 * 1e6
+                                << " lost " << own.lost_area_m2 * 1e6 << " mm^2; v3: missing "
+                                << twin.missing_area_m2 * 1e6 << " extra " << twin.extra_area_m2 * 1e6
+                                << " mm^2; hole: missing " << hole.missing_area_m2 * 1e6 << " lost "
+                                << hole.lost_area_m2 * 1e6 << " of " << hole_m2 * 1e6 << " mm^2");
+        CHECK(clean.size() - shadow.size() > 1000);
+        CHECK(own.lost_area_m2 > 150e-6);
+        CHECK(own.missing_area_m2 < 20e-6);
+        CHECK(twin.missing_area_m2 + twin.extra_area_m2 > rib_top_m2);
+        // (The check's window takes two cells off every rim: what is left of a 24 mm hole is about a quarter.)
+        CHECK(hole.missing_area_m2 > 0.2 * hole_m2);
+        CHECK(hole.lost_area_m2 < 20e-6);
+      }
+    }
     WHEN("the same is done with an unbounded depth tolerance (a flat x-y mask)") {
       CascadeParams flat;
       flat.depth_tolerance_m = 1.0;
