@@ -298,6 +298,8 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
   //    separates that clearly stays: the pair is reported, and at run time the look-alike verification and the
   //    evidence margin make such a scan unknown rather than a guess.
   constexpr double kClearSeparation = 2.0;
+  double margin_floor[kFigures];
+  for (int f = 0; f < kFigures; ++f) margin_floor[f] = f == 0 ? params.error_margin_floor : 0.25 * floor[f];
   for (const MatchReport& r : other_classes) {
     if (!r.passes(out.thresholds)) {
       ++out.other_scans_rejected;
@@ -307,7 +309,7 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
     int best = -1;
     double best_ratio = kClearSeparation;
     for (int f = 0; f < kFigures; ++f) {
-      const double own = std::max(own_max[static_cast<std::size_t>(f)], 0.25 * floor[f]);
+      const double own = std::max(own_max[static_cast<std::size_t>(f)], margin_floor[f]);
       const double ratio = x[static_cast<std::size_t>(f)] / own;
       if (std::isfinite(ratio) && ratio >= best_ratio) {
         best_ratio = ratio;
@@ -318,7 +320,7 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
       ++out.other_scans_inseparable;
       continue;
     }
-    const double own = std::max(own_max[static_cast<std::size_t>(best)], 0.25 * floor[best]);
+    const double own = std::max(own_max[static_cast<std::size_t>(best)], margin_floor[best]);
     set_limit(out.thresholds, best, std::sqrt(own * x[static_cast<std::size_t>(best)]));
     ++out.other_scans_rejected;
   }

@@ -76,6 +76,13 @@ struct CascadeParams {
   // hole leaves ~500 mm^2 with the default window; 150 mm^2 (31 cells of 2.2 mm) sits between them.
   double error_factor = 2.0;
   double error_floor = 6e-4;
+  // The margin to the runner-up (learn_thresholds step 3) measures how far another part's scan stands above the own
+  // class by the own maximum, floored so that own scans that are all alike do not make a hair's difference look
+  // clear: a quarter of the floor for the areas and shares, but this for the error. Levelled, an own-class match
+  // errs by 3-9e-6 on the simulated cell, and a twin whose relief differs only in depth shape (louvres where the
+  // other has ribs: areas within the depth tolerance) by 1.6e-5 and more; the coarse error_floor (unlevelled swing)
+  // would hide that difference.
+  double error_margin_floor = 6e-6;
   double area_factor = 1.5;
   double area_floor_m2 = 150e-6;
   // The largest blob misses a difference spread over many small places: two perforated sheets whose hole patterns

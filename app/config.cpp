@@ -229,6 +229,7 @@ void read_rest(YamlSection& root, Config& cfg) {
     s.boolean("level_depth", cfg.cascade.level_depth);
     s.number("error_factor", cfg.cascade.error_factor, 1.0, 100.0, "");
     s.number("error_floor", cfg.cascade.error_floor, 0.0, 1.0, "");
+    s.number("error_margin_floor", cfg.cascade.error_margin_floor, 0.0, 1.0, "");
     s.number("area_factor", cfg.cascade.area_factor, 1.0, 100.0, "");
     s.number("area_floor_m2", cfg.cascade.area_floor_m2, 0.0, 1.0, "m^2");
     s.number("share_factor", cfg.cascade.share_factor, 1.0, 100.0, "");

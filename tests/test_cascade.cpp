@@ -1059,6 +1059,40 @@ TEST_CASE("learn_thresholds leaves out a taught scan that disagrees and keeps a 
   CHECK(same.other_scans_inseparable == 1);
 }
 
+TEST_CASE("learn_thresholds separates a twin by a levelled error far below the coarse error floor", "[cascade]") {
+  // Given own-class matches that err by 3-8e-6 (levelled; catalogue 8302's rnd03 against its template) with small
+  // blobs, and a twin (louvres where the part has ribs) whose areas and shares are the same but whose error is
+  // 1.6e-5 and more: every figure but the error passes, and the error's coarse gate (max * 2 + 6e-4) too
+  CascadeParams p;
+  std::vector<MatchReport> own(12);
+  for (std::size_t i = 0; i < own.size(); ++i) {
+    own[i].pm.error = 3e-6 + 4.5e-7 * static_cast<double>(i);
+    own[i].missing_area_m2 = 5e-6;
+    own[i].extra_area_m2 = (i % 3) * 5e-6;
+    own[i].coverage = 0.99998;
+    own[i].scan_outliers = 0.0;
+  }
+  std::vector<MatchReport> twins;
+  for (double e : {1.6e-5, 1.9e-5, 2.8e-5, 1.4e-4}) {
+    MatchReport t = own[5];
+    t.pm.error = e;
+    twins.push_back(t);
+  }
+  REQUIRE(twins[0].passes(algo::learn_thresholds(own, {}, p).thresholds));
+  // When the thresholds are learnt with the twin's scans as the runner-up
+  const algo::ThresholdLearning learnt = algo::learn_thresholds(own, twins, p);
+  // Then every twin scan fails on the error, every own scan still passes, and nothing is reported inseparable
+  INFO("max_error " << learnt.thresholds.max_error);
+  for (const MatchReport& t : twins) CHECK_FALSE(t.passes(learnt.thresholds));
+  for (const MatchReport& r : own) CHECK(r.passes(learnt.thresholds));
+  CHECK(learnt.other_scans_inseparable == 0);
+  CHECK(learnt.thresholds.max_error > 1.4 * own.back().pm.error);  // a margin above the own class, not its maximum
+  // And with the old floor for the margin (a quarter of the error floor), the same twin could not be told apart
+  CascadeParams coarse = p;
+  coarse.error_margin_floor = 0.25 * p.error_floor;
+  CHECK(algo::learn_thresholds(own, twins, coarse).other_scans_inseparable == 4);
+}
+
 SCENARIO("A passing class's look-alikes are verified before it is accepted, and two that pass alike are unknown",
          "[cascade][policy]") {
   GIVEN("the four classes plus a fifth whose template is plate_4h's again (a twin no check can tell apart)") {
