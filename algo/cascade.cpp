@@ -23,6 +23,7 @@ constexpr std::uint8_t kVisited = 4;  // blob_evidence: the cell belongs to the 
 constexpr std::uint8_t kLost = 8;     // mark_lost_data: a missing cell in a region of lost data (glare residue)
 constexpr std::uint8_t kGrouped = 16;  // mark_lost_data: the cell belongs to the group being filled
 constexpr std::uint8_t kResidue = 32;  // mark_lost_data: a template cell the scan holds, in a sparse window (glare)
+constexpr std::uint8_t kShadow = 64;   // covered_hole_cells: extra scan material in the template's laser shadow
 // mark_lost_data: a template cell is "sparse" when the scan occupies fewer than kSparseShare x the scan's typical
 // share of the template cells in its window; a group of missing and sparse cells in which at least kMinPorosity of
 // the cells, and kMinLostPoints cells, still hold scan points (the few a glare band leaves: 1-3 % of the cells
@@ -1189,11 +1190,13 @@ double Cascade::covered_hole_cells(const Roi& roi) {
       std::size_t top = 0, count = 0, perimeter = 0, rim_cells = 0;
       double rim_depth = 0.0;
       float rim_lo = kEmptyLo, rim_hi = kEmptyHi;
+      CellMoments moments;
       stack_[top++] = seed;
       while (top > 0) {
         const std::int32_t c = stack_[--top];
         blob_cells_[count++] = c;
         const int cx = c % w, cy = c / w;
+        moments.add(cx, cy);
         const std::int32_t neighbours[4] = {c - 1, c + 1, c - w, c + w};
         const bool inside[4] = {cx > roi.x0, cx + 1 < roi.x1, cy > roi.y0, cy + 1 < roi.y1};
         for (int k = 0; k < 4; ++k) {
@@ -1215,6 +1218,16 @@ double Cascade::covered_hole_cells(const Roi& roi) {
         }
       }
       // A rim that steps in depth (the sheet on one side, a rib's top on the other) bounds a laser shadow, not a hole.
+      // A scan at another pose sees into it: its material there, at depths between the rim's (the wall, its foot), is
+      // marked for blob_evidence as the mirror of the shadow mark_lost_data excuses. Only a strip along the wall
+      // (elongated): a round hole beside a rib stays a hole.
+      if (rim_cells > 0 && rim_hi - rim_lo >= kMaxRimStep_m && moments.elongation() >= params_.band_elongation) {
+        for (std::size_t j = 0; j < count; ++j) {
+          const auto c = static_cast<std::size_t>(blob_cells_[j]);
+          if ((flags_[c] & kExtra) != 0 && s_lo_[c] >= rim_lo - tol && s_hi_[c] <= rim_hi + tol) flags_[c] |= kShadow;
+        }
+        continue;
+      }
       if (count < kMinHoleCells || rim_cells == 0 || rim_hi - rim_lo >= kMaxRimStep_m ||
           2.0 * static_cast<double>(count) < kMinHoleThickness * static_cast<double>(perimeter)) {
         continue;
@@ -1259,12 +1272,14 @@ Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, b
       CellMoments moments;
       int boundary = 0, contact = 0;
       std::size_t lost = 0;  // missing cells mark_lost_data found in a region of lost data
+      std::size_t shadow = 0;  // extra cells covered_hole_cells found in the template's laser shadow
       std::size_t conflict = 0;  // cells both surfaces cover, at depths that disagree
       while (top > 0) {
         const std::int32_t c = stack_[--top];
         blob_cells_[count++] = c;
         const auto ci = static_cast<std::size_t>(c);
         if ((flags_[ci] & kLost) != 0) ++lost;
+        if ((flags_[ci] & kShadow) != 0) ++shadow;
         if (extra ? t_lo_[ci] <= t_hi_[ci] : s_lo_[ci] <= s_hi_[ci]) ++conflict;
         const int cx = c % w;
         const int cy = c / w;
@@ -1300,9 +1315,11 @@ Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, b
       double weight = 1.0;
       // Mostly depths that disagree (a rib, a flange the other lacks): contradiction, whatever its shape. Otherwise
       // absence: a missing piece mostly inside a region of lost data (a glare band's residue) is not evidence of a
-      // hole, and a thin band touching the other side only at its ends (below) is glare, a chain or a hook.
+      // hole, and a thin band touching the other side only at its ends (below) is glare, a chain or a hook. Extra
+      // material mostly where the template lies in its own laser shadow (a wall this scan sees) is absence too.
       const bool contradiction = 2 * conflict >= count;
       if (!contradiction && !extra && 2 * lost >= count) weight = params_.weak_evidence_weight;
+      if (!contradiction && extra && 2 * shadow >= count) weight = params_.weak_evidence_weight;
       if (!contradiction && count >= 3 && contact > 0 && boundary > 0) {
         const double elongation = moments.elongation();
         const double contact_share = static_cast<double>(contact) / boundary;
