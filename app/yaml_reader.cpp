@@ -7,6 +7,8 @@
 #include <fstream>
 #include <sstream>
 
+#include "app/input_file.hpp"
+
 namespace cellsight::app {
 namespace {
 
@@ -225,6 +227,8 @@ void YamlSection::finish() {
 }
 
 Expected<YAML::Node> load_yaml_file(const std::string& path) {
+  // A folder opens as a stream but throws std::ios_failure from yaml-cpp's first read: refuse it here.
+  if (Status regular = check_regular_file(path, ", not a configuration file"); !regular) return regular.error();
   std::ifstream in(path);
   if (!in) return make_error(path + ": cannot open: " + std::strerror(errno));
   try {
@@ -233,6 +237,8 @@ Expected<YAML::Node> load_yaml_file(const std::string& path) {
     std::ostringstream line;
     line << path << ":" << e.mark.line + 1 << ":" << e.mark.column + 1 << ": YAML syntax error: " << e.msg;
     return make_error(line.str());
+  } catch (const std::exception& e) {  // a read error (std::ios_failure) from the stream under yaml-cpp
+    return make_error(path + ": cannot read: " + e.what());
   }
 }
 

@@ -221,3 +221,16 @@ TEST_CASE("Given `cellsight sim --random-catalogue`, when run, then it writes a 
   CHECK_FALSE(fs::exists(dir / "other.yaml"));
   fs::remove_all(dir);
 }
+
+TEST_CASE("Given a folder as --config, when any mode runs, then it exits 2 naming the folder (it used to abort with "
+          "an uncaught std::ios_failure, exit 134)") {
+  const fs::path dir = fresh_dir("config-dir");
+  fs::create_directories(dir);
+  for (const char* mode : {"sim --list", "parts list", "calibrate support --sim"}) {
+    const Run r = run(mode, dir.string());
+    INFO(mode << ": " << r.output);
+    CHECK(r.exit_code == 2);
+    CHECK(r.output.find(dir.string() + ": is a directory, not a configuration file") != std::string::npos);
+  }
+  fs::remove_all(dir);
+}

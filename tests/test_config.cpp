@@ -244,3 +244,10 @@ TEST_CASE("Given pose texts, when parsed, then metres and degrees are read and m
   CHECK_FALSE(app::parse_pose("0.5,0,0").ok());  // 0.5 m is not a pose error, it is a typo for mm
   CHECK(app::parse_pose("0.01,,3").error().message.find("'' is not a number") != std::string::npos);
 }
+
+TEST_CASE("Given a folder as the config file, when it is loaded, then it is refused as not a regular file, not thrown") {
+  const std::string dir = fs::path(write_temp("c.yaml", "")).parent_path().string();
+  auto cfg = app::load_config(dir);
+  REQUIRE_FALSE(cfg.ok());
+  CHECK(cfg.error().message == dir + ": is a directory, not a configuration file");
+}
