@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstring>
 #include <fstream>
+#include <map>
 #include <sstream>
 
 #include "app/input_file.hpp"
@@ -48,6 +49,30 @@ bool parse_int64(const YAML::Node& node, std::int64_t& out) {
   if (errno != 0 || end == s.c_str() || *end != '\0') return false;
   out = v;
   return true;
+}
+
+// yaml-cpp keeps every pair of a mapping and answers a lookup with the first, so a key written twice would pass
+// silently with its first value: every mapping of the document is walked and a repeated key reported.
+void report_repeated_keys(const YAML::Node& node, const std::string& path, int depth, YamlErrors& errors) {
+  constexpr int kMaxDepth = 64;  // a configuration is a few levels deep; aliases must not recurse for ever
+  if (depth > kMaxDepth) return;
+  if (node.IsMap()) {
+    std::map<std::string, int> first_line;
+    for (const auto& kv : node) {
+      const std::string key = kv.first.IsScalar() ? kv.first.Scalar() : std::string();
+      const std::string child = path.empty() ? key : path + "." + key;
+      const auto [first, fresh] = first_line.emplace(key, kv.first.Mark().line);
+      if (!fresh) {
+        errors.add(kv.first.Mark(), child, "given twice (first at line " + std::to_string(first->second + 1) + "); keep one");
+      }
+      report_repeated_keys(kv.second, child, depth + 1, errors);
+    }
+  } else if (node.IsSequence()) {
+    std::size_t index = 0;
+    for (const auto& element : node) {
+      report_repeated_keys(element, path + "[" + std::to_string(index++) + "]", depth + 1, errors);
+    }
+  }
 }
 
 }  // namespace
@@ -231,8 +256,9 @@ Expected<YAML::Node> load_yaml_file(const std::string& path) {
   if (Status regular = check_regular_file(path, ", not a configuration file"); !regular) return regular.error();
   std::ifstream in(path);
   if (!in) return make_error(path + ": cannot open: " + std::strerror(errno));
+  YAML::Node doc;
   try {
-    return YAML::Load(in);
+    doc = YAML::Load(in);
   } catch (const YAML::Exception& e) {  // yaml-cpp reports through exceptions; stop them at this boundary
     std::ostringstream line;
     line << path << ":" << e.mark.line + 1 << ":" << e.mark.column + 1 << ": YAML syntax error: " << e.msg;
@@ -240,6 +266,10 @@ Expected<YAML::Node> load_yaml_file(const std::string& path) {
   } catch (const std::exception& e) {  // a read error (std::ios_failure) from the stream under yaml-cpp
     return make_error(path + ": cannot read: " + e.what());
   }
+  YamlErrors repeated(path);
+  report_repeated_keys(doc, "", 0, repeated);
+  if (!repeated.empty()) return make_error(repeated.joined());
+  return doc;
 }
 
 }  // namespace cellsight::app

@@ -251,3 +251,16 @@ TEST_CASE("Given a folder as the config file, when it is loaded, then it is refu
   REQUIRE_FALSE(cfg.ok());
   CHECK(cfg.error().message == dir + ": is a directory, not a configuration file");
 }
+
+TEST_CASE("Given a key written twice in one mapping, when the config is loaded, then it is refused with file, line and "
+          "key (yaml-cpp would keep the first value silently)") {
+  const std::string message = load_error("conveyor:\n  speed_m_per_s: 0.01\n  speed_m_per_s: 0.02\n");
+  CHECK(message.find("c.yaml:3:3: conveyor.speed_m_per_s: given twice (first at line 2); keep one") !=
+        std::string::npos);
+  CHECK(message.find('\n') == std::string::npos);
+  // At the top level and inside a list element too.
+  CHECK(load_error("grid:\n  nx: 100\ngrid:\n  ny: 100\n").find("c.yaml:3:1: grid: given twice (first at line 1)") !=
+        std::string::npos);
+  CHECK(load_error("sim:\n  coatings:\n    - name: a\n      name: b\n")
+            .find("c.yaml:4:7: sim.coatings[0].name: given twice (first at line 3)") != std::string::npos);
+}
