@@ -1,6 +1,7 @@
 // Reads config/cellsight.yaml into Config, validating every value (ranges carry their units).
 #include "app/config.hpp"
 
+#include <arpa/inet.h>
 #include <unistd.h>
 
 #include <filesystem>
@@ -160,6 +161,13 @@ void read_rest(YamlSection& root, Config& cfg) {
   {
     YamlSection m = root.section("modbus");
     m.text("bind_address", cfg.modbus.bind_address);
+    // libmodbus listens on a numeric IPv4 address only: a host name or a bad address would fail at `run` time.
+    in_addr parsed{};
+    if (::inet_pton(AF_INET, cfg.modbus.bind_address.c_str(), &parsed) != 1) {
+      m.error("bind_address", "'" + cfg.modbus.bind_address +
+                                  "' is not valid, expected a dotted IPv4 address such as 0.0.0.0 (every interface) "
+                                  "or 192.168.0.10 (host names are not accepted)");
+    }
     m.integer("port", cfg.modbus.port, 1, 65535, "");
     m.integer("max_clients", cfg.modbus.max_clients, 1, 64, "clients");
     m.integer("byte_timeout_ms", cfg.modbus.byte_timeout_ms, 1, 10000, "ms");

@@ -264,3 +264,18 @@ TEST_CASE("Given a key written twice in one mapping, when the config is loaded, 
   CHECK(load_error("sim:\n  coatings:\n    - name: a\n      name: b\n")
             .find("c.yaml:4:7: sim.coatings[0].name: given twice (first at line 3)") != std::string::npos);
 }
+
+TEST_CASE("Given a Modbus bind address that is not a dotted IPv4 address, when the config is loaded, then it is "
+          "refused with file, line, key and reason") {
+  CHECK(load_error("modbus:\n  bind_address: 999.1.1.1\n")
+            .find("c.yaml:2:17: modbus.bind_address: '999.1.1.1' is not valid, expected a dotted IPv4 address such as "
+                  "0.0.0.0 (every interface) or 192.168.0.10 (host names are not accepted)") != std::string::npos);
+  CHECK(load_error("modbus:\n  bind_address: plc.local\n").find("modbus.bind_address: 'plc.local' is not valid") !=
+        std::string::npos);
+  for (const char* good : {"0.0.0.0", "127.0.0.1", "192.168.10.2"}) {
+    auto cfg = app::load_config(write_temp("c.yaml", std::string("modbus:\n  bind_address: ") + good + "\n"));
+    INFO(good << ": " << (cfg.ok() ? std::string() : cfg.error().message));
+    REQUIRE(cfg.ok());
+    CHECK(cfg->modbus.bind_address == good);
+  }
+}
