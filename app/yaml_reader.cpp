@@ -78,6 +78,7 @@ void report_repeated_keys(const YAML::Node& node, const std::string& path, int d
 }  // namespace
 
 void YamlErrors::add(const YAML::Mark& mark, const std::string& key, const std::string& message) {
+  if (++count_ > kMaxLines) return;
   std::ostringstream line;
   line << file_;
   if (mark.line >= 0) line << ":" << mark.line + 1 << ":" << mark.column + 1;
@@ -88,6 +89,7 @@ void YamlErrors::add(const YAML::Mark& mark, const std::string& key, const std::
 std::string YamlErrors::joined() const {
   std::string out;
   for (const auto& l : lines_) out += (out.empty() ? "" : "\n") + l;
+  if (count_ > lines_.size()) out += "\n... and " + std::to_string(count_ - lines_.size()) + " more";
   return out;
 }
 

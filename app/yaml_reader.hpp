@@ -17,17 +17,23 @@ namespace cellsight::app {
 
 class YamlErrors {
  public:
+  // Lines kept and printed; the rest are only counted (a file of unknown keys must not print a line each).
+  static constexpr std::size_t kMaxLines = 20;
+
   explicit YamlErrors(std::string file) : file_(std::move(file)) {}
   void add(const YAML::Mark& mark, const std::string& key, const std::string& message);
-  [[nodiscard]] bool empty() const { return lines_.empty(); }
+  [[nodiscard]] bool empty() const { return count_ == 0; }
+  // The first kMaxLines errors.
   [[nodiscard]] const std::vector<std::string>& lines() const { return lines_; }
+  [[nodiscard]] std::size_t count() const { return count_; }
   [[nodiscard]] const std::string& file() const { return file_; }
-  // All lines joined with '\n', for an Error.
+  // The kept lines joined with '\n', then "... and N more" when errors were left out, for an Error.
   [[nodiscard]] std::string joined() const;
 
  private:
   std::string file_;
   std::vector<std::string> lines_;
+  std::size_t count_ = 0;
 };
 
 // A mapping node and the dotted path that leads to it. Reads leave the target untouched when the key is absent

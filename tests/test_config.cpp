@@ -279,3 +279,15 @@ TEST_CASE("Given a Modbus bind address that is not a dotted IPv4 address, when t
     CHECK(cfg->modbus.bind_address == good);
   }
 }
+
+TEST_CASE("Given a file of many mistakes, when the config is loaded, then the first 20 are printed and the rest "
+          "counted") {
+  std::string yaml;
+  for (int i = 0; i < 1000; ++i) yaml += "unknown_" + std::to_string(i) + ": 1\n";
+  const std::string message = load_error(yaml);
+  CHECK(std::count(message.begin(), message.end(), '\n') == 20);
+  CHECK(message.find(":1:1: unknown_0: unknown key") != std::string::npos);
+  CHECK(message.find(":20:1: unknown_19: unknown key") != std::string::npos);
+  CHECK(message.find("unknown_20:") == std::string::npos);
+  CHECK(message.substr(message.rfind('\n') + 1) == "... and 980 more");
+}
