@@ -95,19 +95,32 @@ struct AsciiCursor {
   }
 };
 
-}  // namespace
+// The header, checked: where the data starts and what it holds.
+struct ParsedHeader {
+  bool binary = false;
+  std::size_t data_start = 0;
+  std::vector<Element> elements;
+  std::size_t vertex_index = 0;
+  int ix = -1, iy = -1, iz = -1;
+};
 
-Expected<std::vector<ScanPoint>> parse_ply(std::string_view bytes, const PlyLimits& limits) {
-  // --- header ---
+Expected<ParsedHeader> parse_header(std::string_view bytes, const PlyLimits& limits) {
   if (bytes.substr(0, 4) != "ply\n" && bytes.substr(0, 5) != "ply\r\n") return fail("not a PLY file (no 'ply' magic)");
-  const std::size_t header_end = bytes.find("end_header");
-  if (header_end == std::string_view::npos) return fail("no end_header: the header is truncated");
+  // Only the first max_header_bytes may hold the header: a file that is no scan is refused from its first bytes.
+  const std::size_t header_end = bytes.substr(0, limits.max_header_bytes).find("end_header");
+  if (header_end == std::string_view::npos) {
+    if (bytes.size() >= limits.max_header_bytes) {
+      return fail("no end_header in the first " + std::to_string(limits.max_header_bytes) + " bytes: not a PLY scan");
+    }
+    return fail("no end_header: the header is truncated");
+  }
+  ParsedHeader out;
   std::size_t data_start = bytes.find('\n', header_end);
   if (data_start == std::string_view::npos) return fail("no line break after end_header");
-  ++data_start;
+  out.data_start = data_start + 1;
   const std::string_view header = bytes.substr(0, header_end);
-  bool binary = false, have_format = false;
-  std::vector<Element> elements;
+  bool have_format = false;
+  std::vector<Element>& elements = out.elements;
   std::size_t line_start = 0;
   int line_number = 0;
   while (line_start < header.size()) {
@@ -121,9 +134,9 @@ Expected<std::vector<ScanPoint>> parse_ply(std::string_view bytes, const PlyLimi
     if (words[0] == "format") {
       if (words.size() != 3 || words[2] != "1.0") return fail(where + "expected 'format <kind> 1.0'");
       if (words[1] == "ascii") {
-        binary = false;
+        out.binary = false;
       } else if (words[1] == "binary_little_endian") {
-        binary = true;
+        out.binary = true;
       } else {
         return fail(where + "format '" + std::string(words[1]) + "' is not supported (ascii or binary_little_endian)");
       }
@@ -161,16 +174,17 @@ Expected<std::vector<ScanPoint>> parse_ply(std::string_view bytes, const PlyLimi
   }
   if (!have_format) return fail("the header has no format line");
   const Element* vertex = nullptr;
-  std::size_t vertex_index = 0;
   for (std::size_t i = 0; i < elements.size(); ++i) {
     if (elements[i].name == "vertex") {
       vertex = &elements[i];
-      vertex_index = i;
+      out.vertex_index = i;
       break;
     }
   }
   if (vertex == nullptr) return fail("no 'element vertex' in the header");
-  int ix = -1, iy = -1, iz = -1;
+  int& ix = out.ix;
+  int& iy = out.iy;
+  int& iz = out.iz;
   for (std::size_t i = 0; i < vertex->properties.size(); ++i) {
     const Property& p = vertex->properties[i];
     const bool real = !p.is_list && (p.type == Type::kFloat32 || p.type == Type::kFloat64);
@@ -184,9 +198,47 @@ Expected<std::vector<ScanPoint>> parse_ply(std::string_view bytes, const PlyLimi
     return fail(std::to_string(vertex->count) + " vertices is more than a scan can have (limit " +
                 std::to_string(limits.max_vertices) + ")");
   }
+  return out;
+}
+
+std::size_t saturating_add(std::size_t a, std::size_t b) { return b > SIZE_MAX - a ? SIZE_MAX : a + b; }
+std::size_t saturating_mul(std::size_t a, std::size_t b) { return b != 0 && a > SIZE_MAX / b ? SIZE_MAX : a * b; }
+
+// The least data the elements up to and including vertex need: fixed sizes (a list at least its count) in binary,
+// one digit and a separator per value in ASCII.
+std::size_t min_data_bytes(const ParsedHeader& h) {
+  std::size_t total = 0;
+  for (std::size_t e = 0; e <= h.vertex_index; ++e) {
+    const Element& element = h.elements[e];
+    std::size_t row = 0;
+    for (const Property& p : element.properties) {
+      constexpr std::size_t kAsciiValueBytes = 2;
+      row += h.binary ? type_size(p.is_list ? p.count_type : p.type) : kAsciiValueBytes;
+    }
+    total = saturating_add(total, saturating_mul(element.count, row));
+  }
+  return !h.binary && total > 0 ? total - 1 : total;  // the last value needs no separator
+}
+
+}  // namespace
+
+Expected<PlyHeader> parse_ply_header(std::string_view bytes, const PlyLimits& limits) {
+  auto h = parse_header(bytes, limits);
+  if (!h) return h.error();
+  return PlyHeader{h->binary, h->data_start, h->elements[h->vertex_index].count, min_data_bytes(*h)};
+}
+
+Expected<std::vector<ScanPoint>> parse_ply(std::string_view bytes, const PlyLimits& limits) {
+  auto parsed = parse_header(bytes, limits);
+  if (!parsed) return parsed.error();
+  const bool binary = parsed->binary;
+  const std::vector<Element>& elements = parsed->elements;
+  const std::size_t vertex_index = parsed->vertex_index;
+  const Element* vertex = &elements[vertex_index];
+  const int ix = parsed->ix, iy = parsed->iy, iz = parsed->iz;
 
   // --- data: skip the elements before vertex, then read vertices ---
-  const std::string_view data = bytes.substr(data_start);
+  const std::string_view data = bytes.substr(parsed->data_start);
   std::vector<ScanPoint> points;
   points.reserve(vertex->count);
   std::vector<double> values(vertex->properties.size());

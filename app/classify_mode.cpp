@@ -18,6 +18,7 @@
 #include "app/atomic_file.hpp"
 #include "app/calibration_file.hpp"
 #include "app/cli.hpp"
+#include "app/input_file.hpp"
 #include "app/mode_args.hpp"
 #include "app/model_db.hpp"
 #include "app/perturb_mode.hpp"
@@ -288,16 +289,27 @@ int run_classify(const std::vector<std::string>& words, const Config& config, co
     return fail(kExitUsage, "classify: " + error);
   }
   if (args.positional.empty()) return fail(kExitUsage, "classify needs scan files: classify [--json] SCAN.ply ...");
+  // Every scan is checked from a stat and its header before the models load: a device, a folder or a file whose
+  // header declares more than it holds is refused at once, not after seconds of loading or a read without end.
+  int failures = 0;
+  std::vector<std::string> scans;
+  for (const std::string& path : args.positional) {
+    if (Status ok = check_ply_file(path); !ok) {
+      std::fprintf(stderr, "cellsight: %s\n", ok.error().message.c_str());
+      ++failures;
+    } else {
+      scans.push_back(path);
+    }
+  }
+  if (scans.empty()) return kExitUsage;
   auto options = common_options(args, config);
   if (!options) return fail(kExitUsage, "classify: " + options.error().message);
   auto recogniser = make_recogniser(config, models_dir, options->calibration_path, options->mode);
   if (!recogniser) return fail(kExitUsage, recogniser.error().message);
-  int failures = 0;
-  for (const std::string& path : args.positional) {
-    auto bytes = read_whole_file(path);
-    Expected<std::vector<algo::ScanPoint>> points = bytes ? algo::parse_ply(*bytes) : Expected<std::vector<algo::ScanPoint>>(bytes.error());
+  for (const std::string& path : scans) {
+    auto points = load_ply_file(path);
     if (!points) {
-      std::fprintf(stderr, "cellsight: %s: %s\n", path.c_str(), points.error().message.c_str());
+      std::fprintf(stderr, "cellsight: %s\n", points.error().message.c_str());
       ++failures;
       continue;
     }
@@ -390,10 +402,8 @@ int run_eval(const std::vector<std::string>& words, const Config& config, const 
 
   EvalTotals t;
   for (const LabelledScan& s : scans) {
-    auto bytes = read_whole_file(s.path);
-    if (!bytes) return fail(kExitUsage, bytes.error().message);
-    auto points = algo::parse_ply(*bytes);
-    if (!points) return fail(kExitUsage, s.path + ": " + points.error().message);
+    auto points = load_ply_file(s.path);
+    if (!points) return fail(kExitUsage, points.error().message);
     const auto deadline = Clock::now() + std::chrono::milliseconds(config.runtime.deadline_ms);
     const algo::Decision d = (*recogniser)->recognise(*points, deadline);
     const std::string decided = d.class_index >= 0 ? std::string((*recogniser)->class_name(d.class_index)) : "unknown";

@@ -1,13 +1,17 @@
-// Reading files from outside: refused from a stat when they cannot be what they should be.
+// Reading files from outside: refused from a stat and the first bytes when they cannot be what they should be.
 #include "app/input_file.hpp"
 
 #include <sys/stat.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <cstring>
+#include <fstream>
 
 namespace cellsight::app {
 namespace {
+
+constexpr const char* kScanIsPly = "; a scan is a PLY file";
 
 // The size of a regular file, or why the path is not one.
 Expected<std::size_t> regular_file_size(const std::string& path, const std::string& what) {
@@ -18,12 +22,69 @@ Expected<std::size_t> regular_file_size(const std::string& path, const std::stri
   return static_cast<std::size_t>(st.st_size);
 }
 
+struct CheckedPly {
+  std::string bytes;  // the first bytes, header included
+  std::size_t file_bytes = 0;
+};
+
+// Opens `path` into `in`, reads at most limits.max_header_bytes and checks the header against the file's size.
+Expected<CheckedPly> open_ply(const std::string& path, std::ifstream& in, const algo::PlyLimits& limits) {
+  auto size = regular_file_size(path, kScanIsPly);
+  if (!size) return size.error();
+  in.open(path, std::ios::binary);
+  if (!in) return make_error(path + ": cannot open: " + std::strerror(errno));
+  CheckedPly out;
+  out.file_bytes = *size;
+  out.bytes.resize(std::min(*size, limits.max_header_bytes));
+  in.read(out.bytes.data(), static_cast<std::streamsize>(out.bytes.size()));
+  if (in.bad()) return make_error(path + ": read failed");
+  out.bytes.resize(static_cast<std::size_t>(in.gcount()));
+  auto header = algo::parse_ply_header(out.bytes, limits);
+  if (!header) return make_error(path + ": " + header.error().message);
+  const std::size_t after_header = out.file_bytes - std::min(out.file_bytes, header->data_start);
+  if (header->min_data_bytes > after_header) {
+    return make_error(path + ": PLY: the header declares " + std::to_string(header->vertex_count) +
+                      " vertices (at least " + std::to_string(header->min_data_bytes) +
+                      " bytes of data), the file holds " + std::to_string(after_header) +
+                      " after the header: it is truncated");
+  }
+  return out;
+}
+
 }  // namespace
 
 Status check_regular_file(const std::string& path, const std::string& what) {
   auto size = regular_file_size(path, what);
   if (!size) return size.error();
   return {};
+}
+
+Status check_ply_file(const std::string& path, const algo::PlyLimits& limits) {
+  std::ifstream in;
+  auto ply = open_ply(path, in, limits);
+  if (!ply) return ply.error();
+  return {};
+}
+
+Expected<std::string> read_ply_file(const std::string& path, const algo::PlyLimits& limits) {
+  std::ifstream in;
+  auto ply = open_ply(path, in, limits);
+  if (!ply) return ply.error();
+  std::string bytes = std::move(ply->bytes);
+  const std::size_t have = bytes.size();
+  bytes.resize(std::max(have, ply->file_bytes));
+  in.read(bytes.data() + have, static_cast<std::streamsize>(bytes.size() - have));
+  if (in.bad()) return make_error(path + ": read failed");
+  bytes.resize(have + static_cast<std::size_t>(in.gcount()));
+  return bytes;
+}
+
+Expected<std::vector<algo::ScanPoint>> load_ply_file(const std::string& path, const algo::PlyLimits& limits) {
+  auto bytes = read_ply_file(path, limits);
+  if (!bytes) return bytes.error();
+  auto points = algo::parse_ply(*bytes, limits);
+  if (!points) return make_error(path + ": " + points.error().message);
+  return points;
 }
 
 }  // namespace cellsight::app

@@ -15,6 +15,7 @@
 
 #include "algo/features.hpp"
 #include "app/atomic_file.hpp"
+#include "app/input_file.hpp"
 #include "app/local_time.hpp"
 #include "app/yaml_reader.hpp"
 
@@ -319,6 +320,8 @@ std::uint32_t crc32_of(std::string_view bytes) {
 }
 
 Expected<std::string> read_whole_file(const std::string& path) {
+  // A folder opens as a stream and reads as nothing; a device may never end.
+  if (Status regular = check_regular_file(path, ""); !regular) return regular.error();
   std::ifstream in(path, std::ios::binary);
   if (!in) return make_error(path + ": cannot open: " + std::strerror(errno));
   std::ostringstream out;

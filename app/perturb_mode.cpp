@@ -7,7 +7,7 @@
 #include "app/atomic_file.hpp"
 #include "app/calibration_file.hpp"
 #include "app/cli.hpp"
-#include "app/model_db.hpp"
+#include "app/input_file.hpp"
 #include "app/train_mode.hpp"
 
 namespace cellsight::app {
@@ -60,10 +60,8 @@ int run_perturb(const std::vector<std::string>& words, const Config& config) {
   if (!support) return fail(kExitUsage, support.error().message);
   const std::string& in = args.positional[0];
   const std::string& out = args.positional[1];
-  auto bytes = read_whole_file(in);
-  if (!bytes) return fail(kExitUsage, bytes.error().message);
-  auto points = algo::parse_ply(*bytes);
-  if (!points) return fail(kExitUsage, in + ": " + points.error().message);
+  auto points = load_ply_file(in);
+  if (!points) return fail(kExitUsage, points.error().message);
   const algo::PerturbReport r = algo::perturb_scan(*points, *spec, *support, static_cast<std::uint64_t>(seed));
   if (auto ok = write_file_atomic(out, algo::write_ply_binary(*points)); !ok) {
     return fail(kExitFailure, "perturb: " + ok.error().message);

@@ -14,6 +14,7 @@
 #include "app/atomic_file.hpp"
 #include "app/calibration_file.hpp"
 #include "app/cli.hpp"
+#include "app/input_file.hpp"
 #include "app/local_time.hpp"
 #include "app/mode_args.hpp"
 #include "app/perturb_mode.hpp"
@@ -65,10 +66,8 @@ Expected<std::vector<TaughtScan>> acquire_sim_scans(const Config& config, const 
 Expected<std::vector<TaughtScan>> import_scans(const std::vector<std::string>& files) {
   std::vector<TaughtScan> scans;
   for (const std::string& f : files) {
-    auto bytes = read_whole_file(f);
-    if (!bytes) return bytes.error();
-    auto points = algo::parse_ply(*bytes);
-    if (!points) return make_error(f + ": " + points.error().message);
+    auto points = load_ply_file(f);
+    if (!points) return points.error();
     scans.push_back({std::move(*points), std::filesystem::absolute(f).lexically_normal().string()});
   }
   return scans;

@@ -6,6 +6,7 @@
 #include <unistd.h>
 
 #include <array>
+#include <chrono>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -232,5 +233,46 @@ TEST_CASE("Given a folder as --config, when any mode runs, then it exits 2 namin
     CHECK(r.exit_code == 2);
     CHECK(r.output.find(dir.string() + ": is a directory, not a configuration file") != std::string::npos);
   }
+  fs::remove_all(dir);
+}
+
+TEST_CASE("Given scan files that are no scans (a device, a folder, a huge file whose header declares too many "
+          "vertices, a header that never ends), when classified, then each is refused at once from its first bytes, "
+          "exit 2") {
+  using Clock = std::chrono::steady_clock;
+  const fs::path dir = fresh_dir("classify-bad-scans");
+  fs::create_directories(dir);
+  const std::string models = " --models " + (dir / "no-models").string() + " ";
+  const auto refused_fast = [&](const std::string& scan, const std::string& why) {
+    const auto start = Clock::now();
+    const Run r = run("classify" + models + scan);
+    const double ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+    INFO(scan << " (" << ms << " ms): " << r.output);
+    CHECK(r.exit_code == 2);
+    CHECK(r.output.find(scan + ": " + why) != std::string::npos);
+    CHECK(ms < 2000.0);  // measured: well under 100 ms; the bound only keeps a loaded machine from failing the test
+  };
+  refused_fast("/dev/zero", "is not a regular file (a device, pipe or socket); a scan is a PLY file");
+  refused_fast(dir.string(), "is a directory; a scan is a PLY file");
+
+  // 1 GB, sparse: only the header is ever read.
+  const fs::path huge = dir / "huge.ply";
+  std::ofstream(huge) << "ply\nformat binary_little_endian 1.0\nelement vertex 60000000\nproperty float x\n"
+                         "property float y\nproperty float z\nend_header\n";
+  fs::resize_file(huge, 1ULL << 30U);
+  refused_fast(huge.string(), "PLY: 60000000 vertices is more than a scan can have (limit 20000000)");
+
+  // Within the limit, but more than the file holds.
+  const fs::path short_file = dir / "short.ply";
+  std::ofstream(short_file) << "ply\nformat binary_little_endian 1.0\nelement vertex 1000000\nproperty float x\n"
+                               "property float y\nproperty float z\nend_header\n";
+  fs::resize_file(short_file, 4096);
+  refused_fast(short_file.string(), "PLY: the header declares 1000000 vertices (at least 12000000 bytes of data), the "
+                                    "file holds 3975 after the header: it is truncated");
+
+  // A header that does not end within 64 kB.
+  const fs::path endless = dir / "endless.ply";
+  std::ofstream(endless) << "ply\nformat ascii 1.0\n" << std::string(1U << 20U, 'c');
+  refused_fast(endless.string(), "PLY: no end_header in the first 65536 bytes: not a PLY scan");
   fs::remove_all(dir);
 }

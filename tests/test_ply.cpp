@@ -117,3 +117,44 @@ TEST_CASE("Given a valid file with random bytes corrupted or cut, when read, the
   }
   CHECK(refused > 100);
 }
+
+TEST_CASE("Given a header that does not end within 64 kB, when read, then it is refused from those bytes (a file "
+          "that is no scan is not searched to its end)") {
+  const std::string comments(70000, '\n');
+  const std::string text = "ply\nformat ascii 1.0\n" + comments +
+                           "element vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n";
+  CHECK(parse_error(text) == "PLY: no end_header in the first 65536 bytes: not a PLY scan");
+  CHECK(algo::parse_ply_header(text.substr(0, 65536)).error().message ==
+        "PLY: no end_header in the first 65536 bytes: not a PLY scan");
+  CHECK(algo::parse_ply_header("ply\nformat ascii 1.0\nelement vertex 1\n").error().message ==
+        "PLY: no end_header: the header is truncated");
+}
+
+TEST_CASE("Given a header alone, when checked, then it tells where the data starts and the least data its elements "
+          "need") {
+  const std::string binary = "ply\nformat binary_little_endian 1.0\nelement face 3\nproperty list uchar int i\n"
+                             "element vertex 5\nproperty double x\nproperty double y\nproperty double z\n"
+                             "property uchar red\nend_header\n";
+  auto b = algo::parse_ply_header(binary);
+  REQUIRE(b.ok());
+  CHECK(b->binary);
+  CHECK(b->data_start == binary.size());
+  CHECK(b->vertex_count == 5);
+  CHECK(b->min_data_bytes == 3 * 1 + 5 * (3 * 8 + 1));  // an empty list is its count byte alone
+  // The written file holds exactly what its header declares.
+  const std::string written = algo::write_ply_binary(sample_points());
+  auto w = algo::parse_ply_header(written);
+  REQUIRE(w.ok());
+  CHECK(w->min_data_bytes == written.size() - w->data_start);
+  // ASCII: a digit and a separator per value, the last value without one.
+  auto a = algo::parse_ply_header("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+                                  "property float z\nend_header\n");
+  REQUIRE(a.ok());
+  CHECK(a->min_data_bytes == 11);
+  // Counts that cannot fit in memory saturate instead of wrapping round to a small number.
+  auto huge = algo::parse_ply_header("ply\nformat binary_little_endian 1.0\nelement face 18446744073709551615\n"
+                                     "property int i\nelement vertex 1\nproperty float x\nproperty float y\n"
+                                     "property float z\nend_header\n");
+  REQUIRE(huge.ok());
+  CHECK(huge->min_data_bytes == SIZE_MAX);
+}
