@@ -15,6 +15,10 @@ namespace {
 
 namespace fs = std::filesystem;
 
+// The temporary name of write_file_atomic: the target's name, this suffix, then kTempRandomChars from mkstemp.
+constexpr std::string_view kTempSuffix = ".tmp-";
+constexpr std::size_t kTempRandomChars = 6;
+
 std::string errno_text() { return std::strerror(errno); }
 
 Status fsync_path(const std::string& path, int flags) {
@@ -34,8 +38,36 @@ std::string parent_of(const std::string& path) {
 
 }  // namespace
 
+std::string atomic_temp_template(const std::string& path) {
+  return path + std::string(kTempSuffix) + std::string(kTempRandomChars, 'X');
+}
+
+bool is_atomic_temp_name(std::string_view file_name) {
+  const std::size_t suffix = kTempSuffix.size() + kTempRandomChars;
+  if (file_name.size() <= suffix) return false;
+  const std::string_view tail = file_name.substr(file_name.size() - suffix);
+  if (tail.substr(0, kTempSuffix.size()) != kTempSuffix) return false;
+  for (const char c : tail.substr(kTempSuffix.size())) {
+    const bool alnum = (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9');
+    if (!alnum) return false;
+  }
+  return true;
+}
+
+std::vector<std::string> remove_orphaned_temp_files(const std::string& dir) {
+  std::vector<std::string> removed;
+  std::error_code ec;
+  for (fs::recursive_directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
+    std::error_code type_ec;
+    if (!it->is_regular_file(type_ec) || !is_atomic_temp_name(it->path().filename().string())) continue;
+    std::error_code remove_ec;
+    if (fs::remove(it->path(), remove_ec)) removed.push_back(it->path().string());
+  }
+  return removed;
+}
+
 Status write_file_atomic(const std::string& path, std::string_view content, Overwrite overwrite) {
-  std::string temp = path + ".tmp-XXXXXX";
+  std::string temp = atomic_temp_template(path);
   const int fd = ::mkstemp(temp.data());
   if (fd < 0) return make_error(path + ": cannot create a temporary file beside it: " + errno_text());
   std::size_t done = 0;

@@ -3,6 +3,7 @@
 
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "algo/result.hpp"
 
@@ -15,6 +16,18 @@ enum class Overwrite { kReplace, kRefuse };
 // atomically when the name is taken).
 [[nodiscard]] Status write_file_atomic(const std::string& path, std::string_view content,
                                        Overwrite overwrite = Overwrite::kReplace);
+
+// The mkstemp template of the temporary file beside `path` ("PATH.tmp-XXXXXX"), for every atomic writer: the name
+// remove_orphaned_temp_files recognises.
+[[nodiscard]] std::string atomic_temp_template(const std::string& path);
+
+// Whether `file_name` (no folder) is one write_file_atomic gives its temporary file: the target's name, ".tmp-" and
+// the six letters or digits mkstemp chose.
+[[nodiscard]] bool is_atomic_temp_name(std::string_view file_name);
+
+// Removes, below `dir`, the regular files whose name is_atomic_temp_name: what a write killed before its rename left
+// behind. Only for a folder that no other process is writing into. Returns the paths removed.
+[[nodiscard]] std::vector<std::string> remove_orphaned_temp_files(const std::string& dir);
 
 // A folder filled under a temporary name and renamed into place by commit(); removed again if never committed.
 class StagedDirectory {

@@ -18,6 +18,7 @@
 #include "app/input_file.hpp"
 #include "app/local_time.hpp"
 #include "app/yaml_reader.hpp"
+#include "drivers/log.hpp"
 
 namespace cellsight::app {
 namespace {
@@ -364,6 +365,16 @@ Expected<ModelDb> ModelDb::open(const std::string& dir, const algo::GridSpec& gr
                       "; use the matching config or teach a new database (--models DIR)");
   }
   db.manifest_ = std::move(*manifest);
+  return db;
+}
+
+Expected<ModelDb> ModelDb::open_for_writing(const std::string& dir, const algo::GridSpec& grid, bool create) {
+  auto db = open(dir, grid, create);
+  if (!db) return db;
+  for (const std::string& path : remove_orphaned_temp_files(dir)) {
+    CS_LOG_WARN("model_db", "removed %s: the temporary file of a write that was interrupted (killed before its rename)",
+                path.c_str());
+  }
   return db;
 }
 

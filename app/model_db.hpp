@@ -87,6 +87,10 @@ class ModelDb {
   // Opens the database at `dir`. A missing manifest gives an empty database when `create` is set (nothing is
   // written until save()), an error saying what to run otherwise. A manifest for another grid is refused.
   [[nodiscard]] static Expected<ModelDb> open(const std::string& dir, const algo::GridSpec& grid, bool create);
+  // open() for teach, train and `parts delete`: then removes the temporary files an interrupted atomic write left
+  // (a teach killed while writing a template leaves templates/NAME.dmap.tmp-XXXXXX, 130 MB), logging each.
+  [[nodiscard]] static Expected<ModelDb> open_for_writing(const std::string& dir, const algo::GridSpec& grid,
+                                                          bool create);
 
   [[nodiscard]] const std::string& dir() const { return dir_; }
   [[nodiscard]] const Manifest& manifest() const { return manifest_; }

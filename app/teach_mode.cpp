@@ -353,7 +353,7 @@ int run_teach(const std::vector<std::string>& words, const Config& config, const
              args.value("--perturb") != nullptr) {
     return fail(kExitUsage, "teach: --count, --seed and --perturb apply to --sim only");
   }
-  auto db = ModelDb::open(models_dir, grid_spec(config), true);
+  auto db = ModelDb::open_for_writing(models_dir, grid_spec(config), true);
   if (!db) return fail(kExitUsage, db.error().message);
   PartEntry* existing = db->find(*part);
   std::int64_t id = 0;
@@ -476,7 +476,8 @@ int run_parts(const std::vector<std::string>& words, const Config& config, const
   if (!parse_mode_args(words, {}, {}, args, error)) return fail(kExitUsage, "parts: " + error);
   if (args.positional.empty()) return fail(kExitUsage, "parts needs list, show NAME or delete NAME");
   const std::string& action = args.positional.front();
-  auto db = ModelDb::open(models_dir, grid_spec(config), false);
+  auto db = action == "delete" ? ModelDb::open_for_writing(models_dir, grid_spec(config), false)
+                               : ModelDb::open(models_dir, grid_spec(config), false);
   if (!db) return fail(kExitUsage, db.error().message);
   if (action == "list" && args.positional.size() == 1) {
     std::printf("%-24s %6s %6s %7s  %-5s %s\n", "part", "id", "scans", "flagged", "thr", "taught");

@@ -24,6 +24,8 @@
 #include <type_traits>
 #include <utility>
 
+#include "app/atomic_file.hpp"
+
 namespace cellsight::app {
 namespace {
 
@@ -544,7 +546,7 @@ Status write_template(const std::string& path, const TemplateModel& model, const
   h.header_crc32 = header_crc(h);
 
   // Streaming atomic save: temp beside the target, fsync, rename, fsync of the folder (as app/atomic_file).
-  std::string temp = path + ".tmp-XXXXXX";
+  std::string temp = atomic_temp_template(path);
   UniqueFd fd(::mkstemp(temp.data()));
   if (fd.get() < 0) return fail("cannot create a temporary file beside it: " + errno_text(errno));
   TempFileGuard guard(temp);

@@ -238,7 +238,7 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
     std::fprintf(stderr, "cellsight train: %s\n", message.c_str());
     return code;
   };
-  auto db = ModelDb::open(models_dir, grid_spec(config), false);
+  auto db = ModelDb::open_for_writing(models_dir, grid_spec(config), false);
   if (!db) return fail(kExitUsage, db.error().message);
   const Manifest& m = db->manifest();
 

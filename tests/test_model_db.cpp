@@ -386,3 +386,39 @@ TEST_CASE("fixture: a small trained database for the PLC integration test", "[.]
   REQUIRE(db.ok());
   CHECK(db->svm_stale_reason().empty());
 }
+
+TEST_CASE("opening the database to write removes the temporary files an interrupted write left, only those, and "
+          "says so", "[model_db]") {
+  const SmallCell cell = SmallCell::named("orphans");
+  const fs::path models(cell.models);
+  fs::create_directories(models / "templates");
+  fs::create_directories(models / "scans" / "plate");
+  const auto touch = [](const fs::path& p) { std::ofstream(p, std::ios::binary) << std::string(4096, 'x'); };
+  // Given what a teach killed while writing left (names as mkstemp makes them) ...
+  const std::vector<fs::path> orphans = {models / "templates" / "plate.dmap.tmp-Ab3xYz",
+                                         models / "scans" / "plate" / "00001.ply.tmp-q1W2e3",
+                                         models / "manifest.yaml.tmp-0aZ9kk"};
+  for (const fs::path& p : orphans) touch(p);
+  // ... and files that are not ours or not of that pattern.
+  const std::vector<fs::path> others = {models / "templates" / "plate.dmap", models / "notes.tmp-1",
+                                        models / "templates" / "plate.dmap.tmp-abc12", models / "plate.tmp-abcdefg",
+                                        models / "templates" / "plate.dmap.tmp-ab_12c", models / ".tmp-abcdef"};
+  for (const fs::path& p : others) touch(p);
+  fs::create_directories(models / "kept.tmp-abcdef");  // a folder of that name is not a file write_file_atomic made
+
+  // A reading mode leaves them (another process may be writing) ...
+  REQUIRE(app::ModelDb::open(cell.models, app::grid_spec(cell.config), true).ok());
+  for (const fs::path& p : orphans) CHECK(fs::exists(p));
+
+  // ... teach removes them when it opens the database, whatever happens next (here: a scan that is no scan).
+  const Run r = cell.run("teach --part plate /dev/zero");
+  INFO(r.output);
+  CHECK(r.exit_code == 2);
+  for (const fs::path& p : orphans) {
+    CHECK_FALSE(fs::exists(p));
+    CHECK(r.output.find("removed " + p.string() + ": the temporary file of a write that was interrupted") !=
+          std::string::npos);
+  }
+  for (const fs::path& p : others) CHECK(fs::exists(p));
+  CHECK(fs::is_directory(models / "kept.tmp-abcdef"));
+}
