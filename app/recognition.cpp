@@ -178,12 +178,8 @@ LoadedTemplates open_templates(const Config& config, const ModelDb& db) {
   return out;
 }
 
-Expected<LoadedModels> load_models(const Config& config, const ModelDb& db) {
+Expected<algo::SvmModel> load_svm(const ModelDb& db) {
   const Manifest& m = db.manifest();
-  if (const std::string stale = db.svm_stale_reason(); !stale.empty()) {
-    return make_error("model database " + db.dir() + ": " + stale);
-  }
-  LoadedModels out;
   const std::string svm_path = db.path_of(m.svm.file);
   auto blob = read_whole_file(svm_path);
   if (!blob) return blob.error();
@@ -193,19 +189,30 @@ Expected<LoadedModels> load_models(const Config& config, const ModelDb& db) {
   }
   auto svm = algo::SvmModel::deserialize(*blob);
   if (!svm) return make_error(svm_path + ": " + svm.error().message + "; run 'cellsight train' again");
-  out.svm = std::move(*svm);
-  if (out.svm.classes().size() != m.parts.size()) {
-    return make_error(svm_path + ": the model knows " + std::to_string(out.svm.classes().size()) +
+  if (svm->classes().size() != m.parts.size()) {
+    return make_error(svm_path + ": the model knows " + std::to_string(svm->classes().size()) +
                       " parts, the manifest " + std::to_string(m.parts.size()) + "; run 'cellsight train'");
   }
   for (std::size_t c = 0; c < m.parts.size(); ++c) {
     const PartEntry& p = m.parts[c];
-    if (out.svm.classes()[c].name != p.name || out.svm.classes()[c].id != p.id) {
-      return make_error(svm_path + ": class " + std::to_string(c) + " is '" + out.svm.classes()[c].name +
+    if (svm->classes()[c].name != p.name || svm->classes()[c].id != p.id) {
+      return make_error(svm_path + ": class " + std::to_string(c) + " is '" + svm->classes()[c].name +
                         "' in the model, '" + p.name + "' in the manifest; run 'cellsight train'");
     }
-    out.class_names.push_back(p.name);
   }
+  return svm;
+}
+
+Expected<LoadedModels> load_models(const Config& config, const ModelDb& db) {
+  const Manifest& m = db.manifest();
+  if (const std::string stale = db.svm_stale_reason(); !stale.empty()) {
+    return make_error("model database " + db.dir() + ": " + stale);
+  }
+  LoadedModels out;
+  auto svm = load_svm(db);
+  if (!svm) return svm.error();
+  out.svm = std::move(*svm);
+  for (const PartEntry& p : m.parts) out.class_names.push_back(p.name);
   out.templates = open_templates(config, db);
   return out;
 }

@@ -118,6 +118,9 @@ struct LoadedModels {
   LoadedTemplates templates;
 };
 [[nodiscard]] Expected<LoadedModels> load_models(const Config& config, const ModelDb& db);
+// The trained SVM as load_models checks it (checksum against the manifest, the model itself, its classes against the
+// parts), staleness aside; `parts list` uses it to find a damaged model before classify does.
+[[nodiscard]] Expected<algo::SvmModel> load_svm(const ModelDb& db);
 
 enum class RecogniserMode : std::uint8_t {
   kCascade,  // production: thesis 6.4.4 cascade with verification

@@ -480,15 +480,34 @@ int run_parts(const std::vector<std::string>& words, const Config& config, const
                                : ModelDb::open(models_dir, grid_spec(config), false);
   if (!db) return fail(kExitUsage, db.error().message);
   if (action == "list" && args.positional.size() == 1) {
+    // Every file is checked as loading it checks it (a template's header and body checksums, the SVM's checksum,
+    // model and classes), so a damaged one shows here and not first in classify.
+    int damaged = 0;
     std::printf("%-24s %6s %6s %7s  %-5s %s\n", "part", "id", "scans", "flagged", "thr", "taught");
-    for (const PartEntry& p : db->manifest().parts) print_part(*db, p, false);
+    for (const PartEntry& p : db->manifest().parts) {
+      print_part(*db, p, false);
+      if (auto t = TemplateFile::open(db->path_of(p.template_file), grid_spec(config)); !t) {
+        std::printf("  DAMAGED template %s: %s; classify disables this part\n",
+                    p.template_file.c_str(), t.error().message.c_str());
+        ++damaged;
+      }
+    }
     const std::string stale = db->svm_stale_reason();
     if (stale.empty()) {
       std::printf("SVM: trained %s, %.2f %% on %d test scans, %s\n", db->manifest().svm.trained_at.c_str(),
                   db->manifest().svm.test_accuracy * 100.0, db->manifest().svm.test_scans,
                   db->manifest().svm.hyper.c_str());
+      if (auto svm = load_svm(*db); !svm) {
+        std::printf("SVM: DAMAGED: %s\n", svm.error().message.c_str());
+        ++damaged;
+      }
     } else {
       std::printf("SVM: stale: %s\n", stale.c_str());
+    }
+    if (damaged > 0) {
+      std::fflush(stdout);  // the listing before the summary line on stderr
+      return fail(kExitUsage, "parts list: " + std::to_string(damaged) + (damaged == 1 ? " damaged file" : " damaged files") +
+                                  " in " + db->dir() + " (marked DAMAGED above)");
     }
     return kExitOk;
   }

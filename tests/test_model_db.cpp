@@ -17,6 +17,7 @@
 #include "app/config.hpp"
 #include "app/model_db.hpp"
 #include "app/recognition.hpp"
+#include "app/template_file.hpp"
 #include "drivers/sim/rig.hpp"
 #include "sim_test_util.hpp"
 
@@ -421,4 +422,58 @@ TEST_CASE("opening the database to write removes the temporary files an interrup
   }
   for (const fs::path& p : others) CHECK(fs::exists(p));
   CHECK(fs::is_directory(models / "kept.tmp-abcdef"));
+}
+
+TEST_CASE("parts list checks every template and the SVM as loading them does, marks a damaged one and exits 2",
+          "[model_db]") {
+  const SmallCell cell = SmallCell::named("damaged");
+  const algo::GridSpec grid = app::grid_spec(cell.config);
+  app::ModelDb db = *app::ModelDb::open(cell.models, grid, true);
+  fs::create_directories(fs::path(cell.models) / "templates");
+  // Given two parts with real templates of a small plate (the SmallCell grid starts at the carrier origin) ...
+  std::vector<algo::ScanPoint> plate;
+  for (int i = 0; i < 60; ++i) {
+    for (int j = 0; j < 60; ++j) plate.push_back({0.25F + 0.002F * i, 0.45F + 0.002F * j, 0.1F, 0, 0});
+  }
+  auto model = app::build_template(plate, grid);
+  REQUIRE(model.ok());
+  for (const std::string name : {"good", "bad"}) {
+    app::PartEntry p;
+    p.name = name;
+    p.id = name == "good" ? 1 : 2;
+    p.template_file = "templates/" + name + ".dmap";
+    p.thresholds.learnt = true;
+    REQUIRE(app::write_template(db.path_of(p.template_file), *model, {name, static_cast<std::uint32_t>(p.id), 0}).ok());
+    db.manifest().parts.push_back(p);
+  }
+  // ... a trained SVM on them whose file does not match its checksum ...
+  db.manifest().svm.present = true;
+  db.manifest().svm.file = "svm-test.model";
+  db.manifest().svm.crc32 = app::crc32_of("the model as it was written");
+  db.manifest().svm.trained_at = "2026-12-01 12:00:00";
+  db.manifest().svm.parts_fingerprint = db.parts_fingerprint();
+  std::ofstream(db.path_of("svm-test.model"), std::ios::binary) << "a model changed after training";
+  REQUIRE(db.save().ok());
+  // ... and one byte of bad's body changed (its header still reads well, so `parts show` alone cannot tell).
+  {
+    std::fstream f(db.path_of("templates/bad.dmap"), std::ios::in | std::ios::out | std::ios::binary);
+    f.seekg(-100, std::ios::end);
+    const char c = static_cast<char>(f.get());
+    f.seekp(-100, std::ios::end);
+    f.put(static_cast<char>(c ^ 0x5a));
+  }
+
+  const Run r = cell.run("parts list");
+  INFO(r.output);
+  CHECK(r.exit_code == 2);
+  const auto line_after = [&](const std::string& start) {
+    const auto at = r.output.find('\n', r.output.find(start));
+    return r.output.substr(at + 1, r.output.find('\n', at + 1) - at - 1);
+  };
+  CHECK(line_after("good ").find("DAMAGED") == std::string::npos);
+  CHECK(line_after("bad ").rfind("  DAMAGED template templates/bad.dmap: ", 0) == 0);
+  CHECK(line_after("bad ").find("classify disables this part") != std::string::npos);
+  CHECK(r.output.find("SVM: DAMAGED: " + db.path_of("svm-test.model") + ": checksum differs from the manifest") !=
+        std::string::npos);
+  CHECK(r.output.find("parts list: 2 damaged files") != std::string::npos);
 }
