@@ -4,12 +4,9 @@
 #include <unistd.h>
 
 #include <atomic>
-#include <cerrno>
 #include <cmath>
-#include <cstring>
 #include <ctime>
 #include <filesystem>
-#include <fstream>
 #include <mutex>
 #include <thread>
 
@@ -19,6 +16,7 @@
 #include "app/atomic_file.hpp"
 #include "app/calibration_file.hpp"
 #include "app/devices.hpp"
+#include "app/input_file.hpp"
 #include "app/local_time.hpp"
 #include "app/perturb_mode.hpp"
 #include "app/sim_mode.hpp"
@@ -150,11 +148,8 @@ int run_calibrate_support(const std::vector<std::string>& args, const Config& co
     if (!scanned) return fail(scanned.error().message);
     points = std::move(*scanned);
   } else {
-    std::ifstream in(scan_path, std::ios::binary);
-    if (!in) return fail(scan_path + ": cannot open: " + std::strerror(errno));
-    const std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-    auto parsed = algo::parse_ply(bytes);
-    if (!parsed) return fail(scan_path + ": " + parsed.error().message);
+    auto parsed = load_ply_file(scan_path);
+    if (!parsed) return fail(parsed.error().message);
     points = std::move(*parsed);
   }
   algo::SupportFitParams params;

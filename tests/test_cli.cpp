@@ -276,3 +276,29 @@ TEST_CASE("Given scan files that are no scans (a device, a folder, a huge file w
   refused_fast(endless.string(), "PLY: no end_header in the first 65536 bytes: not a PLY scan");
   fs::remove_all(dir);
 }
+
+TEST_CASE("Given an empty-carrier scan that is no scan, when `calibrate support --scan` reads it, then it is refused "
+          "from its first bytes, exit 2, and the calibration is not touched") {
+  using Clock = std::chrono::steady_clock;
+  const fs::path dir = fresh_dir("support-bad-scans");
+  fs::create_directories(dir / "folder.ply");
+  const fs::path huge = dir / "huge.ply";
+  std::ofstream(huge) << "ply\nformat binary_little_endian 1.0\nelement vertex 60000000\nproperty float x\n"
+                         "property float y\nproperty float z\nend_header\n";
+  fs::resize_file(huge, 1ULL << 30U);
+  const fs::path calibration = dir / "calibration.yaml";
+  for (const auto& [scan, why] :
+       std::vector<std::pair<std::string, std::string>>{{"/dev/zero", "is not a regular file"},
+                                                        {(dir / "folder.ply").string(), "is a directory"},
+                                                        {huge.string(), "PLY: 60000000 vertices is more than"}}) {
+    const auto start = Clock::now();
+    const Run r = run("calibrate support --scan " + scan + " --calibration " + calibration.string());
+    const double ms = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+    INFO(scan << " (" << ms << " ms): " << r.output);
+    CHECK(r.exit_code == 2);
+    CHECK(r.output.find(scan + ": " + why) != std::string::npos);
+    CHECK(ms < 2000.0);
+  }
+  CHECK_FALSE(fs::exists(calibration));
+  fs::remove_all(dir);
+}
