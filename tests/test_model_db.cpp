@@ -422,6 +422,7 @@ TEST_CASE("opening the database to write removes the temporary files an interrup
   }
   for (const fs::path& p : others) CHECK(fs::exists(p));
   CHECK(fs::is_directory(models / "kept.tmp-abcdef"));
+  fs::remove_all(cell.dir);
 }
 
 TEST_CASE("parts list checks every template and the SVM as loading them does, marks a damaged one and exits 2",
@@ -476,4 +477,5 @@ TEST_CASE("parts list checks every template and the SVM as loading them does, ma
   CHECK(r.output.find("SVM: DAMAGED: " + db.path_of("svm-test.model") + ": checksum differs from the manifest") !=
         std::string::npos);
   CHECK(r.output.find("parts list: 2 damaged files") != std::string::npos);
+  fs::remove_all(cell.dir);
 }
