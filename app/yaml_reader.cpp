@@ -61,9 +61,12 @@ void report_repeated_keys(const YAML::Node& node, const std::string& path, int d
     for (const auto& kv : node) {
       const std::string key = kv.first.IsScalar() ? kv.first.Scalar() : std::string();
       const std::string child = path.empty() ? key : path + "." + key;
-      const auto [first, fresh] = first_line.emplace(key, kv.first.Mark().line);
-      if (!fresh) {
-        errors.add(kv.first.Mark(), child, "given twice (first at line " + std::to_string(first->second + 1) + "); keep one");
+      if (kv.first.IsScalar()) {  // a list or mapping as a key is no key of ours: the reader reports it unknown
+        const auto [first, fresh] = first_line.emplace(key, kv.first.Mark().line);
+        if (!fresh) {
+          errors.add(kv.first.Mark(), child,
+                     "given twice (first at line " + std::to_string(first->second + 1) + "); keep one");
+        }
       }
       report_repeated_keys(kv.second, child, depth + 1, errors);
     }

@@ -245,7 +245,8 @@ TEST_CASE("Given pose texts, when parsed, then metres and degrees are read and m
   CHECK(app::parse_pose("0.01,,3").error().message.find("'' is not a number") != std::string::npos);
 }
 
-TEST_CASE("Given a folder as the config file, when it is loaded, then it is refused as not a regular file, not thrown") {
+TEST_CASE("Given a folder as the config file, when it is loaded, then it is refused as not a regular file, "
+          "not thrown") {
   const std::string dir = fs::path(write_temp("c.yaml", "")).parent_path().string();
   auto cfg = app::load_config(dir);
   REQUIRE_FALSE(cfg.ok());
@@ -263,6 +264,8 @@ TEST_CASE("Given a key written twice in one mapping, when the config is loaded, 
         std::string::npos);
   CHECK(load_error("sim:\n  coatings:\n    - name: a\n      name: b\n")
             .find("c.yaml:4:7: sim.coatings[0].name: given twice (first at line 3)") != std::string::npos);
+  // Two different keys that are lists are unknown keys, not one key twice.
+  CHECK(load_error("? [a]\n: 1\n? [b]\n: 2\n").find("given twice") == std::string::npos);
 }
 
 TEST_CASE("Given a Modbus bind address that is not a dotted IPv4 address, when the config is loaded, then it is "
