@@ -58,8 +58,10 @@ std::vector<std::string> remove_orphaned_temp_files(const std::string& dir) {
   std::vector<std::string> removed;
   std::error_code ec;
   for (fs::recursive_directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
-    std::error_code type_ec;
-    if (!it->is_regular_file(type_ec) || !is_atomic_temp_name(it->path().filename().string())) continue;
+    std::error_code type_ec;  // the entry itself: a link of that name is not a file the writer made
+    if (!fs::is_regular_file(it->symlink_status(type_ec)) || !is_atomic_temp_name(it->path().filename().string())) {
+      continue;
+    }
     std::error_code remove_ec;
     if (fs::remove(it->path(), remove_ec)) removed.push_back(it->path().string());
   }
