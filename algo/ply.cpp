@@ -201,8 +201,12 @@ Expected<ParsedHeader> parse_header(std::string_view bytes, const PlyLimits& lim
   return out;
 }
 
-std::size_t saturating_add(std::size_t a, std::size_t b) { return b > SIZE_MAX - a ? SIZE_MAX : a + b; }
-std::size_t saturating_mul(std::size_t a, std::size_t b) { return b != 0 && a > SIZE_MAX / b ? SIZE_MAX : a * b; }
+std::size_t saturating_add(std::size_t a, std::size_t b) {
+  return b > SIZE_MAX - a ? SIZE_MAX : a + b;
+}
+std::size_t saturating_mul(std::size_t a, std::size_t b) {
+  return b != 0 && a > SIZE_MAX / b ? SIZE_MAX : a * b;
+}
 
 // The least data the elements up to and including vertex need: fixed sizes (a list at least its count) in binary,
 // one digit and a separator per value in ASCII.

@@ -487,8 +487,8 @@ int run_parts(const std::vector<std::string>& words, const Config& config, const
     for (const PartEntry& p : db->manifest().parts) {
       print_part(*db, p, false);
       if (auto t = TemplateFile::open(db->path_of(p.template_file), grid_spec(config)); !t) {
-        std::printf("  DAMAGED template %s: %s; classify disables this part\n",
-                    p.template_file.c_str(), t.error().message.c_str());
+        std::printf("  DAMAGED template %s: %s; classify disables this part\n", p.template_file.c_str(),
+                    t.error().message.c_str());
         ++damaged;
       }
     }
@@ -506,8 +506,9 @@ int run_parts(const std::vector<std::string>& words, const Config& config, const
     }
     if (damaged > 0) {
       std::fflush(stdout);  // the listing before the summary line on stderr
-      return fail(kExitUsage, "parts list: " + std::to_string(damaged) + (damaged == 1 ? " damaged file" : " damaged files") +
-                                  " in " + db->dir() + " (marked DAMAGED above)");
+      const std::string files = damaged == 1 ? " damaged file" : " damaged files";
+      return fail(kExitUsage, "parts list: " + std::to_string(damaged) + files + " in " + db->dir() +
+                                  " (marked DAMAGED above)");
     }
     return kExitOk;
   }

@@ -122,7 +122,8 @@ TEST_CASE("Given a header that does not end within 64 kB, when read, then it is 
           "that is no scan is not searched to its end)") {
   const std::string comments(70000, '\n');
   const std::string text = "ply\nformat ascii 1.0\n" + comments +
-                           "element vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n";
+                           "element vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+                           "1 2 3\n";
   CHECK(parse_error(text) == "PLY: no end_header in the first 65536 bytes: not a PLY scan");
   CHECK(algo::parse_ply_header(text.substr(0, 65536)).error().message ==
         "PLY: no end_header in the first 65536 bytes: not a PLY scan");
