@@ -267,10 +267,20 @@ void apply_glare(std::vector<ScanPoint>& points, const Layout& l, double strengt
 }
 
 void apply_thin(std::vector<ScanPoint>& points, double strength, PerturbReport& r) {
+  // A sensor with 1 / stride of the rows along the laser line sees the points of every stride-th image row: the
+  // same rows in every profile, whatever lies above them. (Keeping every stride-th point of each profile instead
+  // shifts the kept rows by one wherever a profile has one point more above, the carrier's or an edge's: rows whose
+  // end is kept in one profile and dropped in the next make a ragged outline no sensor draws.) A scan that records
+  // no image rows (all 0: a PLY from elsewhere) is thinned by every stride-th point of each profile.
   const auto stride = static_cast<std::size_t>(std::max(1L, std::lround(strength))) + 1;
+  const bool has_rows = std::any_of(points.begin(), points.end(), [](const ScanPoint& p) { return p.row != 0; });
   std::vector<char> lost(points.size(), 1);
-  for (const auto& profile : profiles_by_x(points, kProfileGap_m)) {
-    for (std::size_t k = 0; k < profile.size(); k += stride) lost[profile[k]] = 0;
+  if (has_rows) {
+    for (std::size_t i = 0; i < points.size(); ++i) lost[i] = points[i].row % stride == 0 ? 0 : 1;
+  } else {
+    for (const auto& profile : profiles_by_x(points, kProfileGap_m)) {
+      for (std::size_t k = 0; k < profile.size(); k += stride) lost[profile[k]] = 0;
+    }
   }
   const std::size_t before = points.size();
   erase_flagged(points, lost);

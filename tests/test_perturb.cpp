@@ -267,8 +267,33 @@ TEST_CASE("Given a part, when chain and stray points are added, then a narrow st
   CHECK(hidden > 0);
 }
 
-TEST_CASE("Given a scan, when thinned, then every profile keeps half of its points") {
-  const auto before = make_scan();
+TEST_CASE("Given a scan, when thinned, then the points of every other image row remain (half the sensor's rows)") {
+  // Every third profile lost its first point (a dropout above): the rows below it are still the sensor's rows.
+  auto before = make_scan();
+  {
+    std::vector<char> drop(before.size(), 0);
+    const auto profiles = algo::profiles_by_x(before, 0.001);
+    for (std::size_t k = 0; k < profiles.size(); k += 3) drop[profiles[k].front()] = 1;
+    std::size_t i = 0;
+    std::erase_if(before, [&](const ScanPoint&) { return drop[i++] != 0; });
+  }
+  auto after = before;
+  const auto r = algo::perturb_scan(after, spec_of("thin"), carrier_plane(), 1);
+  std::size_t even = 0;
+  for (const ScanPoint& p : before) even += p.row % 2 == 0 ? 1 : 0;
+  REQUIRE(even > 0);
+  REQUIRE(even < before.size());
+  CHECK(after.size() == even);
+  CHECK(r.thinned == before.size() - even);
+  for (const ScanPoint& p : after) CHECK(p.row % 2 == 0);
+  // The same rows in every profile: a row that survives in one profile survives in all that reach it.
+  const auto p_after = algo::profiles_by_x(after, 0.001);
+  REQUIRE(p_after.size() == 319);
+}
+
+TEST_CASE("Given a scan with no image rows recorded, when thinned, then every profile keeps half of its points") {
+  auto before = make_scan();
+  for (ScanPoint& p : before) p.row = 0;  // a PLY from elsewhere
   auto after = before;
   (void)algo::perturb_scan(after, spec_of("thin"), carrier_plane(), 1);
   const auto p_before = algo::profiles_by_x(before, 0.001), p_after = algo::profiles_by_x(after, 0.001);
