@@ -1400,12 +1400,21 @@ void Cascade::measure_size(const Roi& roi, MatchReport& r) {
     std::size_t lines = 0;
     for (int a = first + kSizeEndCells; a <= last - kSizeEndCells; ++a) {
       const auto k = static_cast<std::size_t>(a);
-      if (!(size_hi_[k] >= size_lo_[k]) || !(s_lo[k] <= s_hi[k])) continue;
+      // The scan's extent over the line and its two neighbours: a sensor whose points lie further apart along the
+      // line than a cell (half the rows: 3.2 mm) leaves lines with no point, and where the part is swung a profile's
+      // row of points crosses the lines at a slant, so a line holds only part of it (a width 20 mm short). Over
+      // three lines a straight edge at the pose's angle moves by at most a cell x tan(theta) (0.2 mm at 5 deg).
+      float lo_k = s_lo[k], hi_k = s_hi[k];
+      for (const int b : {a - 1, a + 1}) {
+        lo_k = std::min(lo_k, s_lo[static_cast<std::size_t>(b)]);
+        hi_k = std::max(hi_k, s_hi[static_cast<std::size_t>(b)]);
+      }
+      if (!(size_hi_[k] >= size_lo_[k]) || !(lo_k <= hi_k)) continue;
       ++lines;
       // A line whose end lies in lost data (glare along an edge) does not show where the scan's edge is.
       if (lost_near(a, size_lo_[k], 1) || lost_near(a, size_hi_[k], -1)) continue;
-      if (residue_end(a, s_lo[k], size_lo_[k]) || residue_end(a, s_hi[k], size_hi_[k])) continue;
-      size_work_[n++] = static_cast<double>(s_hi[k] - s_lo[k]) - static_cast<double>(size_hi_[k] - size_lo_[k]);
+      if (residue_end(a, lo_k, size_lo_[k]) || residue_end(a, hi_k, size_hi_[k])) continue;
+      size_work_[n++] = static_cast<double>(hi_k - lo_k) - static_cast<double>(size_hi_[k] - size_lo_[k]);
     }
     // Most lines ending in lost data: the few left may be its ragged edge, not the part's.
     if (n < static_cast<std::size_t>(kMinSizeLines) || 2 * n < lines) return;
