@@ -24,6 +24,7 @@ constexpr std::uint8_t kLost = 8;     // mark_lost_data: a missing cell in a reg
 constexpr std::uint8_t kGrouped = 16;  // mark_lost_data: the cell belongs to the group being filled
 constexpr std::uint8_t kResidue = 32;  // mark_lost_data: a template cell the scan holds, in a sparse window (glare)
 constexpr std::uint8_t kShadow = 64;   // covered_hole_cells: extra scan material in the template's laser shadow
+constexpr std::uint8_t kStep = 128;    // two_way_check: the template's depths within the window span kShadowStepM
 // mark_lost_data: a template cell is "sparse" when the scan occupies fewer than kSparseShare x the scan's typical
 // share of the template cells in its window; a group of missing and sparse cells in which at least kMinPorosity of
 // the cells, and kMinLostPoints cells, still hold scan points (the few a glare band leaves: 1-3 % of the cells
@@ -743,6 +744,8 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
       const std::size_t row = static_cast<std::size_t>(y) * static_cast<std::size_t>(width_);
       for (int x = roi.x0; x < roi.x1; ++x) {
         const std::size_t i = row + static_cast<std::size_t>(x);
+        // (The template's depth range over the window, for mark_lost_data's laser shadow.)
+        if (w_hi_[i] - w_lo_[i] >= static_cast<float>(kShadowStepM)) flags_[i] |= kStep;
         if (s_lo_[i] <= s_hi_[i]) {
           ++scan_cells;
           if (!(s_hi_[i] >= w_lo_[i] - tol && s_lo_[i] <= w_hi_[i] + tol)) {
@@ -1595,23 +1598,13 @@ void Cascade::mark_lost_data(const Roi& roi) {
   // Laser shadow: beside a relief wall (a rib, a flange) the line is hidden from the camera, or the camera from the
   // line, over a strip whose width depends on the part's pose, so the taught scans and this one see the foot of the
   // wall differently. A missing cell the scan has no point in, within the window of a depth step of the template
-  // (kShadowStep_m between its lowest and highest surface there), is lost data, not a hole. A hole the scan has beside
-  // a wall loses only its cells within the window; a rib the template lacks is covered by the scan (not empty here).
-  const auto step = static_cast<float>(kShadowStepM);
+  // (kStep: kShadowStepM between its lowest and highest surface there), is lost data, not a hole. A hole the scan
+  // has beside a wall loses only its cells within the window; a rib the template lacks is covered by the scan.
+  constexpr std::uint8_t kShadowed = kMissing | kStep;
   for (int y = roi.y0; y < roi.y1; ++y) {
     for (int x = roi.x0; x < roi.x1; ++x) {
       const auto i = static_cast<std::size_t>(y * wi + x);
-      if ((flags_[i] & (kMissing | kLost)) != kMissing || s_lo_[i] <= s_hi_[i]) continue;
-      float lo = kEmptyLo, hi = kEmptyHi;
-      for (int yy = std::max(roi.y0, y - r); yy <= std::min(roi.y1 - 1, y + r); ++yy) {
-        for (int xx = std::max(roi.x0, x - r); xx <= std::min(roi.x1 - 1, x + r); ++xx) {
-          const auto j = static_cast<std::size_t>(yy * wi + xx);
-          if (!(t_lo_[j] <= t_hi_[j])) continue;
-          lo = std::min(lo, t_lo_[j]);
-          hi = std::max(hi, t_hi_[j]);
-        }
-      }
-      if (hi - lo >= step) flags_[i] |= kLost;
+      if ((flags_[i] & (kShadowed | kLost)) == kShadowed && !(s_lo_[i] <= s_hi_[i])) flags_[i] |= kLost;
     }
   }
 }
