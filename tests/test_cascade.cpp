@@ -481,13 +481,8 @@ SCENARIO("The two-way check sees one pressed rib more or less, which a flat x-y 
     WHEN("the ribbed_v4 scan lacks the foot of each rib's +x wall over 100 mm (a laser shadow), or has a hole there") {
       const auto clean = sample_part(part("ribbed_v4"), kTestPose, 45);
       const auto shadow = without_wall_foot(clean, 0.05F, 12);
-      float cx = 0.0F, cy = 0.0F;
-      for (const ScanPoint& p : clean) {
-        cx += p.x;
-        cy += p.y;
-      }
-      cx /= static_cast<float>(clean.size());
-      cy /= static_cast<float>(clean.size());
+      const Eigen::Vector2f c = algo::centroid_xy_m(clean).cast<float>();
+      const float cx = c.x(), cy = c.y();
       // A 24 mm hole in the sheet between the ribs at +45 mm and +135 mm (sheet from +65 to +115 mm), its rim 3 mm
       // from the first rib's foot.
       auto holed = clean;
@@ -519,13 +514,8 @@ SCENARIO("The two-way check sees one pressed rib more or less, which a flat x-y 
       // one-hole-more twin), which a rim stepping into the rib must not excuse.
       static const auto holed = [] {
         auto scan = sample_part(part("ribbed_v4"), kTaughtPose, 48);
-        float cx = 0.0F, cy = 0.0F;
-        for (const ScanPoint& p : scan) {
-          cx += p.x;
-          cy += p.y;
-        }
-        cx /= static_cast<float>(scan.size());
-        cy /= static_cast<float>(scan.size());
+        const Eigen::Vector2f c = algo::centroid_xy_m(scan).cast<float>();
+        const float cx = c.x(), cy = c.y();
         std::erase_if(scan, [&](const ScanPoint& p) { return std::hypot(p.x - cx - 0.078F, p.y - cy) < 0.012F; });
         return teach_from("ribbed_v4", kTaughtPose, std::move(scan));
       }();
