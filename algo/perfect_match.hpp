@@ -138,10 +138,15 @@ class PerfectMatcher {
   }
 
   // The depth offset of the used points from the template at `pose`. The map holds distances, not signed depths, so
-  // a point's offset is its distance d with the sign of the distance's change along z (sampled at z +- one cell):
-  // a point above or below a sheet has |dd/dz| ~ 1 and a small x-y gradient; points beside an edge (the nearest
-  // surface sideways) or farther than level_clip_m are left out. Least squares of the plane, refitted twice on the
-  // points within a shrinking band around it. Fewer than 30 points or a degenerate spread: the zero plane.
+  // a point's offset is read from two samples that straddle its surface, at z +- (2 d + one cell): for a surface
+  // inclined by alpha they are (r + e) cos(alpha) and (r - e) cos(alpha), which give the depth e and cos(alpha). A
+  // point above or below a sheet has cos(alpha) >= 0.6 and a small x-y gradient; points beside an edge (the nearest
+  // surface sideways) or farther than level_clip_m are left out. (Sampled one cell either side, as before, a point
+  // within a cell of its surface looked like one beside it: a well levelled scan lost its points to the fit.) Least
+  // squares of the plane, refitted twice on the points within a shrinking band around it. Fewer than 30 points, a fit
+  // over a strip of the part (its X or Y spread under a quarter of all points') or a degenerate system: the fit of
+  // the band before, or the zero plane. A fit that changes the depth by less than a quarter of a cell over the part
+  // (within the map's own depth sampling) leaves `prior` as it is.
   // `prior`: a plane found before (the previous pass's); the fit is of what remains after it, so points that were
   // beyond level_clip_m before levelling (the edges of a strongly swung part) enter once the prior has levelled them.
   [[nodiscard]] DepthPlane depth_plane(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
