@@ -523,10 +523,12 @@ int run_run(const std::vector<std::string>& args, const Config& config) {
               "stopped after %.1f s: %" PRIu64 " parts, %" PRIu64 " results (%" PRIu64 " timeouts, %" PRIu64
               " aborted scans, %" PRIu64 " rejected), %" PRIu64 " faults, %" PRIu64
               " missed triggers, max cycle "
-              "%.1f ms; PLC: %" PRIu64 " presented, %" PRIu64 " acknowledged%s",
+              "%.1f ms; PLC: %" PRIu64 " presented, %" PRIu64 " acknowledged%s; Modbus clients: %" PRIu64
+              " accepted, %" PRIu64 " evicted, %" PRIu64 " refused, %" PRIu64 " dropped",
               seconds, stats.triggers, stats.results, stats.timeouts, stats.aborted_scans, stats.results_rejected,
               stats.faults, stats.missed_triggers, stats.max_cycle_ms, link.results_presented, link.results_acked,
-              options.wait_plc && options.parts > 0 && !all_taken ? " (not all taken)" : "");
+              options.wait_plc && options.parts > 0 && !all_taken ? " (not all taken)" : "", link.clients_accepted,
+              link.clients_evicted, link.clients_refused, link.clients_dropped);
   return kExitOk;
 }
 

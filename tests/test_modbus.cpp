@@ -1582,34 +1582,124 @@ TEST_CASE("server: malformed frames get exceptions or a closed connection while 
   }
 }
 
-TEST_CASE("server: connections beyond max_clients are closed and a freed slot is reused", "[modbus][server]") {
-  ModbusServerConfig config = loopback_config();
-  config.max_clients = 2;
-  RunningServer running(config);
-  auto a = std::make_unique<MbClient>(running.port);
-  MbClient b(running.port);
-  REQUIRE(a->connected());
-  REQUIRE(b.connected());
-  CHECK(a->status() == b.status());
-  // When a third one connects, then the server closes it without answering
-  {
-    RawClient third(running.port);
-    REQUIRE(third.connected());  // the kernel completes the handshake; the server then refuses
-    REQUIRE(third.send_bytes(adu(1, 1, pdu_read(3, 100, 1))));
-    CHECK(third.closed_within(2000));
+namespace {
+
+// Sends FC03 for MAP_VERSION (110) and checks the 11-byte answer: the connection is being served.
+bool served(RawClient& client, std::uint16_t transaction) {
+  if (!client.send_bytes(adu(transaction, 1, pdu_read(3, 110, 1)))) return false;
+  std::vector<std::uint8_t> reply;
+  if (client.receive(reply, 11, 2000) != RawClient::Outcome::kData) return false;
+  return reply[0] == (transaction >> 8) && reply[1] == (transaction & 0xFF) && reply[7] == 3 && reply[8] == 2 &&
+         reply[9] == 0 && reply[10] == 1;
+}
+
+// Connects `count` raw clients that send nothing, one after the other, each accepted by the server before the
+// next connects (so their idle times are strictly ordered: the first is the longest idle).
+std::vector<std::unique_ptr<RawClient>> connect_idle(const RunningServer& running, int count) {
+  std::vector<std::unique_ptr<RawClient>> idle;
+  for (int i = 0; i < count; ++i) {
+    const std::uint64_t accepted = running.server.stats().clients_accepted;
+    idle.push_back(std::make_unique<RawClient>(running.port));
+    REQUIRE(idle.back()->connected());
+    REQUIRE(wait_until([&] { return running.server.stats().clients_accepted == accepted + 1; }, 2000));
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
   }
-  CHECK(running.server.stats().clients_refused == 1);
-  // And the two keep working; when one leaves, a newcomer is served
+  return idle;
+}
+
+}  // namespace
+
+TEST_CASE("server: idle connections filling every slot cannot lock the PLC out: the longest idle is evicted",
+          "[modbus][server][robustness]") {
+  ModbusServerConfig config = loopback_config();
+  config.max_clients = 4;
+  config.idle_timeout_ms = 60'000;  // the idle timeout would free a slot only after a minute
+  RunningServer running(config);
+  // Given every slot held by a connection that never sends a request
+  auto idle = connect_idle(running, config.max_clients);
+  REQUIRE(running.server.stats().clients_connected == 4);
+
+  // When the PLC (re)connects, then it is served within 1 s
+  const auto connecting = Clock::now();
+  MbClient plc(running.port);
+  REQUIRE(plc.connected());
   std::uint16_t version = 0;
-  CHECK(a->read(110, &version, 1) == 0);
-  CHECK(b.read(110, &version, 1) == 0);
-  a.reset();
-  REQUIRE(wait_until([&] { return running.server.stats().clients_connected == 1; }, 3000));
-  MbClient d(running.port);
-  REQUIRE(d.connected());
-  version = 0;
-  CHECK(d.read(110, &version, 1) == 0);
+  REQUIRE(plc.read(110, &version, 1) == 0);
+  CHECK(elapsed_ms(connecting) < 1000);
   CHECK(version == 1);
+  // And the connection that was idle longest (the first) made room for it, the others keep their slots
+  CHECK(idle[0]->closed_within(2000));
+  LinkStats stats = running.server.stats();
+  CHECK(stats.clients_evicted == 1);
+  CHECK(stats.clients_refused == 0);
+  CHECK(stats.clients_dropped == 0);  // an eviction is counted on its own
+  CHECK(stats.clients_connected == 4);
+
+  // When another newcomer arrives while the PLC keeps polling, then the next idle one goes, not the PLC
+  std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  REQUIRE(plc.read(110, &version, 1) == 0);
+  RawClient newcomer(running.port);
+  REQUIRE(newcomer.connected());
+  CHECK(served(newcomer, 7));
+  CHECK(idle[1]->closed_within(2000));
+  CHECK(plc.read(110, &version, 1) == 0);
+  CHECK(served(*idle[2], 8));
+  CHECK(served(*idle[3], 9));
+  stats = running.server.stats();
+  CHECK(stats.clients_evicted == 2);
+  CHECK(stats.clients_connected == 4);
+}
+
+TEST_CASE("server: a client in the middle of a request is not evicted in preference to an idle one",
+          "[modbus][server][robustness]") {
+  ModbusServerConfig config = loopback_config();
+  config.byte_timeout_ms = 5000;  // the half-sent request stays pending for the whole test
+  const std::vector<std::uint8_t> request = adu(0x0102, 1, pdu_read(3, 110, 1));
+  const std::vector<std::uint8_t> first_half(request.begin(), request.begin() + 5);
+  const std::vector<std::uint8_t> second_half(request.begin() + 5, request.end());
+
+  SECTION("the idle one goes, the busy one is answered when its request completes") {
+    config.max_clients = 2;
+    RunningServer running(config);
+    // Given a client that connected first (longest without a complete request) and has half a request buffered,
+    auto busy = connect_idle(running, 1);
+    // (sent before the next connection: the server reads a round's data before it accepts, so the half frame is
+    // buffered by the time the next client is accepted)
+    REQUIRE(busy[0]->send_bytes(first_half));
+    // and a client that connected later and sends nothing
+    auto idle = connect_idle(running, 1);
+    // When a newcomer connects
+    RawClient newcomer(running.port);
+    REQUIRE(newcomer.connected());
+    // Then the idle one is evicted and the newcomer served
+    CHECK(served(newcomer, 3));
+    CHECK(idle[0]->closed_within(2000));
+    // And the busy one still gets its answer once the rest of its request arrives
+    REQUIRE(busy[0]->send_bytes(second_half));
+    std::vector<std::uint8_t> reply;
+    REQUIRE(busy[0]->receive(reply, 11, 2000) == RawClient::Outcome::kData);
+    CHECK(reply[0] == 0x01);
+    CHECK(reply[1] == 0x02);
+    CHECK(reply[10] == 1);
+    CHECK(running.server.stats().clients_evicted == 1);
+    CHECK(running.server.stats().clients_refused == 0);
+  }
+  SECTION("when every client is in the middle of a request the newcomer is refused") {
+    config.max_clients = 1;
+    RunningServer running(config);
+    auto busy = connect_idle(running, 1);
+    REQUIRE(busy[0]->send_bytes(first_half));
+    RawClient newcomer(running.port);
+    REQUIRE(newcomer.connected());  // the kernel completes the handshake; the server then closes it
+    REQUIRE(newcomer.send_bytes(request));
+    CHECK(newcomer.closed_within(2000));
+    CHECK(running.server.stats().clients_refused == 1);
+    CHECK(running.server.stats().clients_evicted == 0);
+    REQUIRE(busy[0]->send_bytes(second_half));
+    std::vector<std::uint8_t> reply;
+    REQUIRE(busy[0]->receive(reply, 11, 2000) == RawClient::Outcome::kData);
+    CHECK(reply[10] == 1);
+  }
 }
 
 TEST_CASE("server: HEARTBEAT advances by one per 100 ms of wall time", "[modbus][server]") {

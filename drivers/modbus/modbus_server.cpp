@@ -58,6 +58,7 @@ struct Client {
   std::size_t rx_bytes = 0;
   std::int64_t partial_since_ns = 0;  // when the unfinished frame at the front of rx started arriving
   std::int64_t last_activity_ns = 0;
+  std::int64_t last_request_ns = 0;  // the last complete request (or the connection) arrived: eviction order
   std::array<char, kPeerNameBytes> peer{};
 };
 
@@ -73,6 +74,7 @@ struct ModbusServer::Impl {
   void read_client(Client& client, std::int64_t now_ns);
   void serve_frames(Client& client, std::int64_t now_ns);
   void expire_clients(std::int64_t now_ns);
+  [[nodiscard]] Client* free_slot(const char* newcomer, std::int64_t now_ns);
   void close_client(Client& client, bool dropped, const char* why);
   void wake() const;
 
@@ -91,6 +93,7 @@ struct ModbusServer::Impl {
   std::atomic<std::uint64_t> exceptions_sent{0};
   std::atomic<std::uint64_t> clients_accepted{0};
   std::atomic<std::uint64_t> clients_refused{0};
+  std::atomic<std::uint64_t> clients_evicted{0};
   std::atomic<std::uint64_t> clients_dropped{0};
   std::atomic<std::uint32_t> clients_connected{0};
   int listen_fd = -1;
@@ -241,17 +244,12 @@ void ModbusServer::Impl::accept_clients(std::int64_t now_ns) {
     (void)inet_ntop(AF_INET, &peer.sin_addr, address, sizeof address);
     std::snprintf(name.data(), name.size(), "%s:%u", address, static_cast<unsigned>(ntohs(peer.sin_port)));
 
-    Client* slot = nullptr;
-    for (Client& client : clients) {
-      if (client.fd < 0) {
-        slot = &client;
-        break;
-      }
-    }
+    Client* slot = free_slot(name.data(), now_ns);
     if (slot == nullptr) {
       clients_refused.fetch_add(1, std::memory_order_relaxed);
       ::close(fd);
-      CS_LOG_WARN(kComponent, "client %s refused: %d clients already connected", name.data(), config.max_clients);
+      CS_LOG_WARN(kComponent, "client %s refused: all %d clients are in the middle of a request", name.data(),
+                  config.max_clients);
       continue;
     }
     const int one = 1;
@@ -260,11 +258,32 @@ void ModbusServer::Impl::accept_clients(std::int64_t now_ns) {
     slot->rx_bytes = 0;
     slot->partial_since_ns = now_ns;
     slot->last_activity_ns = now_ns;
+    slot->last_request_ns = now_ns;
     slot->peer = name;
     clients_accepted.fetch_add(1, std::memory_order_relaxed);
     clients_connected.fetch_add(1, std::memory_order_relaxed);
     CS_LOG_INFO(kComponent, "client %s connected", name.data());
   }
+}
+
+// An empty slot, else the slot of the client longest without a complete request, closed for the newcomer. Idle
+// holders (a crashed HMI, a port scanner, an attacker) must not lock a reconnecting PLC out until the idle timeout;
+// a client that polls keeps its slot. A client with half a request buffered is left alone: it is working, and it
+// finishes or is dropped within byte_timeout_ms. nullptr when every client is such a one.
+Client* ModbusServer::Impl::free_slot(const char* newcomer, std::int64_t now_ns) {
+  Client* longest_idle = nullptr;
+  for (Client& client : clients) {
+    if (client.fd < 0) return &client;
+    if (client.rx_bytes > 0) continue;
+    if (longest_idle == nullptr || client.last_request_ns < longest_idle->last_request_ns) longest_idle = &client;
+  }
+  if (longest_idle == nullptr) return nullptr;
+  const double idle_s = static_cast<double>(now_ns - longest_idle->last_request_ns) / kNsPerS;
+  CS_LOG_WARN(kComponent, "client %s evicted: no request for %.3f s, the longest of %d clients; its slot goes to %s",
+              longest_idle->peer.data(), idle_s, config.max_clients, newcomer);
+  clients_evicted.fetch_add(1, std::memory_order_relaxed);
+  close_client(*longest_idle, false, "evicted (longest idle, table full)");
+  return longest_idle;
 }
 
 void ModbusServer::Impl::read_client(Client& client, std::int64_t now_ns) {
@@ -310,6 +329,7 @@ void ModbusServer::Impl::serve_frames(Client& client, std::int64_t now_ns) {
         return;
       }
       exceptions_sent.fetch_add(1, std::memory_order_relaxed);
+      client.last_request_ns = now_ns;
     } else {
       (void)modbus_set_socket(ctx, client.fd);
       if (modbus_reply(ctx, pending.data(), static_cast<int>(screened.frame_bytes), &mapping) < 0) {
@@ -317,6 +337,7 @@ void ModbusServer::Impl::serve_frames(Client& client, std::int64_t now_ns) {
         return;
       }
       requests_served.fetch_add(1, std::memory_order_relaxed);
+      client.last_request_ns = now_ns;
       if (is_write_function(screened.function)) {
         core.on_plc_write(now_ns);
         core.service(now_ns);  // an ack or a cleared ack takes effect before the next request is read
@@ -433,6 +454,7 @@ LinkStats ModbusServer::stats() const {
   stats.exceptions_sent = impl_->exceptions_sent.load(std::memory_order_relaxed);
   stats.clients_accepted = impl_->clients_accepted.load(std::memory_order_relaxed);
   stats.clients_refused = impl_->clients_refused.load(std::memory_order_relaxed);
+  stats.clients_evicted = impl_->clients_evicted.load(std::memory_order_relaxed);
   stats.clients_dropped = impl_->clients_dropped.load(std::memory_order_relaxed);
   stats.clients_connected = impl_->clients_connected.load(std::memory_order_relaxed);
   return stats;

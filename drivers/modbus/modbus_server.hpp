@@ -12,7 +12,10 @@ namespace cellsight::drivers {
 struct ModbusServerConfig {
   std::string bind_address = "0.0.0.0";  // dotted IPv4; 0.0.0.0 = every interface
   std::uint16_t port = 502;              // 0 = an ephemeral port (tests); see bound_port()
-  std::int32_t max_clients = 4;          // further connections are accepted and closed at once
+  // When every slot is taken, a newcomer evicts the client that has gone longest without a complete request, so idle
+  // connections cannot lock a (reconnecting) PLC out. A client in the middle of a request is never evicted; when all
+  // are, the newcomer is closed at once (each of them finishes or is dropped within byte_timeout_ms).
+  std::int32_t max_clients = 4;
   // A request that has started arriving must be complete within this time, else the client is dropped: a slow or
   // stuck client never holds the others up (the server never waits for bytes, it only stops waiting for them).
   std::int32_t byte_timeout_ms = 100;

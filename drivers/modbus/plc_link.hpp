@@ -117,7 +117,8 @@ struct LinkStats {
   std::uint64_t requests_served = 0;    // frames answered by modbus_reply
   std::uint64_t exceptions_sent = 0;    // frames answered with an exception
   std::uint64_t clients_accepted = 0;
-  std::uint64_t clients_refused = 0;    // over max_clients
+  std::uint64_t clients_refused = 0;    // table full and every client in the middle of a request
+  std::uint64_t clients_evicted = 0;    // closed to make room for a newcomer: the longest idle (not in clients_dropped)
   std::uint64_t clients_dropped = 0;    // closed by the server: bad framing, byte/idle timeout, send failure
   std::uint32_t clients_connected = 0;  // now
   std::uint64_t heartbeat_losses = 0;   // transitions into PLC_HB_LOST
