@@ -1650,6 +1650,28 @@ TEST_CASE("server: idle connections filling every slot cannot lock the PLC out: 
   CHECK(stats.clients_connected == 4);
 }
 
+TEST_CASE("server: a client that polls keeps its slot however early it connected, the idle ones go first",
+          "[modbus][server][robustness]") {
+  ModbusServerConfig config = loopback_config();
+  config.max_clients = 3;
+  RunningServer running(config);
+  // Given a PLC that connected first, then idle connections in every other slot, then a poll by the PLC
+  MbClient plc(running.port);
+  REQUIRE(plc.connected());
+  std::uint16_t version = 0;
+  REQUIRE(plc.read(110, &version, 1) == 0);
+  auto idle = connect_idle(running, config.max_clients - 1);
+  REQUIRE(plc.read(110, &version, 1) == 0);
+  // When a newcomer connects, then the idle one connected first goes: the PLC's last request is the newest
+  RawClient newcomer(running.port);
+  REQUIRE(newcomer.connected());
+  CHECK(served(newcomer, 4));
+  CHECK(idle[0]->closed_within(2000));
+  CHECK(plc.read(110, &version, 1) == 0);
+  CHECK(served(*idle[1], 5));
+  CHECK(running.server.stats().clients_evicted == 1);
+}
+
 TEST_CASE("server: a client in the middle of a request is not evicted in preference to an idle one",
           "[modbus][server][robustness]") {
   ModbusServerConfig config = loopback_config();
