@@ -918,6 +918,54 @@ TEST_CASE("sim link: each result is presented whole, once, in order, through the
   CHECK(stats.queue_depth == 0);
 }
 
+TEST_CASE("sim link: a result that arrives while RESULT_ACK is still high waits until the PLC clears it",
+          "[modbus][sim]") {
+  SimPlcLink link(sim_config());
+  REQUIRE(link.start().ok());
+  SimPlc plc{link};
+  const auto results = make_results(3, 14);
+  // Given a PLC that raises RESULT_ACK before any result exists (a stale bit after its own restart)
+  plc.control(map::kControlResultAck);
+  // When the first result arrives and time passes, then it is not presented: the ack cannot be meant for it
+  REQUIRE(link.publish(results[0]) == PublishStatus::kQueued);
+  plc.at_ms(10);
+  CHECK((plc.status() & map::kStatusResultValid) == 0);
+  CHECK(plc.block().seq == 0);
+  plc.at_ms(20);
+  CHECK(link.stats().results_presented == 0);
+  CHECK(link.stats().results_acked == 0);
+  // When the PLC clears the ack, then it appears, and its ack counts only after the PLC raised it for this block
+  plc.control(0);
+  CHECK((plc.status() & map::kStatusResultValid) != 0);
+  CHECK(plc.block().seq == 1);
+  CHECK(link.stats().results_acked == 0);
+  plc.control(map::kControlResultAck);
+  CHECK(link.stats().results_acked == 1);
+
+  // Given the PLC clears its ack and raises it again before the next result (a PLC that acks twice)
+  plc.control(0);
+  plc.control(map::kControlResultAck);
+  // When the next result arrives while the ack is high, then it waits: the block still holds result 1, invalid
+  REQUIRE(link.publish(results[1]) == PublishStatus::kQueued);
+  for (int ms = 30; ms <= 60; ms += 10) {
+    plc.at_ms(ms);
+    CHECK((plc.status() & map::kStatusResultValid) == 0);
+    CHECK(plc.block().seq == 1);
+  }
+  CHECK(link.stats().results_presented == 1);
+  CHECK(link.stats().results_acked == 1);  // never counted as taken while the PLC has not seen it
+  CHECK(plc.reg(109) == 1);                // RESULT_QUEUE_DEPTH: it is still waiting
+  // When the ack falls, then result 2 is presented, whole, and taken by the next ack
+  plc.control(0);
+  CHECK((plc.status() & map::kStatusResultValid) != 0);
+  const DecodedBlock second = plc.block();
+  CHECK(second.seq == 2);
+  CHECK(same_result(second.result, results[1]));
+  plc.control(map::kControlResultAck);
+  plc.control(0);
+  CHECK(link.stats().results_acked == 2);
+}
+
 TEST_CASE("sim link: a full queue rejects the newest result and latches RESULT_OVERRUN until CLEAR_ERROR",
           "[modbus][sim]") {
   PlcLinkConfig config = sim_config();
