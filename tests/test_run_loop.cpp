@@ -1175,8 +1175,10 @@ TEST_CASE("loop: through a real Modbus server on 127.0.0.1 a libmodbus PLC takes
   drivers::ModbusServerConfig server_config;
   server_config.bind_address = "127.0.0.1";
   server_config.port = 0;  // any free port
+  server_config.link.loop_watchdog_ms = 300;
   drivers::ModbusServer server(server_config);
   REQUIRE(server.start().ok());
+  const auto server_started = Clock::now();
   app::LoopConfig lc = small_loop_config(config);
   lc.require_trigger_enable = true;  // DESIGN.md handshake: the PLC enables triggers
   lc.max_parts = kParts;
@@ -1186,20 +1188,18 @@ TEST_CASE("loop: through a real Modbus server on 127.0.0.1 a libmodbus PLC takes
   std::vector<ModbusPlcResult> results;
   int errors = 0;
   std::uint16_t heartbeat_first = 0, heartbeat_last = 0;
+  std::int64_t heartbeat_window_ms = 0;
   {
     modbus_t* ctx = modbus_new_tcp("127.0.0.1", server.bound_port());
     REQUIRE(ctx != nullptr);
     REQUIRE(modbus_connect(ctx) == 0);
     const auto deadline = Clock::now() + std::chrono::seconds(60);
     std::uint16_t status[2] = {0, 0};
-    if (modbus_read_registers(ctx, map::kStatus, 2, status) != 2) ++errors;
-    heartbeat_first = status[1];
     if (modbus_write_register(ctx, map::kControl, map::kControlTriggerEnable) != 1) ++errors;
     std::uint16_t plc_heartbeat = 0;
     while (static_cast<int>(results.size()) < kParts && Clock::now() < deadline) {
       if (modbus_write_register(ctx, map::kPlcHeartbeat, ++plc_heartbeat) != 1) ++errors;  // the PLC is alive
       if (modbus_read_registers(ctx, map::kStatus, 2, status) != 2) ++errors;
-      heartbeat_last = status[1];
       if ((status[0] & map::kStatusResultValid) == 0) {
         std::this_thread::sleep_for(milliseconds(2));
         continue;
@@ -1218,6 +1218,18 @@ TEST_CASE("loop: through a real Modbus server on 127.0.0.1 a libmodbus PLC takes
       }
       if (modbus_write_register(ctx, map::kControl, map::kControlTriggerEnable) != 1) ++errors;
     }
+    // The loop keeps HEARTBEAT moving (it calls PlcLink::heartbeat() every iteration). Four parts take well under
+    // a heartbeat period in Release, so watch it after they are done, once the link's loop watchdog would have
+    // frozen it for a loop that never called: from twice the watchdog time after start, over three periods.
+    std::this_thread::sleep_until(server_started + 2 * milliseconds(server_config.link.loop_watchdog_ms));
+    if (modbus_write_register(ctx, map::kPlcHeartbeat, ++plc_heartbeat) != 1) ++errors;
+    if (modbus_read_registers(ctx, map::kHeartbeat, 1, &heartbeat_first) != 1) ++errors;
+    const auto first_read = Clock::now();
+    std::this_thread::sleep_for(3 * milliseconds(map::kHeartbeatPeriodMs));
+    if (modbus_write_register(ctx, map::kPlcHeartbeat, ++plc_heartbeat) != 1) ++errors;
+    const auto last_sent = Clock::now();
+    if (modbus_read_registers(ctx, map::kHeartbeat, 1, &heartbeat_last) != 1) ++errors;
+    heartbeat_window_ms = std::chrono::duration_cast<milliseconds>(last_sent - first_read).count();
     modbus_close(ctx);
     modbus_free(ctx);
   }
@@ -1239,7 +1251,10 @@ TEST_CASE("loop: through a real Modbus server on 127.0.0.1 a libmodbus PLC takes
     CHECK(b.y_um() == static_cast<std::int32_t>(std::lround(expected.y_m * 1e6)));
     CHECK(b.rz_mdeg() == mdeg(expected.theta_rad));
   }
-  CHECK(static_cast<std::uint16_t>(heartbeat_last - heartbeat_first) > 0);  // the loop kept the link's heartbeat alive
+  // Sampled at least heartbeat_window_ms apart: that many whole periods were crossed, unless HEARTBEAT was frozen.
+  INFO("HEARTBEAT " << heartbeat_first << " -> " << heartbeat_last << " over at least " << heartbeat_window_ms
+                    << " ms");
+  CHECK(static_cast<std::uint16_t>(heartbeat_last - heartbeat_first) >= heartbeat_window_ms / map::kHeartbeatPeriodMs);
   CHECK(server.stats().results_acked == kParts);
 }
 
