@@ -216,14 +216,15 @@ class ScriptedRecogniser final : public app::Recogniser {
     algo::Decision d;
     if (s.honour_deadline && Clock::now() >= deadline && s.delay_ms > 0) {
       d.source = algo::DecisionSource::kTimeout;
-      return d;
+    } else {
+      d.source = s.source;
+      d.class_index = d.accepted() ? s.part_id - 1 : -1;
+      d.part_id = d.accepted() ? s.part_id : 0;
+      d.probability = s.probability;
+      d.pose_valid = d.accepted();
+      d.pose = {s.x_m, s.y_m, s.theta_rad};
     }
-    d.source = s.source;
-    d.class_index = d.accepted() ? s.part_id - 1 : -1;
-    d.part_id = d.accepted() ? s.part_id : 0;
-    d.probability = s.probability;
-    d.pose_valid = d.accepted();
-    d.pose = {s.x_m, s.y_m, s.theta_rad};
+    returned_.fetch_add(1);
     return d;
   }
   std::string_view class_name(int class_index) const override {
@@ -231,11 +232,13 @@ class ScriptedRecogniser final : public app::Recogniser {
     return class_index >= 0 && class_index < 4 ? kNames[static_cast<std::size_t>(class_index)] : std::string_view{};
   }
   [[nodiscard]] std::size_t calls() const { return calls_.load(); }
+  [[nodiscard]] std::size_t returned() const { return returned_.load(); }  // calls that have returned
   [[nodiscard]] std::size_t points_seen() const { return points_seen_.load(); }
 
  private:
   std::vector<Script> scripts_;
   std::atomic<std::size_t> calls_{0};
+  std::atomic<std::size_t> returned_{0};
   std::atomic<std::size_t> points_seen_{0};
 };
 
@@ -786,6 +789,58 @@ TEST_CASE("loop: a recogniser past the hard deadline gives 'timeout' at the dead
   CHECK(stats.timeouts == 1);
   CHECK(stats.results == 3);
   if (!slow.honour_deadline) CHECK(stats.late_decisions == 1);
+}
+
+// Holds the loop thread inside its kScanning -> kRecognising transition of one pass (the job is posted by then)
+// until the recogniser has answered, as a loop thread that the scheduler did not run in time would be held.
+class HoldLoopUntilAnswered final : public app::LoopObserver {
+ public:
+  HoldLoopUntilAnswered(const ScriptedRecogniser& recogniser, std::size_t call)
+      : recogniser_(recogniser), call_(call) {}
+  void on_state(LoopState from, LoopState to, ErrorCode /*error*/) override {
+    if (from != LoopState::kScanning || to != LoopState::kRecognising || ++passes_ != call_) return;
+    while (recogniser_.returned() < call_) std::this_thread::sleep_for(milliseconds(1));
+    // recognise() has returned; the recognition thread still stamps and hands over the answer under its lock.
+    std::this_thread::sleep_for(milliseconds(50));
+  }
+
+ private:
+  const ScriptedRecogniser& recogniser_;
+  const std::size_t call_;
+  std::size_t passes_ = 0;
+};
+
+TEST_CASE("loop: an answer that comes after the deadline but before the loop looks is 'timeout', never the answer",
+          "[run][loop][deadline]") {
+  app::Config config = small_config();
+  config.runtime.deadline_ms = 200;
+  Script late;  // an "ok" decision, delivered 100 ms after the deadline (recognition started at the fall)
+  late.delay_ms = config.runtime.deadline_ms + 100;
+  late.honour_deadline = false;
+  Cell cell(config, {Script{}, late, Script{}});
+  cell.enqueue(3);
+  SimPlc plc(cell.link);
+  app::LoopConfig lc = small_loop_config(config);
+  lc.max_parts = 3;
+  app::ProductionLoop& loop = cell.make_loop(lc);
+  HoldLoopUntilAnswered hold(*cell.recogniser_ptr, 2);
+  loop.set_observer(&hold);
+  REQUIRE(loop.start().ok());
+  REQUIRE(loop.wait_finished(milliseconds(60'000)));
+  REQUIRE(wait_until([&] { return plc.count() == 3; }, 5000));
+  CHECK(plc.violations() == 0);
+  // Then the second part's result is "timeout" with no part and no pose, although an answer was waiting
+  const auto s1 = plc.seen(1);
+  const Block held(s1.block);
+  check_timeout_result(held, 2);
+  CHECK(held.cycle_ms() >= config.runtime.deadline_ms);
+  const auto s0 = plc.seen(0), s2 = plc.seen(2);
+  CHECK(Block(s0.block).code() == 0);
+  CHECK(Block(s2.block).code() == 0);
+  const app::LoopStats stats = loop.stats();
+  CHECK(stats.timeouts == 1);
+  CHECK(stats.late_decisions == 1);
+  CHECK(cell.recogniser_ptr->calls() == 3);
 }
 
 TEST_CASE("loop: timeouts in a row raise ERROR_CODE 'repeated timeouts', a cycle inside the deadline clears it",
