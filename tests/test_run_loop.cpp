@@ -1246,7 +1246,6 @@ TEST_CASE("loop: through a real Modbus server on 127.0.0.1 a libmodbus PLC takes
   drivers::ModbusServerConfig server_config;
   server_config.bind_address = "127.0.0.1";
   server_config.port = 0;  // any free port
-  server_config.link.loop_watchdog_ms = 300;
   drivers::ModbusServer server(server_config);
   REQUIRE(server.start().ok());
   const auto server_started = Clock::now();
@@ -1292,8 +1291,11 @@ TEST_CASE("loop: through a real Modbus server on 127.0.0.1 a libmodbus PLC takes
     // The loop keeps HEARTBEAT moving (it calls PlcLink::heartbeat() every iteration). Four parts take well under
     // a heartbeat period in Release, so watch it after they are done, once the link's loop watchdog would have
     // frozen it for a loop that never called: from twice the watchdog time after start, over three periods.
-    std::this_thread::sleep_until(server_started + 2 * milliseconds(server_config.link.loop_watchdog_ms));
-    if (modbus_write_register(ctx, map::kPlcHeartbeat, ++plc_heartbeat) != 1) ++errors;
+    const auto watch_from = server_started + 2 * milliseconds(server_config.link.loop_watchdog_ms);
+    while (Clock::now() < watch_from) {
+      if (modbus_write_register(ctx, map::kPlcHeartbeat, ++plc_heartbeat) != 1) ++errors;
+      std::this_thread::sleep_for(milliseconds(map::kHeartbeatPeriodMs / 2));
+    }
     if (modbus_read_registers(ctx, map::kHeartbeat, 1, &heartbeat_first) != 1) ++errors;
     const auto first_read = Clock::now();
     std::this_thread::sleep_for(3 * milliseconds(map::kHeartbeatPeriodMs));
