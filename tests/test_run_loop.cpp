@@ -841,6 +841,8 @@ TEST_CASE("loop: an answer that comes after the deadline but before the loop loo
   CHECK(stats.timeouts == 1);
   CHECK(stats.late_decisions == 1);
   CHECK(cell.recogniser_ptr->calls() == 3);
+  loop.request_stop();
+  loop.join();  // before `hold` goes: the loop reports its last transitions to it
 }
 
 TEST_CASE("loop: timeouts in a row raise ERROR_CODE 'repeated timeouts', a cycle inside the deadline clears it",
