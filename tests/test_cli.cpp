@@ -14,6 +14,7 @@
 #include <sstream>
 
 #include "app/catalogue.hpp"
+#include "tests/scratch_dir.hpp"
 
 namespace fs = std::filesystem;
 
@@ -39,12 +40,7 @@ Run run(const std::string& args, const std::string& config = kConfig) {
   return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
 }
 
-fs::path fresh_dir(const std::string& name) {
-  const fs::path dir = fs::temp_directory_path() / ("cellsight-test-cli-" + std::to_string(::getpid())) / name;
-  fs::remove_all(dir);
-  fs::create_directories(dir.parent_path());
-  return dir;
-}
+fs::path fresh_dir(const std::string& name) { return cellsight::test::scratch_path("cli/" + name); }
 
 std::string read_all(const fs::path& p) {
   std::ifstream in(p, std::ios::binary);

@@ -15,6 +15,7 @@
 #include "app/config.hpp"
 #include "app/sim_mode.hpp"
 #include "drivers/sim/random_catalogue.hpp"
+#include "tests/scratch_dir.hpp"
 
 using namespace cellsight;
 namespace fs = std::filesystem;
@@ -27,14 +28,7 @@ app::Config shipped_config() {
   return *cfg;
 }
 
-fs::path fresh_dir() {
-  static int counter = 0;
-  const fs::path dir = fs::temp_directory_path() /
-                       ("cellsight-test-random-catalogue-" + std::to_string(::getpid()) + "-" + std::to_string(counter++));
-  fs::remove_all(dir);
-  fs::create_directories(dir);
-  return dir;
-}
+fs::path fresh_dir() { return test::numbered_scratch_dir("random-catalogue"); }
 
 // One physical feature on the sheet (repeats expanded, independently of the generator): kind, centre and size in
 // micrometres, direction, edge. Rise and angle are kept apart so "other relief" can compare footprints alone.

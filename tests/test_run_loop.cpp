@@ -48,6 +48,7 @@
 #include "drivers/modbus/sim_plc_link.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "sim_test_util.hpp"
+#include "tests/scratch_dir.hpp"
 
 // ------------------------------------------------------------------ allocation counter (proves "no allocation")
 // Counts operator new on every thread while the window is open, except inside the simulated world (the simulator's
@@ -1356,12 +1357,7 @@ std::string write_true_calibration(const app::Config& config, const std::filesys
   return path;
 }
 
-std::filesystem::path fresh_dir(const std::string& name) {
-  const auto dir = std::filesystem::temp_directory_path() / ("cellsight_run_" + name + "_" + std::to_string(getpid()));
-  std::filesystem::remove_all(dir);
-  std::filesystem::create_directories(dir);
-  return dir;
-}
+std::filesystem::path fresh_dir(const std::string& name) { return test::scratch_dir("run-" + name); }
 
 int free_tcp_port() {
   const int fd = socket(AF_INET, SOCK_STREAM, 0);

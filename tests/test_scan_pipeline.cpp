@@ -16,6 +16,7 @@
 #include "app/sim_mode.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "sim_test_util.hpp"
+#include "tests/scratch_dir.hpp"
 
 using namespace cellsight;
 
@@ -83,9 +84,7 @@ struct PassResult {
 const algo::SensorCalibration& calibrated_sensor(const app::Config& cfg) {
   static const algo::SensorCalibration sensor = [&] {
     namespace fs = std::filesystem;
-    const fs::path dir = fs::temp_directory_path() / ("cellsight-test-scan-calib-" + std::to_string(::getpid()));
-    fs::remove_all(dir);
-    fs::create_directories(dir);
+    const fs::path dir = test::scratch_dir("scan-calib");
     const std::string file = (dir / "calibration.yaml").string();
     for (const char* step : {"camera", "laser", "conveyor"}) {
       const int rc = app::run_calibrate({step, "--sim", "--out", (dir / step).string(), "--calibration", file}, cfg,

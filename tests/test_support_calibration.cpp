@@ -13,6 +13,7 @@
 #include "app/calibration_file.hpp"
 #include "app/config.hpp"
 #include "app/scan_mode.hpp"
+#include "tests/scratch_dir.hpp"
 
 using namespace cellsight;
 namespace fs = std::filesystem;
@@ -30,9 +31,7 @@ TEST_CASE("Given a calibrated simulated cell, when the support is calibrated fro
           "carrier plane is stored and a scan that is no empty carrier is refused without touching the file") {
   auto cfg = app::load_config(CELLSIGHT_SOURCE_DIR "/config/cellsight.yaml");
   REQUIRE(cfg.ok());
-  const fs::path dir = fs::temp_directory_path() / ("cellsight-test-support-" + std::to_string(::getpid()));
-  fs::remove_all(dir);
-  fs::create_directories(dir);
+  const fs::path dir = test::scratch_dir("support");
   const std::string file = (dir / "calibration.yaml").string();
   for (const char* step : {"camera", "laser", "conveyor"}) {
     REQUIRE(app::run_calibrate({step, "--sim", "--out", (dir / step).string(), "--calibration", file}, *cfg, stdout,

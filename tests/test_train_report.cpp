@@ -17,30 +17,15 @@
 #include <vector>
 
 #include "app/train_report.hpp"
+#include "tests/scratch_dir.hpp"
 
 using namespace cellsight;
 namespace fs = std::filesystem;
 
 namespace {
 
-class TempDir {
- public:
-  TempDir() {
-    std::string pattern = (fs::temp_directory_path() / "cellsight-report-XXXXXX").string();
-    REQUIRE(::mkdtemp(pattern.data()) != nullptr);
-    path_ = pattern;
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path_, ec);
-  }
-  TempDir(const TempDir&) = delete;
-  TempDir& operator=(const TempDir&) = delete;
-  [[nodiscard]] const fs::path& path() const { return path_; }
+using test::TempDir;
 
- private:
-  fs::path path_;
-};
 
 std::string read_text(const fs::path& file) {
   std::ifstream in(file, std::ios::binary);
