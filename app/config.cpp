@@ -271,13 +271,14 @@ Config default_config() {
   return cfg;
 }
 
-Expected<Config> load_config(const std::string& path) {
-  auto doc = load_yaml_file(path);
-  if (!doc) return doc.error();
+namespace {
+
+// Validates a parsed document into a Config; every problem one line naming `path`.
+Expected<Config> config_from_yaml(const YAML::Node& doc, const std::string& path) {
   Config cfg = default_config();
   cfg.source = path;
   YamlErrors errors(path);
-  YamlSection root(*doc, "", &errors);
+  YamlSection root(doc, "", &errors);
   int version = 1;
   root.integer("format_version", version, 1, 1, "");
   root.choice("log_level", cfg.log_level, {"debug", "info", "warn", "error", "off"});
@@ -291,6 +292,20 @@ Expected<Config> load_config(const std::string& path) {
   const fs::path catalogue(cfg.catalogue_path);
   if (catalogue.is_relative()) cfg.catalogue_path = (fs::path(path).parent_path() / catalogue).lexically_normal().string();
   return cfg;
+}
+
+}  // namespace
+
+Expected<Config> load_config(const std::string& path) {
+  auto doc = load_yaml_file(path);
+  if (!doc) return doc.error();
+  return config_from_yaml(*doc, path);
+}
+
+Expected<Config> parse_config(const std::string& text, const std::string& path) {
+  auto doc = parse_yaml_text(text, path);
+  if (!doc) return doc.error();
+  return config_from_yaml(*doc, path);
 }
 
 Expected<Config> find_and_load_config(const std::string& explicit_path) {

@@ -110,6 +110,8 @@ struct Config {
 [[nodiscard]] Config default_config();
 // Reads and validates a config file; the Error lists every problem, one line each.
 [[nodiscard]] Expected<Config> load_config(const std::string& path);
+// load_config on the file's text already in memory (`path` names it in messages and anchors relative paths).
+[[nodiscard]] Expected<Config> parse_config(const std::string& text, const std::string& path);
 // Finds the config: explicit path, $CELLSIGHT_CONFIG, ./config/cellsight.yaml, <exe>/../config, /etc/cellsight.
 [[nodiscard]] Expected<Config> find_and_load_config(const std::string& explicit_path);
 

@@ -72,6 +72,8 @@ std::size_t checksum_line_start(const std::string& text) {
   return found;
 }
 
+}  // namespace
+
 std::string manifest_text(const Manifest& m) {
   std::ostringstream t;
   t << "# cellsight model database. Written by 'cellsight teach' and 'cellsight train'; do not edit by hand:\n"
@@ -133,6 +135,8 @@ std::string manifest_text(const Manifest& m) {
   return text;
 }
 
+namespace {
+
 void read_crc(YamlSection& s, const char* key, std::uint32_t& out) {
   std::string text;
   s.text(key, text);
@@ -147,6 +151,8 @@ bool safe_relative(const std::string& p) {
   }
   return true;
 }
+
+}  // namespace
 
 Expected<Manifest> parse_manifest(const std::string& path, const std::string& bytes) {
   const std::size_t at = checksum_line_start(bytes);
@@ -293,6 +299,8 @@ Expected<Manifest> parse_manifest(const std::string& path, const std::string& by
   if (!errors.empty()) return make_error(errors.joined());
   return m;
 }
+
+namespace {
 
 bool same_grid(const algo::GridSpec& a, const algo::GridSpec& b) {
   constexpr double kTolerance = 1e-9;

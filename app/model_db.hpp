@@ -79,6 +79,12 @@ struct Manifest {
 // crc32 (zlib) of bytes, for the database's files.
 [[nodiscard]] std::uint32_t crc32_of(std::string_view bytes);
 
+// The manifest's text, checksum line last (what save() writes).
+[[nodiscard]] std::string manifest_text(const Manifest& manifest);
+// Checks the checksum line, then parses and validates every field; `path` names the file in messages. What open()
+// does with the file's bytes, in memory (the fuzz target's entry point).
+[[nodiscard]] Expected<Manifest> parse_manifest(const std::string& path, const std::string& bytes);
+
 // Reads a whole file; a clear error naming it otherwise.
 [[nodiscard]] Expected<std::string> read_whole_file(const std::string& path);
 

@@ -77,6 +77,7 @@ static_assert(sizeof(TemplateHeader) == kTemplateHeaderBytes);
 static_assert(std::is_trivially_copyable_v<TemplateHeader> && std::is_standard_layout_v<TemplateHeader>);
 static_assert(offsetof(TemplateHeader, resolution_m) == 40 && offsetof(TemplateHeader, occupied_cells) == 104 &&
               offsetof(TemplateHeader, plc_id) == 160 && offsetof(TemplateHeader, part_name) == 176 &&
+              offsetof(TemplateHeader, body_crc32) == kTemplateBodyCrcOffset &&
               offsetof(TemplateHeader, header_crc32) == kHeaderCrcBytes);
 
 std::string errno_text(int error) {

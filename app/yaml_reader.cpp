@@ -256,11 +256,10 @@ void YamlSection::finish() {
   }
 }
 
-Expected<YAML::Node> load_yaml_file(const std::string& path) {
-  // A folder opens as a stream but throws std::ios_failure from yaml-cpp's first read: refuse it here.
-  if (Status regular = check_regular_file(path, ", not a configuration file"); !regular) return regular.error();
-  std::ifstream in(path);
-  if (!in) return make_error(path + ": cannot open: " + std::strerror(errno));
+namespace {
+
+// The document from `in`, then the repeated-key check; every failure one line naming `path`.
+Expected<YAML::Node> parse_yaml_stream(std::istream& in, const std::string& path) {
   YAML::Node doc;
   try {
     doc = YAML::Load(in);
@@ -275,6 +274,21 @@ Expected<YAML::Node> load_yaml_file(const std::string& path) {
   report_repeated_keys(doc, "", 0, repeated);
   if (!repeated.empty()) return make_error(repeated.joined());
   return doc;
+}
+
+}  // namespace
+
+Expected<YAML::Node> load_yaml_file(const std::string& path) {
+  // A folder opens as a stream but throws std::ios_failure from yaml-cpp's first read: refuse it here.
+  if (Status regular = check_regular_file(path, ", not a configuration file"); !regular) return regular.error();
+  std::ifstream in(path);
+  if (!in) return make_error(path + ": cannot open: " + std::strerror(errno));
+  return parse_yaml_stream(in, path);
+}
+
+Expected<YAML::Node> parse_yaml_text(const std::string& text, const std::string& path) {
+  std::istringstream in(text);
+  return parse_yaml_stream(in, path);
 }
 
 }  // namespace cellsight::app

@@ -76,5 +76,7 @@ class YamlSection {
 
 // Loads a YAML file; a syntax error becomes one "file:line:col: ..." line.
 [[nodiscard]] Expected<YAML::Node> load_yaml_file(const std::string& path);
+// load_yaml_file on text already in memory; `path` only names it in messages (the fuzz target's entry point).
+[[nodiscard]] Expected<YAML::Node> parse_yaml_text(const std::string& text, const std::string& path);
 
 }  // namespace cellsight::app
