@@ -8,6 +8,7 @@ PACKAGES=(
   libeigen3-dev libopencv-dev libyaml-cpp-dev libsvm-dev
   libgpiod-dev libmodbus-dev libsystemd-dev zlib1g-dev
   catch2
+  clang libclang-rt-14-dev   # libFuzzer and the sanitizer runtimes for the fuzz targets (scripts/fuzz.sh)
   mbpoll python3 python3-pymodbus python3-serial-asyncio   # real Modbus clients for the PLC tests
 )
 

@@ -1,10 +1,5 @@
 // libFuzzer target: Modbus TCP request screening on arbitrary bytes, checked against an independent oracle and
-// replayed through libmodbus's modbus_reply whenever the screen lets a frame through.
-//
-// Build and run (clang only; option defined in drivers/modbus/CMakeLists.txt):
-//   CC=clang CXX=clang++ cmake -S . -B build-fuzz -DCELLSIGHT_FUZZ=ON -DCELLSIGHT_SANITIZE=ON
-//   cmake --build build-fuzz --target fuzz_modbus_request
-//   build-fuzz/drivers/modbus/fuzz_modbus_request -max_total_time=60
+// replayed through libmodbus's modbus_reply whenever the screen lets a frame through. Build and run: README "Fuzzing".
 #include <fcntl.h>
 #include <modbus/modbus.h>
 #include <sys/socket.h>
@@ -19,17 +14,12 @@
 
 #include "drivers/modbus/register_map.hpp"
 #include "drivers/modbus/request_screen.hpp"
+#include "tests/fuzz/fuzz_util.hpp"
 
 namespace {
 
 using namespace cellsight::drivers;
-
-[[noreturn]] void violated() {
-  __builtin_trap();
-}
-void expect(bool condition) {
-  if (!condition) violated();
-}
+using cellsight::fuzz::violated;
 
 std::uint16_t be16(const std::uint8_t* p) {
   return static_cast<std::uint16_t>((p[0] << 8) | p[1]);
@@ -49,10 +39,10 @@ bool writable(std::uint32_t a) {
 // libmodbus replies into one end of a socket pair; the fuzzer reads the other end and checks the reply's shape.
 struct ReplyPath {
   ReplyPath() {
-    if (socketpair(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0, fds) != 0) violated();
+    if (socketpair(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0, fds) != 0) violated("socketpair");
     (void)fcntl(fds[1], F_SETFL, O_NONBLOCK);
     ctx = modbus_new_tcp("127.0.0.1", 1502);  // never connects: only the reply path is used
-    if (ctx == nullptr) violated();
+    if (ctx == nullptr) violated("modbus_new_tcp");
     (void)modbus_set_socket(ctx, fds[0]);
     mapping.nb_registers = modbus_map::kRegisterSpan;
     mapping.tab_registers = registers.data();
@@ -69,7 +59,7 @@ void check_served(const std::uint8_t* frame, const ScreenResult& r, ReplyPath& p
   const std::uint8_t function = frame[7];
   const std::uint16_t address = be16(frame + 8);
   const std::size_t mbap_length = be16(frame + 4);
-  expect(r.frame_bytes == 6 + mbap_length);
+  CS_FUZZ_EXPECT(r.frame_bytes == 6 + mbap_length);
   std::uint32_t quantity = 0;
   bool (*allowed)(std::uint32_t) = nullptr;
   std::size_t reply_bytes = 0;
@@ -77,36 +67,36 @@ void check_served(const std::uint8_t* frame, const ScreenResult& r, ReplyPath& p
     case 3:
     case 4:
       quantity = be16(frame + 10);
-      expect(r.frame_bytes == 12 && quantity >= 1 && quantity <= 125);
+      CS_FUZZ_EXPECT(r.frame_bytes == 12 && quantity >= 1 && quantity <= 125);
       allowed = function == 3 ? readable_holding : readable_input;
       reply_bytes = 9 + 2 * quantity;
       break;
     case 6:
       quantity = 1;
-      expect(r.frame_bytes == 12);
+      CS_FUZZ_EXPECT(r.frame_bytes == 12);
       allowed = writable;
       reply_bytes = 12;
       break;
     case 16:
       quantity = be16(frame + 10);
       // What modbus_reply will read (byte count, then 2 * quantity data bytes) lies inside the frame.
-      expect(quantity >= 1 && quantity <= 123 && frame[12] == 2 * quantity && r.frame_bytes == 13 + 2 * quantity);
+      CS_FUZZ_EXPECT(quantity >= 1 && quantity <= 123 && frame[12] == 2 * quantity && r.frame_bytes == 13 + 2 * quantity);
       allowed = writable;
       reply_bytes = 12;
       break;
     default:
-      violated();
+      violated("the screen serves only FC 03, 04, 06 and 16");
   }
-  for (std::uint32_t a = address; a < address + quantity; ++a) expect(allowed(a));
-  expect(r.address == address && r.quantity == quantity && r.function == function);
+  for (std::uint32_t a = address; a < address + quantity; ++a) CS_FUZZ_EXPECT(allowed(a));
+  CS_FUZZ_EXPECT(r.address == address && r.quantity == quantity && r.function == function);
 
   // Then libmodbus answers it normally (no exception, the expected length) from an exact-size copy.
   const int sent = modbus_reply(path.ctx, frame, static_cast<int>(r.frame_bytes), &path.mapping);
-  expect(sent == static_cast<int>(reply_bytes));
+  CS_FUZZ_EXPECT(sent == static_cast<int>(reply_bytes));
   std::array<std::uint8_t, 300> reply{};
   const ssize_t got = read(path.fds[1], reply.data(), reply.size());
-  expect(got == static_cast<ssize_t>(reply_bytes));
-  expect(reply[0] == frame[0] && reply[1] == frame[1] && reply[7] == function);
+  CS_FUZZ_EXPECT(got == static_cast<ssize_t>(reply_bytes));
+  CS_FUZZ_EXPECT(reply[0] == frame[0] && reply[1] == frame[1] && reply[7] == function);
 }
 
 }  // namespace
@@ -125,27 +115,27 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
     const ScreenResult r = screen_request(rest);
     if (r.verdict == ScreenVerdict::kIncomplete) {
       // Only when the header is clean and the frame it announces is longer than what is there.
-      if (rest.size() >= 4) expect(be16(rest.data() + 2) == 0);
+      if (rest.size() >= 4) CS_FUZZ_EXPECT(be16(rest.data() + 2) == 0);
       if (rest.size() >= 6) {
         const std::size_t length = be16(rest.data() + 4);
-        expect(length >= kMinMbapLength && length <= kMaxMbapLength && 6 + length > rest.size());
+        CS_FUZZ_EXPECT(length >= kMinMbapLength && length <= kMaxMbapLength && 6 + length > rest.size());
       }
       break;
     }
     if (r.verdict == ScreenVerdict::kClose) {
-      expect(rest.size() >= 4);
+      CS_FUZZ_EXPECT(rest.size() >= 4);
       const bool bad_protocol = be16(rest.data() + 2) != 0;
       const bool bad_length =
           rest.size() >= 6 && (be16(rest.data() + 4) < kMinMbapLength || be16(rest.data() + 4) > kMaxMbapLength);
-      expect(bad_protocol || bad_length);
+      CS_FUZZ_EXPECT(bad_protocol || bad_length);
       break;
     }
-    expect(r.frame_bytes >= kMbapHeaderBytes + 1 && r.frame_bytes <= kMaxAduBytes && r.frame_bytes <= rest.size());
+    CS_FUZZ_EXPECT(r.frame_bytes >= kMbapHeaderBytes + 1 && r.frame_bytes <= kMaxAduBytes && r.frame_bytes <= rest.size());
     if (r.verdict == ScreenVerdict::kException) {
-      expect(r.exception_code >= 1 && r.exception_code <= 3);
+      CS_FUZZ_EXPECT(r.exception_code >= 1 && r.exception_code <= 3);
       std::array<std::uint8_t, kExceptionReplyBytes> reply{};
       build_exception_reply(rest.first(r.frame_bytes), r.exception_code, reply);
-      expect(reply[7] == (rest[7] | 0x80) && reply[8] == r.exception_code && reply[5] == 3);
+      CS_FUZZ_EXPECT(reply[7] == (rest[7] | 0x80) && reply[8] == r.exception_code && reply[5] == 3);
     } else {
       // Exact-size copy of this frame alone, so modbus_reply cannot wander into the next one unnoticed.
       std::unique_ptr<std::uint8_t[]> frame(new std::uint8_t[r.frame_bytes]);

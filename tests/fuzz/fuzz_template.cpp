@@ -1,0 +1,54 @@
+// libFuzzer target: Perfect Match template files (app/template_file): the header reader of `parts list/show` and the
+// checked, memory-mapped open of `run` and `classify`, on a scratch file (both take a path). Input: a mode byte,
+// then the file (tests/fuzz/fuzz_util.hpp). An opened template is sampled as Perfect Match samples it.
+#include <algorithm>
+#include <cstddef>
+#include <cstdint>
+#include <string>
+
+#include "app/model_db.hpp"
+#include "app/template_file.hpp"
+#include "tests/fuzz/fuzz_util.hpp"
+#include "tests/fuzz/seed_grid.hpp"
+
+namespace {
+
+using namespace cellsight;
+
+constexpr std::size_t kHeaderCrcOffset = app::kTemplateHeaderBytes - 4;  // the header's last 4 bytes
+constexpr std::size_t kMaxSamples = 256;
+
+void repair_checksums(std::string& file) {
+  if (file.size() < app::kTemplateHeaderBytes) return;
+  const std::string_view bytes(file);
+  fuzz::store_u32(file, app::kTemplateBodyCrcOffset, app::crc32_of(bytes.substr(app::kTemplateHeaderBytes)));
+  fuzz::store_u32(file, kHeaderCrcOffset, app::crc32_of(bytes.substr(0, kHeaderCrcOffset)));
+}
+
+void sample(const app::TemplateFile& t) {
+  const algo::DistanceMapView& view = t.view();
+  (void)view.sample(t.centroid_m().x(), t.centroid_m().y(), 0.0);
+  const auto points = t.surface_points();
+  for (std::size_t i = 0; i < std::min(points.size(), kMaxSamples); ++i) {
+    (void)view.sample(points[i].x(), points[i].y(), points[i].z());
+  }
+}
+
+}  // namespace
+
+// NOLINTNEXTLINE(readability-identifier-naming): the name is libFuzzer's entry point
+extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+  static fuzz::ScratchFile file("cellsight-fuzz-template");
+  fuzz::ChecksummedInput in = fuzz::split_mode_byte(data, size);
+  if (in.repair) repair_checksums(in.file);
+  const std::string& path = file.write(in.file);
+  const auto info = app::read_template_info(path);
+  // As run and classify open it: against the configured grid.
+  if (auto opened = app::TemplateFile::open(path, fuzz::seed_template_grid())) {
+    CS_FUZZ_EXPECT(info.ok() && opened->surface_points().size() == info->surface_point_count);
+    sample(*opened);
+  }
+  // Against the grid the header names, so that headers for other grids reach the checks behind the grid's.
+  if (info) (void)app::TemplateFile::open(path, info->grid);
+  return 0;
+}
