@@ -106,17 +106,26 @@ struct ParsedHeader {
 
 Expected<ParsedHeader> parse_header(std::string_view bytes, const PlyLimits& limits) {
   if (bytes.substr(0, 4) != "ply\n" && bytes.substr(0, 5) != "ply\r\n") return fail("not a PLY file (no 'ply' magic)");
-  // Only the first max_header_bytes may hold the header: a file that is no scan is refused from its first bytes.
-  const std::size_t header_end = bytes.substr(0, limits.max_header_bytes).find("end_header");
+  // Only the first max_header_bytes may hold the header, the line break after end_header included: a file that is
+  // no scan is refused from its first bytes, and a file is judged alike from those bytes alone (app/input_file).
+  const std::string_view window = bytes.substr(0, limits.max_header_bytes);
+  const bool window_full = bytes.size() >= limits.max_header_bytes;
+  const std::size_t header_end = window.find("end_header");
   if (header_end == std::string_view::npos) {
-    if (bytes.size() >= limits.max_header_bytes) {
+    if (window_full) {
       return fail("no end_header in the first " + std::to_string(limits.max_header_bytes) + " bytes: not a PLY scan");
     }
     return fail("no end_header: the header is truncated");
   }
   ParsedHeader out;
-  std::size_t data_start = bytes.find('\n', header_end);
-  if (data_start == std::string_view::npos) return fail("no line break after end_header");
+  std::size_t data_start = window.find('\n', header_end);
+  if (data_start == std::string_view::npos) {
+    if (window_full) {
+      return fail("the end_header line does not end in the first " + std::to_string(limits.max_header_bytes) +
+                  " bytes: not a PLY scan");
+    }
+    return fail("no line break after end_header");
+  }
   out.data_start = data_start + 1;
   const std::string_view header = bytes.substr(0, header_end);
   bool have_format = false;

@@ -131,6 +131,27 @@ TEST_CASE("Given a header that does not end within 64 kB, when read, then it is 
         "PLY: no end_header: the header is truncated");
 }
 
+TEST_CASE("Given a header whose end_header line ends just past the header limit, when read whole or judged from "
+          "its first bytes, then both refuse it alike (fuzz_ply finding)") {
+  // Found by tests/fuzz/fuzz_ply: parse_ply looked for the line break after end_header in the whole text, the file
+  // check (app/input_file) in the first max_header_bytes, so the in-memory reader took what classify refused.
+  const std::string head = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+                           "property float z\nend_header";
+  const algo::PlyLimits limits{.max_vertices = 16, .max_header_bytes = head.size() + 1};
+  const std::string text = head + "\r\n1 2 3\n";  // '\r' is the last byte within the limit, '\n' the first past it
+  const auto whole = algo::parse_ply(text, limits);
+  const auto first_bytes = algo::parse_ply_header(text.substr(0, limits.max_header_bytes), limits);
+  REQUIRE_FALSE(first_bytes.ok());
+  REQUIRE_FALSE(whole.ok());
+  CHECK(whole.error().message == first_bytes.error().message);
+  CHECK(whole.error().message == "PLY: the end_header line does not end in the first " +
+                                     std::to_string(limits.max_header_bytes) + " bytes: not a PLY scan");
+  // One byte more of room and both take it.
+  const algo::PlyLimits roomier{.max_vertices = 16, .max_header_bytes = head.size() + 2};
+  CHECK(algo::parse_ply(text, roomier).ok());
+  CHECK(algo::parse_ply_header(text.substr(0, roomier.max_header_bytes), roomier).ok());
+}
+
 TEST_CASE("Given a header alone, when checked, then it tells where the data starts and the least data its elements "
           "need") {
   const std::string binary = "ply\nformat binary_little_endian 1.0\nelement face 3\nproperty list uchar int i\n"
