@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <limits>
 #include <sstream>
 
 namespace cellsight::algo {
@@ -233,6 +234,22 @@ std::size_t min_data_bytes(const ParsedHeader& h) {
   return !h.binary && total > 0 ? total - 1 : total;  // the last value needs no separator
 }
 
+// Appends the vertex whose property values are `values`. False when a coordinate is not finite or lies beyond the
+// range of the float a scan point stores (a larger double would become an infinity, or undefined behaviour).
+bool add_vertex(const std::vector<double>& values, const ParsedHeader& h, std::vector<ScanPoint>& points) {
+  const double xyz[3] = {values[static_cast<std::size_t>(h.ix)], values[static_cast<std::size_t>(h.iy)],
+                         values[static_cast<std::size_t>(h.iz)]};
+  for (const double v : xyz) {
+    if (!(std::fabs(v) <= std::numeric_limits<float>::max())) return false;  // NaN fails too
+  }
+  points.push_back({static_cast<float>(xyz[0]), static_cast<float>(xyz[1]), static_cast<float>(xyz[2]), 0, 0});
+  return true;
+}
+
+Error bad_coordinate(std::size_t vertex) {
+  return fail("vertex " + std::to_string(vertex) + " has a non-finite coordinate or one beyond float range");
+}
+
 }  // namespace
 
 Expected<PlyHeader> parse_ply_header(std::string_view bytes, const PlyLimits& limits) {
@@ -248,7 +265,6 @@ Expected<std::vector<ScanPoint>> parse_ply(std::string_view bytes, const PlyLimi
   const std::vector<Element>& elements = parsed->elements;
   const std::size_t vertex_index = parsed->vertex_index;
   const Element* vertex = &elements[vertex_index];
-  const int ix = parsed->ix, iy = parsed->iy, iz = parsed->iz;
 
   // --- data: skip the elements before vertex, then read vertices ---
   const std::string_view data = bytes.substr(parsed->data_start);
@@ -293,9 +309,7 @@ Expected<std::vector<ScanPoint>> parse_ply(std::string_view bytes, const PlyLimi
         values[i] = read_binary(data.data() + pos, p.type);
         pos += size;
       }
-      const double x = values[static_cast<std::size_t>(ix)], y = values[static_cast<std::size_t>(iy)], z = values[static_cast<std::size_t>(iz)];
-      if (!std::isfinite(x) || !std::isfinite(y) || !std::isfinite(z)) return fail("vertex " + std::to_string(r) + " has a non-finite coordinate");
-      points.push_back({static_cast<float>(x), static_cast<float>(y), static_cast<float>(z), 0, 0});
+      if (!add_vertex(values, *parsed, points)) return bad_coordinate(r);
     }
   } else {
     AsciiCursor cursor{data};
@@ -331,9 +345,7 @@ Expected<std::vector<ScanPoint>> parse_ply(std::string_view bytes, const PlyLimi
           return fail("bad or missing number at vertex " + std::to_string(r) + " of " + std::to_string(vertex->count));
         }
       }
-      const double x = values[static_cast<std::size_t>(ix)], y = values[static_cast<std::size_t>(iy)], z = values[static_cast<std::size_t>(iz)];
-      if (!std::isfinite(x) || !std::isfinite(y) || !std::isfinite(z)) return fail("vertex " + std::to_string(r) + " has a non-finite coordinate");
-      points.push_back({static_cast<float>(x), static_cast<float>(y), static_cast<float>(z), 0, 0});
+      if (!add_vertex(values, *parsed, points)) return bad_coordinate(r);
     }
   }
   return points;

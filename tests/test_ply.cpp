@@ -2,6 +2,7 @@
 #include <catch2/catch.hpp>
 
 #include <cstring>
+#include <limits>
 #include <random>
 
 #include "algo/ply.hpp"
@@ -150,6 +151,27 @@ TEST_CASE("Given a header whose end_header line ends just past the header limit,
   const algo::PlyLimits roomier{.max_vertices = 16, .max_header_bytes = head.size() + 2};
   CHECK(algo::parse_ply(text, roomier).ok());
   CHECK(algo::parse_ply_header(text.substr(0, roomier.max_header_bytes), roomier).ok());
+}
+
+TEST_CASE("Given double coordinates beyond float range, when read, then the scan is refused instead of holding "
+          "infinities (fuzz_ply finding)") {
+  // Found by tests/fuzz/fuzz_ply: a finite double such as 1e300 passed the finiteness check and became +inf in the
+  // float a scan point stores.
+  const std::string ascii = "ply\nformat ascii 1.0\nelement vertex 2\nproperty double x\nproperty double y\n"
+                            "property double z\nend_header\n0.1 0.2 0.3\n0.1 -1e300 0.3\n";
+  CHECK(parse_error(ascii) == "PLY: vertex 1 has a non-finite coordinate or one beyond float range");
+  std::string binary = "ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty double x\n"
+                       "property double y\nproperty double z\nend_header\n";
+  append<double>(binary, 3.5e38);
+  append<double>(binary, 0.0);
+  append<double>(binary, 0.0);
+  CHECK(parse_error(binary) == "PLY: vertex 0 has a non-finite coordinate or one beyond float range");
+  // The largest float itself is still a number a scan may hold.
+  const std::string largest = "ply\nformat ascii 1.0\nelement vertex 1\nproperty double x\nproperty double y\n"
+                              "property double z\nend_header\n3.4028234663852886e38 0 -3.4028234663852886e38\n";
+  const auto points = algo::parse_ply(largest);
+  REQUIRE(points.ok());
+  CHECK((*points)[0].x == std::numeric_limits<float>::max());
 }
 
 TEST_CASE("Given a header alone, when checked, then it tells where the data starts and the least data its elements "
