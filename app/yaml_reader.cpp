@@ -51,14 +51,23 @@ bool parse_int64(const YAML::Node& node, std::int64_t& out) {
   return true;
 }
 
+// How many values the walk below visits at most. An alias is a reference, so a few hundred bytes of aliases of
+// aliases (&a [x, x, ...], &b [*a, *a, ...], ...) make a document of 10^9 values that the walk would take hours over;
+// the shipped configuration has about 200 values, the catalogue of 15 parts about 300.
+constexpr std::size_t kMaxWalkedValues = 100'000;
+
 // yaml-cpp keeps every pair of a mapping and answers a lookup with the first, so a key written twice would pass
-// silently with its first value: every mapping of the document is walked and a repeated key reported.
-void report_repeated_keys(const YAML::Node& node, const std::string& path, int depth, YamlErrors& errors) {
+// silently with its first value: every mapping of the document is walked and a repeated key reported. Stops when
+// `values_left` runs out (the caller reports that).
+void report_repeated_keys(const YAML::Node& node, const std::string& path, int depth, std::size_t& values_left,
+                          YamlErrors& errors) {
   constexpr int kMaxDepth = 64;  // a configuration is a few levels deep; aliases must not recurse for ever
-  if (depth > kMaxDepth) return;
+  if (depth > kMaxDepth || values_left == 0) return;
+  --values_left;
   if (node.IsMap()) {
     std::map<std::string, int> first_line;
     for (const auto& kv : node) {
+      if (values_left == 0) return;
       const std::string key = kv.first.IsScalar() ? kv.first.Scalar() : std::string();
       const std::string child = path.empty() ? key : path + "." + key;
       if (kv.first.IsScalar()) {  // a list or mapping as a key is no key of ours: the reader reports it unknown
@@ -68,12 +77,13 @@ void report_repeated_keys(const YAML::Node& node, const std::string& path, int d
                      "given twice (first at line " + std::to_string(first->second + 1) + "); keep one");
         }
       }
-      report_repeated_keys(kv.second, child, depth + 1, errors);
+      report_repeated_keys(kv.second, child, depth + 1, values_left, errors);
     }
   } else if (node.IsSequence()) {
     std::size_t index = 0;
     for (const auto& element : node) {
-      report_repeated_keys(element, path + "[" + std::to_string(index++) + "]", depth + 1, errors);
+      if (values_left == 0) return;
+      report_repeated_keys(element, path + "[" + std::to_string(index++) + "]", depth + 1, values_left, errors);
     }
   }
 }
@@ -271,7 +281,13 @@ Expected<YAML::Node> parse_yaml_stream(std::istream& in, const std::string& path
     return make_error(path + ": cannot read: " + e.what());
   }
   YamlErrors repeated(path);
-  report_repeated_keys(doc, "", 0, repeated);
+  std::size_t values_left = kMaxWalkedValues + 1;  // 0 left: one more than the limit was there
+  report_repeated_keys(doc, "", 0, values_left, repeated);
+  if (values_left == 0) {
+    repeated.add(doc.Mark(), "(top level)",
+                 "the document holds more than " + std::to_string(kMaxWalkedValues) +
+                     " values once its aliases are expanded (aliases of aliases?); refused");
+  }
   if (!repeated.empty()) return make_error(repeated.joined());
   return doc;
 }
