@@ -3,6 +3,7 @@
 #pragma once
 
 #include <fcntl.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <cstddef>
@@ -33,12 +34,16 @@ inline void store_u32(std::string& bytes, std::size_t offset, std::uint32_t valu
   std::memcpy(bytes.data() + offset, &value, sizeof value);  // little-endian host, as the formats
 }
 
-// One file per process, rewritten for every input (in $TMPDIR, else /tmp) and removed at exit.
+// One file per process, rewritten for every input and removed at exit: in $TMPDIR, else in memory (/dev/shm) where
+// there is one (a file on disk made the template target seven times slower); else /tmp.
 class ScratchFile {
  public:
   explicit ScratchFile(const char* stem) {
-    const char* dir = std::getenv("TMPDIR");
-    path_ = std::string(dir != nullptr && dir[0] != '\0' ? dir : "/tmp") + "/" + stem + "-XXXXXX";
+    const char* env = std::getenv("TMPDIR");
+    struct stat st {};
+    const bool shm = ::stat("/dev/shm", &st) == 0 && S_ISDIR(st.st_mode) && ::access("/dev/shm", W_OK) == 0;
+    const std::string dir = env != nullptr && env[0] != '\0' ? env : (shm ? "/dev/shm" : "/tmp");
+    path_ = dir + "/" + stem + "-XXXXXX";
     fd_ = ::mkostemp(path_.data(), O_CLOEXEC);
     expect(fd_ >= 0, "the scratch file can be created");
   }
