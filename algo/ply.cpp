@@ -292,6 +292,7 @@ Expected<std::vector<ScanPoint>> parse_ply(std::string_view bytes, const PlyLimi
       return true;
     };
     for (std::size_t e = 0; e < vertex_index; ++e) {
+      if (elements[e].properties.empty()) continue;  // rows of nothing: a count of 2^64 - 1 must not spin for ever
       for (std::size_t r = 0; r < elements[e].count; ++r) {
         if (!skip_element_row(elements[e])) return fail("data truncated in element '" + elements[e].name + "'");
       }
@@ -329,6 +330,7 @@ Expected<std::vector<ScanPoint>> parse_ply(std::string_view bytes, const PlyLimi
       return true;
     };
     for (std::size_t e = 0; e < vertex_index; ++e) {
+      if (elements[e].properties.empty()) continue;  // rows of nothing: a count of 2^64 - 1 must not spin for ever
       for (std::size_t r = 0; r < elements[e].count; ++r) {
         if (!skip_element_row(elements[e])) return fail("bad or missing data in element '" + elements[e].name + "'");
       }
