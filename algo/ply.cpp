@@ -3,6 +3,7 @@
 // format subset we need is small; every field is bounds-checked because scans come from outside.
 #include "algo/ply.hpp"
 
+#include <algorithm>
 #include <charconv>
 #include <cmath>
 #include <cstdint>
@@ -269,7 +270,10 @@ Expected<std::vector<ScanPoint>> parse_ply(std::string_view bytes, const PlyLimi
   // --- data: skip the elements before vertex, then read vertices ---
   const std::string_view data = bytes.substr(parsed->data_start);
   std::vector<ScanPoint> points;
-  points.reserve(vertex->count);
+  // The count is the header's word: reserve no more than the data could hold (a vertex takes at least 6 bytes, "1 2 3"
+  // and a separator; 12 in binary), so a short text claiming 20 M vertices does not allocate 320 MB to be refused.
+  constexpr std::size_t kMinVertexBytes = 6;
+  points.reserve(std::min(vertex->count, data.size() / kMinVertexBytes + 1));
   std::vector<double> values(vertex->properties.size());
   if (binary) {
     std::size_t pos = 0;
