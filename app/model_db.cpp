@@ -122,7 +122,7 @@ std::string manifest_text(const Manifest& m) {
     t << "  file: " << quoted(s.file) << "\n";
     t << "  crc32: \"" << hex32(s.crc32) << "\"\n";
     t << "  trained_at: " << quoted(s.trained_at) << "\n";
-    t << "  parts_fingerprint: \"" << s.parts_fingerprint << "\"\n";
+    t << "  parts_fingerprint: " << quoted(s.parts_fingerprint) << "\n";
     t << "  test_accuracy: " << num(s.test_accuracy) << "\n";
     t << "  cv_accuracy: " << num(s.cv_accuracy) << "\n";
     t << "  train_scans: " << s.train_scans << "\n";

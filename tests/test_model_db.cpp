@@ -324,6 +324,32 @@ TEST_CASE("a manifest that was edited or damaged is refused") {
   CHECK(wrong.error().message.find("149x250x91") != std::string::npos);
 }
 
+TEST_CASE("Given a manifest whose texts hold quotes and backslashes, when it is saved and read back, then every "
+          "text is the same (fuzz_manifest finding)") {
+  // Found by tests/fuzz/fuzz_manifest: parts_fingerprint was written between quotes without escaping, so a manifest
+  // that read fine (a quote in a plain scalar, checksum right) was saved as one that no longer parsed.
+  app::Manifest m;
+  app::PartEntry p;
+  p.name = "plate";
+  p.id = 3;
+  p.template_file = "templates/plate.dmap";
+  p.taught_at = "a \"quoted\" time";
+  p.scans.push_back({"scans/plate/00001.ply", 0x1234abcdU, "C:\\scans\\\"odd\".ply"});
+  m.parts.push_back(p);
+  m.svm.present = true;
+  m.svm.file = "svm.bin";
+  m.svm.trained_at = "then";
+  m.svm.parts_fingerprint = "deadbeef\"-2\\";
+  m.svm.hyper = "rbf \"C\"=1";
+  const auto back = app::parse_manifest("manifest.yaml", app::manifest_text(m));
+  INFO(app::manifest_text(m));
+  REQUIRE(back.ok());
+  CHECK(back->svm.parts_fingerprint == m.svm.parts_fingerprint);
+  CHECK(back->svm.hyper == m.svm.hyper);
+  CHECK(back->parts.at(0).taught_at == p.taught_at);
+  CHECK(back->parts.at(0).scans.at(0).source == p.scans.at(0).source);
+}
+
 TEST_CASE("a part taught with few scans lowers the folds; too few for any test is refused with the count needed",
           "[cycle]") {
   const SmallCell cell = SmallCell::named("few");  // 3-fold CV configured
