@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The test command (README): installs what is missing, builds with AddressSanitizer + UndefinedBehaviorSanitizer
-# and warnings as errors, and runs every test with ctest. Usage: scripts/test.sh [ctest -R regex]
+# and warnings as errors, and runs every test with ctest, then every fuzz target for a few seconds (scripts/fuzz.sh;
+# $CELLSIGHT_FUZZ_SECONDS each, 0 skips). Usage: scripts/test.sh [regex]: the ctest tests and fuzz targets it matches
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -15,3 +16,4 @@ if [ $# -gt 0 ]; then
 else
   ctest --test-dir "$BUILD" --output-on-failure -j"$(nproc)"
 fi
+scripts/fuzz.sh --ci "${CELLSIGHT_FUZZ_SECONDS:-20}" "$@"
