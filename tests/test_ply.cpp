@@ -176,7 +176,7 @@ TEST_CASE("Given double coordinates beyond float range, when read, then the scan
 }
 
 TEST_CASE("Given an element without properties and a huge count before the vertices, when read, then the vertices "
-          "come at once (no loop over rows of nothing)") {
+          "come at once (found writing fuzz_ply)") {
   // Found writing tests/fuzz/fuzz_ply: the rows of such an element were skipped one by one, 2^64 - 1 of them, so a
   // 130-byte file held classify for ever (its rows take no bytes, so the size check cannot catch it).
   for (const std::string format : {"ascii", "binary_little_endian"}) {
