@@ -80,7 +80,8 @@ void check_served(const std::uint8_t* frame, const ScreenResult& r, ReplyPath& p
     case 16:
       quantity = be16(frame + 10);
       // What modbus_reply will read (byte count, then 2 * quantity data bytes) lies inside the frame.
-      CS_FUZZ_EXPECT(quantity >= 1 && quantity <= 123 && frame[12] == 2 * quantity && r.frame_bytes == 13 + 2 * quantity);
+      CS_FUZZ_EXPECT(quantity >= 1 && quantity <= 123 && frame[12] == 2 * quantity &&
+                     r.frame_bytes == 13 + 2 * quantity);
       allowed = writable;
       reply_bytes = 12;
       break;
@@ -130,7 +131,8 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
       CS_FUZZ_EXPECT(bad_protocol || bad_length);
       break;
     }
-    CS_FUZZ_EXPECT(r.frame_bytes >= kMbapHeaderBytes + 1 && r.frame_bytes <= kMaxAduBytes && r.frame_bytes <= rest.size());
+    CS_FUZZ_EXPECT(r.frame_bytes >= kMbapHeaderBytes + 1 && r.frame_bytes <= kMaxAduBytes &&
+                   r.frame_bytes <= rest.size());
     if (r.verdict == ScreenVerdict::kException) {
       CS_FUZZ_EXPECT(r.exception_code >= 1 && r.exception_code <= 3);
       std::array<std::uint8_t, kExceptionReplyBytes> reply{};

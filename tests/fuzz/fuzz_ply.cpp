@@ -31,7 +31,8 @@ void check(std::string_view bytes, const std::string& path, const algo::PlyLimit
   if (!in_memory) return;
   CS_FUZZ_EXPECT(same_points(*in_memory, *from_file));
   CS_FUZZ_EXPECT(app::check_ply_file(path, limits).ok());
-  for (const algo::ScanPoint& p : *in_memory) CS_FUZZ_EXPECT(std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z));
+  for (const algo::ScanPoint& p : *in_memory)
+    CS_FUZZ_EXPECT(std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z));
   // What cellsight writes of an accepted scan reads back as the same points (scan --out, perturb).
   const auto again = algo::parse_ply(algo::write_ply_binary(*in_memory));
   CS_FUZZ_EXPECT(again.ok() && same_points(*again, *in_memory));
