@@ -368,6 +368,36 @@ SCENARIO("empty rows and hot pixels and blobs and the image border give no strip
   }
 }
 
+SCENARIO("a stripe just wider than max_width_px is rejected as too wide, one just narrower is kept", "[stripe]") {
+  // The width test is on the FWHM. A Gaussian's is 2 sqrt(2 ln 2) sigma; linear interpolation between point samples
+  // at half maximum reads a sigma-3 line within 0.05 px of it, far inside the 3 % (0.21 px) either side used here.
+  constexpr double kSigmaPx = 3.0;
+  const double fwhm_px = 2.0 * std::sqrt(2.0 * std::log(2.0)) * kSigmaPx;
+  Image img(kWidth, 8);
+  for (int r = 0; r < img.height; ++r) {
+    render_row(img.row(r), img.width, kBackgroundDn, {{120.0 + 0.3 * r, kSigmaPx, 150.0}}, Sampling::kPoint);
+  }
+  for (const double max_width_share : {0.97, 1.03}) {
+    const bool too_wide = max_width_share < 1.0;
+    GIVEN("max_width_px " << (too_wide ? "3 % below" : "3 % above") << " the stripe's FWHM") {
+      StripeParams params;
+      params.max_width_px = float(max_width_share * fwhm_px);
+      StripeProfile profile(img.height);
+      REQUIRE(run(img, params, profile) == StripeResult::kOk);
+      THEN("every row " << (too_wide ? "has no stripe and counts as too wide (evidence of over-exposure)"
+                                     : "keeps its stripe at the true centre")) {
+        for (int r = 0; r < img.height; ++r) {
+          INFO("row " << r);
+          CHECK(profile.row(r).status == (too_wide ? StripeStatus::kNoStripe : StripeStatus::kValid));
+          if (!too_wide) CHECK(profile.row(r).centre_px == Approx(120.0 + 0.3 * r).margin(0.03));
+        }
+        CHECK(profile.summary().valid_rows == (too_wide ? 0 : img.height));
+        CHECK(profile.summary().too_wide_rows == (too_wide ? img.height : 0));
+      }
+    }
+  }
+}
+
 SCENARIO("a hot pixel or a specular spike does not displace the stripe", "[stripe]") {
   const StripeParams params;
   GIVEN("a weak stripe (peak 60 DN) with a saturated hot pixel elsewhere in the row") {
