@@ -540,6 +540,23 @@ TEST_CASE("calibration.yaml round-trips exactly and refuses truncated, corrupt a
     CHECK_THAT(loaded.error().message, Catch::Contains(file + ":" + std::to_string(line) + ":") &&
                                            Catch::Contains("camera.fx_px"));
   }
+  SECTION("a laser or support normal that is not a unit vector is refused, even in a well-sealed file") {
+    // Triangulation and support removal read n . p = offset as metres only when |n| = 1.
+    app::CalibrationRecord long_laser = record;
+    long_laser.sensor.laser_normal *= 1.001;
+    app::CalibrationRecord long_support = record;
+    long_support.has_support = true;
+    long_support.support = {Eigen::Vector3d(0.0, 0.0, 0.999), 0.05};
+    long_support.support_date = record.laser_date;
+    long_support.support_points = 5000;
+    for (const auto& [bad, key] : {std::pair{long_laser, "laser.normal"}, std::pair{long_support, "support.normal"}}) {
+      REQUIRE(app::save_calibration(file, bad).ok());
+      auto loaded = app::load_calibration(file);
+      REQUIRE_FALSE(loaded.ok());
+      CHECK_THAT(loaded.error().message, Catch::Contains(file + ":") &&
+                                             Catch::Contains(std::string(key) + ": must be a unit vector"));
+    }
+  }
   SECTION("an edited number that stays in range fails the checksum") {
     std::string edited = text;
     const std::size_t at = edited.find("  mm_per_count: 0.1013");
