@@ -29,6 +29,7 @@ void OccupancyGrid::clear() {
     for (std::uint32_t i : touched_) cells_[i] = 0;
   }
   touched_.clear();
+  occupied_ = 0;
 }
 
 std::size_t OccupancyGrid::accumulate(std::span<const ScanPoint> points) {
@@ -42,6 +43,7 @@ std::size_t OccupancyGrid::accumulate(std::span<const ScanPoint> points) {
     const std::size_t i = spec_.index(ix, iy, iz);
     if (cells_[i] != 0) continue;
     cells_[i] = 1;
+    ++occupied_;
     if (touched_.size() < touched_capacity_) touched_.push_back(static_cast<std::uint32_t>(i));
   }
   return outside;

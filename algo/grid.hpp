@@ -41,7 +41,8 @@ class OccupancyGrid {
   [[nodiscard]] bool occupied(int ix, int iy, int iz) const { return cells_[spec_.index(ix, iy, iz)] != 0; }
   [[nodiscard]] const std::uint8_t* data() const { return cells_.data(); }
   [[nodiscard]] const GridSpec& spec() const { return spec_; }
-  [[nodiscard]] std::size_t occupied_count() const { return touched_.size(); }
+  // Cells set since the last clear (also when more were set than the touched list holds).
+  [[nodiscard]] std::size_t occupied_count() const { return occupied_; }
 
   // Depth image (thesis 6.4.1.4): ny rows x nx columns, row 0 at the top (largest y); each pixel is the front-most
   // occupied cell of its (x, y) column mapped from the grid depth (0 .. nz*resolution, 0.4 m by default) onto
@@ -53,6 +54,7 @@ class OccupancyGrid {
   std::vector<std::uint8_t> cells_;
   std::vector<std::uint32_t> touched_;
   std::size_t touched_capacity_ = 0;
+  std::size_t occupied_ = 0;
 };
 
 }  // namespace cellsight::algo

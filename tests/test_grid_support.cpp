@@ -1,6 +1,7 @@
 // Occupancy grid, depth image and support removal against brute force and the simulator's truth labels.
 #include <catch2/catch.hpp>
 
+#include <Eigen/Geometry>
 #include <map>
 #include <random>
 #include <set>
@@ -12,21 +13,13 @@
 
 using namespace cellsight;
 
-TEST_CASE("Given random points, when accumulated, then the occupied cells and the depth image equal a brute-force "
-          "count, and clear() empties the grid") {
-  algo::GridSpec spec;
-  spec.origin_m = {0.01, -0.02, 0.0};
-  spec.nx = 40;
-  spec.ny = 30;
-  spec.nz = 20;
-  spec.resolution_m = 0.005;
-  algo::OccupancyGrid grid(spec, 5000);
-  std::mt19937 rng(3);
-  std::uniform_real_distribution<float> ux(-0.02F, 0.24F), uy(-0.05F, 0.15F), uz(-0.01F, 0.11F);
-  std::vector<algo::ScanPoint> points;
-  for (int i = 0; i < 3000; ++i) points.push_back({ux(rng), uy(rng), uz(rng), 0, 0});
-  const std::size_t outside = grid.accumulate(points);
+namespace {
 
+// Checks a grid after accumulate() against a brute-force count of the same points: the points outside, every
+// cell, the occupied count and the depth image (front-most cell of each column). Returns the brute-force count.
+std::size_t check_against_brute_force(const algo::OccupancyGrid& grid, const std::vector<algo::ScanPoint>& points,
+                               std::size_t outside) {
+  const algo::GridSpec& spec = grid.spec();
   std::set<std::tuple<int, int, int>> expected;
   std::map<std::pair<int, int>, int> front;  // (x, y) -> max z index
   std::size_t expected_outside = 0;
@@ -59,9 +52,57 @@ TEST_CASE("Given random points, when accumulated, then the occupied cells and th
       REQUIRE(depth.at<std::uint8_t>(spec.ny - 1 - y, x) == want);
     }
   }
+  return expected.size();
+}
+
+algo::GridSpec small_grid_spec() {
+  algo::GridSpec spec;
+  spec.origin_m = {0.01, -0.02, 0.0};
+  spec.nx = 40;
+  spec.ny = 30;
+  spec.nz = 20;
+  spec.resolution_m = 0.005;
+  return spec;
+}
+
+// Points uniform over a box a little larger than small_grid_spec(), so some fall outside.
+std::vector<algo::ScanPoint> random_points(int count, std::uint32_t seed) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<float> ux(-0.02F, 0.24F), uy(-0.05F, 0.15F), uz(-0.01F, 0.11F);
+  std::vector<algo::ScanPoint> points;
+  for (int i = 0; i < count; ++i) points.push_back({ux(rng), uy(rng), uz(rng), 0, 0});
+  return points;
+}
+
+}  // namespace
+
+TEST_CASE("Given random points, when accumulated, then the occupied cells and the depth image equal a brute-force "
+          "count, and clear() empties the grid") {
+  algo::OccupancyGrid grid(small_grid_spec(), 5000);
+  const std::vector<algo::ScanPoint> points = random_points(3000, 3);
+  (void)check_against_brute_force(grid, points, grid.accumulate(points));
   grid.clear();
   CHECK(grid.occupied_count() == 0);
-  for (const auto& [x, y, z] : expected) REQUIRE_FALSE(grid.occupied(x, y, z));
+  const algo::GridSpec& spec = grid.spec();
+  for (int z = 0; z < spec.nz; ++z) {
+    for (int y = 0; y < spec.ny; ++y) {
+      for (int x = 0; x < spec.nx; ++x) REQUIRE_FALSE(grid.occupied(x, y, z));
+    }
+  }
+}
+
+TEST_CASE("Given more occupied cells than the grid's touched list holds, when accumulated, then the overflow path "
+          "gives the brute-force cells, count and depth image, and clear() leaves no cell behind") {
+  // The touched list holds 100 cells; 3000 points occupy well over a thousand.
+  algo::OccupancyGrid grid(small_grid_spec(), 100);
+  const std::vector<algo::ScanPoint> many = random_points(3000, 5);
+  const std::size_t occupied = check_against_brute_force(grid, many, grid.accumulate(many));
+  REQUIRE(occupied > 1000);  // the list did overflow
+  grid.clear();
+  CHECK(grid.occupied_count() == 0);
+  // A following scan of 60 points fits the list again and sees none of the first scan's cells.
+  const std::vector<algo::ScanPoint> few = random_points(60, 6);
+  (void)check_against_brute_force(grid, few, grid.accumulate(few));
 }
 
 TEST_CASE("Given a noisy plane with outliers, when the support is fitted, then the plane is recovered and removal "
@@ -90,6 +131,39 @@ TEST_CASE("Given a noisy plane with outliers, when the support is fitted, then t
   CHECK(removed >= 8000);
   CHECK(removed < 8000 + 100);  // clutter starts 10 mm in front; only what is within 6 mm goes
   for (const auto& p : scan.points()) CHECK(std::abs(fit->plane.signed_distance({p.x, p.y, p.z})) >= 0.006);
+}
+
+TEST_CASE("Given carrier planes tilted either way about x and y, when the support is fitted, then the normal points "
+          "toward the camera (+z), so a point in front of the carrier is at a positive distance") {
+  // The least-squares normal (a singular vector) comes with either sign; only the orientation step makes "in front"
+  // positive, which perturbation and the depth of the part above the carrier rely on. Eigen's SVD happens to return
+  // +z for a plane near x-y (the shipped carrier), so the steep tilts are what would show a missing orientation.
+  std::mt19937 rng(17);
+  std::normal_distribution<double> noise(0.0, 0.0003);
+  std::uniform_real_distribution<double> u(0.0, 0.6), w(0.0, 1.0);
+  int case_index = 0;
+  for (const double tilt_x_deg : {-30.0, -12.0, 4.0, 30.0}) {
+    for (const double tilt_y_deg : {-30.0, -9.0, 2.0, 30.0}) {
+      const Eigen::Vector3d normal = (Eigen::AngleAxisd(tilt_x_deg * M_PI / 180.0, Eigen::Vector3d::UnitX()) *
+                                      Eigen::AngleAxisd(tilt_y_deg * M_PI / 180.0, Eigen::Vector3d::UnitY()) *
+                                      Eigen::Vector3d::UnitZ());
+      const double offset = 0.03 + 0.01 * case_index++;
+      algo::ScanBuffer scan(2000);
+      for (int i = 0; i < 2000; ++i) {
+        const double x = u(rng), y = w(rng);
+        const double z = (offset - normal.x() * x - normal.y() * y) / normal.z() + noise(rng);
+        scan.push({static_cast<float>(x), static_cast<float>(y), static_cast<float>(z), 0, 0});
+      }
+      auto fit = algo::fit_support_plane(scan.points(), {});
+      INFO("tilt " << tilt_x_deg << ", " << tilt_y_deg << " deg");
+      REQUIRE(fit.ok());
+      CHECK(fit->plane.normal.z() > 0.0);
+      CHECK(fit->plane.normal.dot(normal) > std::cos(0.1 * M_PI / 180.0));
+      // 50 mm in front of the plane's point above (0.3, 0.5): toward the camera, by the truth's normal.
+      const Eigen::Vector3d on_plane(0.3, 0.5, (offset - normal.x() * 0.3 - normal.y() * 0.5) / normal.z());
+      CHECK(fit->plane.signed_distance(on_plane + 0.05 * normal) == Approx(0.05).margin(2e-4));
+    }
+  }
 }
 
 TEST_CASE("Given too few points or no dominant plane, when the support is fitted, then it is refused with the reason") {
