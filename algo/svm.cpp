@@ -199,12 +199,19 @@ Scaler Scaler::fit(std::span<const FeatureVector> samples) {
     Range& r = s.ranges_[fi];
     for (std::size_t i = 0; i < samples.size(); ++i) values[i] = samples[i][fi];
     if (kFeatureTable[fi].heavy_tailed) {
-      std::vector<double> magnitude(values.size());
-      std::transform(values.begin(), values.end(), magnitude.begin(), [](double v) { return std::fabs(v); });
-      auto mid = magnitude.begin() + static_cast<std::ptrdiff_t>(magnitude.size() / 2);
-      std::nth_element(magnitude.begin(), mid, magnitude.end());
-      double scale = *mid;
-      if (!(scale > 0.0)) scale = *std::max_element(magnitude.begin(), magnitude.end());
+      // Of the finite values only, as the range below: a NaN breaks nth_element's ordering (the median came out NaN
+      // and switched the compression off).
+      std::vector<double> magnitude;
+      for (double v : values) {
+        if (std::isfinite(v)) magnitude.push_back(std::fabs(v));
+      }
+      double scale = 0.0;
+      if (!magnitude.empty()) {
+        auto mid = magnitude.begin() + static_cast<std::ptrdiff_t>(magnitude.size() / 2);
+        std::nth_element(magnitude.begin(), mid, magnitude.end());
+        scale = *mid;
+        if (!(scale > 0.0)) scale = *std::max_element(magnitude.begin(), magnitude.end());
+      }
       r.compress = scale > 0.0 ? scale : 0.0;
     }
     r.lo = r.hi = 0.0;

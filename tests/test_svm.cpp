@@ -8,6 +8,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
+#include <limits>
 #include <random>
 #include <string>
 #include <vector>
@@ -514,6 +515,47 @@ SCENARIO("The scaler maps the training range onto [-1, 1] and compresses heavy-t
   CHECK(s.scale(algo::kHuIndex + 4, 5e-9) == Approx(1.0));
   CHECK(small_b == Approx(-1.0));
   CHECK(small_a - small_b > 0.25);  // without compression: 0.001
+}
+
+SCENARIO("The scaler's fit leaves out NaN and infinite feature values", "[svm]") {
+  GIVEN("samples with NaN and infinities among finite values, a NaN first") {
+    constexpr float kNaN = std::numeric_limits<float>::quiet_NaN(), kInf = std::numeric_limits<float>::infinity();
+    std::vector<FeatureVector> samples(7);
+    for (FeatureVector& f : samples) f.fill(0.0F);
+    const float width[] = {kNaN, 0.4F, kInf, 0.5F, 0.6F, -kInf, kNaN};
+    // Heavy-tailed (Hu I5, I6): compressed by the median |v| of the finite values, the (n/2)-th smallest of n.
+    const float hu5[] = {kNaN, 1e-12F, -kInf, -2e-12F, 5e-9F, kNaN, kNaN};       // finite 1, 2, 5000 (e-12): 2e-12
+    const float hu6[] = {6e-12F, 5e-12F, kNaN, kNaN, kNaN, -2e-12F, 1e-12F};     // finite 1, 2, 5, 6 (e-12): 5e-12
+    for (std::size_t i = 0; i < samples.size(); ++i) {
+      samples[i][algo::kWidthIndex] = width[i];
+      samples[i][algo::kHuIndex + 4] = hu5[i];
+      samples[i][algo::kHuIndex + 5] = hu6[i];
+      samples[i][algo::kAreaIndex] = kNaN;  // no finite value at all
+    }
+    WHEN("the scaler is fitted") {
+      const algo::Scaler s = algo::Scaler::fit(samples);
+      THEN("each range and compression is that of the finite values alone, and a feature without any is constant") {
+        CHECK(s.ranges()[algo::kWidthIndex].lo == Approx(0.4));
+        CHECK(s.ranges()[algo::kWidthIndex].hi == Approx(0.6));
+        CHECK(s.scale(algo::kWidthIndex, 0.4) == Approx(-1.0));
+        CHECK(s.scale(algo::kWidthIndex, 0.6) == Approx(1.0));
+        CHECK(s.ranges()[algo::kHuIndex + 4].compress == Approx(2e-12).epsilon(1e-6));
+        CHECK(s.scale(algo::kHuIndex + 4, -2e-12) == Approx(-1.0));
+        CHECK(s.scale(algo::kHuIndex + 4, 5e-9) == Approx(1.0));
+        CHECK(s.ranges()[algo::kHuIndex + 5].compress == Approx(5e-12).epsilon(1e-6));
+        CHECK(s.scale(algo::kAreaIndex, 1.0) == 0.0);
+      }
+    }
+  }
+  GIVEN("a training set with one NaN feature") {
+    algo::Dataset d = make_clusters(3, 10, 6);
+    d.features[7][algo::kWidthIndex] = std::numeric_limits<float>::quiet_NaN();
+    THEN("training refuses it before any scaling, naming the sample") {
+      const Status valid = algo::validate_dataset(d);
+      REQUIRE_FALSE(valid.ok());
+      CHECK(valid.error().message == "dataset: sample 7 has a non-finite feature");
+    }
+  }
 }
 
 SCENARIO("The held-back test reports the top-2 rate and the calibration of the SVM's probabilities", "[training]") {
