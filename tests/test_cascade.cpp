@@ -1198,3 +1198,43 @@ TEST_CASE("decide() allocates nothing", "[cascade][alloc]") {
   CHECK(b.source == DecisionSource::kUnknown);
   CHECK(c.source == DecisionSource::kTimeout);
 }
+
+SCENARIO("Of two candidates that both pass, the one with clearly less evidence against it wins, whichever the SVM "
+         "ranks first", "[cascade][policy]") {
+  GIVEN("a plate_4h scan, and plate_5h's template with gates so wide that it passes too, though the scan has material "
+        "where its fifth hole is") {
+    Catalogue4& cat = catalogue4();
+    std::vector<TemplateModel> models(cat.models().begin(), cat.models().end());
+    algo::TemplateThresholds& wide = models[2].thresholds;
+    wide.max_error = 1.0;
+    wide.max_missing_area_m2 = wide.max_extra_area_m2 = 1.0;
+    wide.max_uncovered = wide.max_outliers = 1.0;
+    wide.max_size_dev_m = std::numeric_limits<double>::infinity();
+    const auto scan = sample_part(part("plate_4h"), kTestPose, 1201);
+    // Independent of decide(): each template's evidence on its own; the hole's material is a clear margin.
+    const MatchReport own = cat.cascade().evaluate(models[0], scan);
+    const MatchReport sibling = cat.cascade().evaluate(models[2], scan);
+    INFO("evidence plate_4h " << own.evidence_m2 * 1e6 << " mm2, plate_5h " << sibling.evidence_m2 * 1e6 << " mm2");
+    REQUIRE(own.passes(models[0].thresholds));
+    REQUIRE(sibling.passes(wide));
+    REQUIRE(own.evidence_m2 <= cat.cascade().params().margin_ratio * sibling.evidence_m2);
+    REQUIRE(sibling.evidence_m2 - own.evidence_m2 >= cat.cascade().params().margin_floor_m2);
+    for (const bool sibling_first : {true, false}) {
+      WHEN((sibling_first ? "the SVM ranks plate_5h first and plate_4h close behind"
+                          : "the SVM ranks plate_4h first and plate_5h close behind")) {
+        const int first = sibling_first ? 2 : 0, second = sibling_first ? 0 : 2;
+        const ClassProbability svm[] = {{first, 0.55}, {second, 0.40}, {1, 0.03}, {3, 0.02}};
+        const Decision d = cat.cascade().decide(svm, models, scan, far_deadline());
+        THEN("both are verified and pass, and plate_4h, with the least evidence, is the decision") {
+          REQUIRE(d.verified_count == 2);
+          CHECK(d.candidates[0].passed);
+          CHECK(d.candidates[1].passed);
+          CHECK(d.source == DecisionSource::kPm);
+          CHECK(d.class_index == 0);
+          CHECK(d.part_id == 101);
+          CHECK(d.second_class_index == 2);
+        }
+      }
+    }
+  }
+}
