@@ -2,10 +2,16 @@
 #include <catch2/catch.hpp>
 #include <chrono>
 
+#include <algorithm>
+#include <cstdint>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <numbers>
+#include <sstream>
+#include <string>
+#include <string_view>
 
 #include "app/catalogue.hpp"
 #include "app/config.hpp"
@@ -313,4 +319,258 @@ TEST_CASE("Given a short config of aliases of aliases, when the config is loaded
   CHECK(message.find("c.yaml:1:1: (top level): the document holds more than 100000 values once its aliases are "
                      "expanded (aliases of aliases?); refused") != std::string::npos);
   CHECK(seconds < 2.0);  // the capped walk: ~0.1 s under the sanitizers
+}
+
+namespace {
+
+// The range of every numeric key (app/config.cpp), as documented by its error message: "from LO to HI UNIT".
+enum class KeyKind { kNumber, kInteger, kVec3 };
+enum class Reach { kBoth, kLowOnly, kHighOnly };  // which bounds other keys' relations let a value reach
+struct RangedKey {
+  const char* path;  // dotted; "[0]" is the first element of a list of mappings (given a name)
+  KeyKind kind;
+  const char* lo;
+  const char* hi;
+  const char* unit;
+  const char* siblings = "";  // other keys of the same mapping, so that a bound does not break a relation
+  Reach reach = Reach::kBoth;
+};
+constexpr KeyKind kNumber = KeyKind::kNumber, kInteger = KeyKind::kInteger, kVec3 = KeyKind::kVec3;
+constexpr Reach kLowOnly = Reach::kLowOnly, kHighOnly = Reach::kHighOnly;
+
+const RangedKey kRangedKeys[] = {
+    {"format_version", kInteger, "1", "1", ""},
+    {"rig.camera.width_px", kInteger, "64", "8192", "px"},
+    {"rig.camera.height_px", kInteger, "64", "8192", "px"},
+    {"rig.camera.fx_px", kNumber, "50", "50000", "px"},
+    {"rig.camera.fy_px", kNumber, "50", "50000", "px"},
+    {"rig.camera.cx_px", kNumber, "0", "8192", "px"},
+    {"rig.camera.cy_px", kNumber, "0", "8192", "px"},
+    {"rig.camera.k1", kNumber, "-2", "2", ""},
+    {"rig.camera.k2", kNumber, "-5", "5", ""},
+    {"rig.camera.p1", kNumber, "-0.1", "0.1", ""},
+    {"rig.camera.p2", kNumber, "-0.1", "0.1", ""},
+    {"rig.camera.k3", kNumber, "-10", "10", ""},
+    {"rig.camera.distance_m", kNumber, "0.3", "10", "m"},
+    {"rig.camera.triangulation_angle_deg", kNumber, "5", "80", "deg"},
+    {"rig.camera.aim_m", kVec3, "-5", "5", "m"},
+    {"rig.camera.roll_deg", kNumber, "-45", "45", "deg"},
+    {"rig.laser.normal", kVec3, "-1", "1", ""},
+    {"rig.laser.offset_m", kNumber, "-1", "1", "m"},
+    {"rig.laser.emitter_m", kVec3, "-5", "5", "m"},
+    {"rig.laser.sheet_sigma_mm", kNumber, "0.01", "5", "mm"},
+    {"conveyor.speed_m_per_s", kNumber, "0.001", "1", "m/s"},
+    {"conveyor.counts_per_mm", kNumber, "0.1", "1000", "counts/mm"},
+    {"conveyor.trigger_every_counts", kInteger, "1", "100000", "counts"},
+    {"carrier.length_m", kNumber, "0.1", "3", "m"},
+    {"carrier.height_m", kNumber, "0.1", "3", "m"},
+    {"carrier.start_offset_m", kNumber, "-3", "3", "m"},
+    {"carrier.plane_z_m", kNumber, "-1", "1", "m"},
+    {"carrier.bar_width_m", kNumber, "0.005", "0.2", "m"},
+    {"carrier.hanger_spacing_m", kNumber, "0", "3", "m"},
+    {"carrier.hook_height_m", kNumber, "0.1", "3", "m"},
+    {"carrier.part_plane_z_m", kNumber, "-1", "1", "m"},
+    {"carrier.reflectivity", kNumber, "0", "2", ""},
+    {"sim.pose_xy_range_m", kNumber, "0", "0.3", "m"},
+    {"sim.pose_theta_range_deg", kNumber, "0", "45", "deg"},
+    {"sim.swing_range_deg", kNumber, "0", "20", "deg"},
+    {"sim.reflectivity_jitter", kNumber, "0", "0.9", ""},
+    {"sim.split_probability", kNumber, "0", "1", ""},
+    {"sim.camera_noise_seed", kInteger, "0", "9223372036854775807", ""},
+    {"sim.sensor.gain_dn_per_us", kNumber, "0", "100", "DN/us"},
+    {"sim.sensor.optics_sigma_px", kNumber, "0.3", "10", "px"},
+    {"sim.sensor.bloom_per_log", kNumber, "0", "5", ""},
+    {"sim.sensor.ambient_dn", kNumber, "0", "200", "DN"},
+    {"sim.sensor.ambient_gradient_dn", kNumber, "0", "100", "DN"},
+    {"sim.sensor.ambient_light_dn", kNumber, "0", "255", "DN"},
+    {"sim.sensor.reference_exposure_us", kNumber, "1", "1e6", "us"},
+    {"sim.sensor.speckle_contrast", kNumber, "0", "1", ""},
+    {"sim.sensor.halo_fraction", kNumber, "0", "0.5", ""},
+    {"sim.sensor.read_noise_dn", kNumber, "0", "50", "DN"},
+    {"sim.sensor.shot_noise_dn_per_dn", kNumber, "0", "10", "DN"},
+    {"sim.sensor.hot_pixel_fraction", kNumber, "0", "0.01", ""},
+    {"sim.sensor.spikes_per_frame", kNumber, "0", "100", ""},
+    {"sim.sensor.ghost_probability", kNumber, "0", "1", ""},
+    {"sim.coatings[0].diffuse", kNumber, "0", "2", ""},
+    {"sim.coatings[0].specular", kNumber, "0", "10", ""},
+    {"sim.coatings[0].lobe_deg", kNumber, "0.5", "90", "deg"},
+    {"sim.coatings[0].weight", kNumber, "0", "1000", ""},
+    {"grid.origin_m", kVec3, "-5", "5", "m"},
+    {"grid.nx", kInteger, "8", "4096", "cells"},
+    {"grid.ny", kInteger, "8", "4096", "cells"},
+    {"grid.nz", kInteger, "8", "4096", "cells"},
+    {"grid.resolution_m", kNumber, "0.0002", "0.05", "m"},
+    {"camera.buffers", kInteger, "4", "32", "buffers"},
+    {"camera.timeout_ms", kInteger, "10", "60000", "ms"},
+    {"camera.exposure_us", kNumber, "1", "1e6", "us"},
+    {"camera.exposure_min_us", kNumber, "1", "1e6", "us", "exposure_max_us: 1e6"},
+    {"camera.exposure_max_us", kNumber, "1", "1e6", "us", "exposure_min_us: 1"},
+    {"camera.trigger_control_id", kInteger, "0", "4294967295", ""},
+    {"camera.trigger_control_value", kInteger, "-1000000", "1000000", ""},
+    {"exposure.width_min_px", kNumber, "0.5", "100", "px", "width_max_px: 100", kLowOnly},
+    {"exposure.width_max_px", kNumber, "0.5", "100", "px", "width_min_px: 0.5", kHighOnly},
+    {"exposure.max_step_ratio", kNumber, "1.01", "10", ""},
+    {"gpio.laser_line", kInteger, "0", "1023", ""},
+    {"gpio.trigger_line", kInteger, "0", "1023", ""},
+    {"gpio.part_present_line", kInteger, "0", "1023", ""},
+    {"gpio.encoder_a_line", kInteger, "0", "1023", ""},
+    {"gpio.encoder_b_line", kInteger, "0", "1023", ""},
+    {"gpio.trigger_pulse_us", kInteger, "1", "100000", "us"},
+    {"gpio.debounce_us", kInteger, "0", "1000000", "us"},
+    {"modbus.port", kInteger, "1", "65535", ""},
+    {"modbus.max_clients", kInteger, "1", "64", "clients"},
+    {"modbus.byte_timeout_ms", kInteger, "1", "10000", "ms"},
+    {"modbus.plc_heartbeat_timeout_ms", kInteger, "0", "600000", "ms"},
+    {"modbus.result_queue_depth", kInteger, "1", "256", "results"},
+    {"support.distance_threshold_mm", kNumber, "0.1", "100", "mm"},
+    {"svm.sa_start_temperature", kNumber, "1e-6", "1e6", ""},
+    {"svm.sa_cooling_ratio", kNumber, "0.5", "0.9999", ""},
+    {"svm.sa_iterations", kInteger, "1", "100000", ""},
+    {"svm.folds", kInteger, "2", "50", ""},
+    {"svm.train_fraction", kNumber, "0.1", "0.95", ""},
+    {"svm.threads", kInteger, "0", "256", "threads"},
+    {"svm.seed", kInteger, "0", "9223372036854775807", ""},
+    {"svm.augment_per_scan", kInteger, "0", "100", ""},
+    {"svm.augment_search_per_scan", kInteger, "0", "100", ""},
+    {"perfect_match.lc_m", kNumber, "1e-4", "10", "m"},
+    {"perfect_match.fit_lc_m", kNumber, "0", "10", "m"},
+    {"perfect_match.eta_plus", kNumber, "1", "5", ""},
+    {"perfect_match.eta_minus", kNumber, "0.01", "1", ""},
+    {"perfect_match.step_initial_m", kNumber, "1e-9", "1", "m", "step_min_m: 1e-9\nstep_max_m: 1"},
+    {"perfect_match.step_min_m", kNumber, "1e-9", "1", "m", "step_initial_m: 1\nstep_max_m: 1"},
+    {"perfect_match.step_max_m", kNumber, "1e-9", "1", "m", "step_min_m: 1e-9\nstep_initial_m: 1e-9"},
+    {"perfect_match.step_initial_rad", kNumber, "1e-9", "1", "rad", "step_min_rad: 1e-9\nstep_max_rad: 1"},
+    {"perfect_match.step_min_rad", kNumber, "1e-9", "1", "rad", "step_initial_rad: 1\nstep_max_rad: 1"},
+    {"perfect_match.step_max_rad", kNumber, "1e-9", "1", "rad", "step_min_rad: 1e-9\nstep_initial_rad: 1e-9"},
+    {"perfect_match.max_iterations", kInteger, "1", "100000", ""},
+    {"perfect_match.max_points", kInteger, "10", "1000000", "points"},
+    {"perfect_match.informative_fraction", kNumber, "0", "1", ""},
+    {"perfect_match.coarse_points", kInteger, "0", "1000000", "points"},
+    {"perfect_match.coarse_iterations", kInteger, "0", "100000", ""},
+    {"perfect_match.level_passes", kInteger, "0", "10", ""},
+    {"perfect_match.level_clip_m", kNumber, "1e-4", "0.1", "m"},
+    {"cascade.accept_p1", kNumber, "0", "1", ""},
+    {"cascade.accept_p2_max", kNumber, "0", "1", ""},
+    {"cascade.pm_candidates", kInteger, "1", "64", "classes"},
+    {"cascade.verify_budget_ms", kNumber, "1", "3000", "ms"},
+    {"cascade.stop_ratio", kNumber, "0", "1", ""},
+    {"cascade.margin_ratio", kNumber, "0", "1", ""},
+    {"cascade.margin_floor_m2", kNumber, "0", "1", "m^2"},
+    {"cascade.near_fail_factor", kNumber, "1", "100", ""},
+    {"cascade.blob_window_m", kNumber, "0", "0.05", "m"},
+    {"cascade.depth_tolerance_m", kNumber, "1e-4", "0.1", "m"},
+    {"cascade.refine_iterations", kInteger, "0", "1000", ""},
+    {"cascade.error_factor", kNumber, "1", "100", ""},
+    {"cascade.error_floor", kNumber, "0", "1", ""},
+    {"cascade.error_margin_floor", kNumber, "0", "1", ""},
+    {"cascade.area_factor", kNumber, "1", "100", ""},
+    {"cascade.area_floor_m2", kNumber, "0", "1", "m^2"},
+    {"cascade.share_factor", kNumber, "1", "100", ""},
+    {"cascade.share_floor", kNumber, "0", "1", ""},
+    {"cascade.weak_evidence_weight", kNumber, "0", "1", ""},
+    {"cascade.band_elongation", kNumber, "1", "1000", ""},
+    {"cascade.band_contact_max", kNumber, "0", "1", ""},
+    {"cascade.band_max_width_m", kNumber, "0", "1", "m"},
+    {"cascade.verify_all_lost_m2", kNumber, "0", "1", "m^2"},
+    {"cascade.size_factor", kNumber, "1", "100", ""},
+    {"cascade.size_floor_m", kNumber, "0", "1", "m"},
+    {"cascade.robust_k", kNumber, "1", "100", ""},
+    {"runtime.deadline_ms", kInteger, "10", "60000", "ms"},
+    {"runtime.realtime_priority", kInteger, "0", "99", ""},
+};
+
+// A config file setting `key.path` to `value` (the x of a vector), and where the value stands (line, column).
+struct KeyFile {
+  std::string text;
+  int line = 0, column = 0;
+};
+KeyFile key_file(const RangedKey& key, const std::string& value) {
+  KeyFile f;
+  std::string path = key.path, indent;
+  for (std::size_t dot = path.find('.'); dot != std::string::npos; dot = path.find('.')) {
+    std::string section = path.substr(0, dot);
+    path.erase(0, dot + 1);
+    if (section.ends_with("[0]")) {
+      f.text += indent + section.substr(0, section.size() - 3) + ":\n" + indent + "  - name: a\n";
+      indent += "    ";
+    } else {
+      f.text += indent + section + ":\n";
+      indent += "  ";
+    }
+  }
+  for (std::string_view rest = key.siblings; !rest.empty();) {
+    const std::size_t end = std::min(rest.find('\n'), rest.size());
+    f.text += indent + std::string(rest.substr(0, end)) + "\n";
+    rest.remove_prefix(std::min(end + 1, rest.size()));
+  }
+  f.line = static_cast<int>(std::count(f.text.begin(), f.text.end(), '\n')) + 1;
+  f.column = static_cast<int>(indent.size() + path.size() + 2) + 1;
+  f.text += indent + path + ": " + (key.kind == kVec3 ? "[" + value + ", 0, 0]" : value) + "\n";
+  return f;
+}
+
+std::string exact_text(double v) {
+  char text[40];
+  std::snprintf(text, sizeof text, "%.17g", v);
+  return text;
+}
+
+// The values just outside and exactly at each bound, as written in the file.
+struct Probe {
+  std::string outside_lo, at_lo, at_hi, outside_hi, range;
+};
+Probe probe(const RangedKey& key) {
+  Probe p;
+  std::ostringstream range;
+  if (key.kind == kInteger) {
+    const std::int64_t lo = std::stoll(key.lo), hi = std::stoll(key.hi);
+    p = {std::to_string(lo - 1), key.lo, key.hi,
+         hi == std::numeric_limits<std::int64_t>::max() ? "9223372036854775808" : std::to_string(hi + 1), ""};
+    range << "expected a whole number from " << lo << " to " << hi;
+  } else {
+    // One part in a million beyond the bound (1e-12 beyond a bound of 0): nearer than any bound is meant.
+    const double lo = std::stod(key.lo), hi = std::stod(key.hi);
+    auto beyond = [](double bound, double direction) {
+      return bound + direction * (bound == 0.0 ? 1e-12 : 1e-6 * std::abs(bound));
+    };
+    p = {exact_text(beyond(lo, -1.0)), exact_text(lo), exact_text(hi), exact_text(beyond(hi, +1.0)), ""};
+    range << "expected a number from " << lo << " to " << hi;
+  }
+  if (key.unit[0] != '\0') range << " " << key.unit;
+  p.range = range.str();
+  return p;
+}
+
+}  // namespace
+
+TEST_CASE("Given each numeric key just outside its range, when the config is loaded, then it is refused with file, "
+          "line, column, key, value and range; at each bound it is accepted") {
+  const fs::path dir = fs::temp_directory_path() / ("cellsight-test-config-ranges-" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  const std::string file = (dir / "c.yaml").string();
+  auto load = [&](const KeyFile& f) {
+    std::ofstream(file, std::ios::trunc) << f.text;
+    return app::load_config(file);
+  };
+  for (const RangedKey& key : kRangedKeys) {
+    const Probe p = probe(key);
+    for (const std::string& value : {p.outside_lo, p.outside_hi}) {
+      const KeyFile f = key_file(key, value);
+      INFO(f.text);
+      auto cfg = load(f);
+      REQUIRE_FALSE(cfg.ok());
+      const std::string where = file + ":" + std::to_string(f.line) + ":" + std::to_string(f.column) + ": " + key.path;
+      CHECK(cfg.error().message == (key.kind == kVec3 ? where + ": is not valid, expected [x, y, z] with each " + p.range
+                                                      : where + ": '" + value + "' is not valid, " + p.range));
+    }
+    for (const std::string& value : {p.at_lo, p.at_hi}) {
+      if ((key.reach == kHighOnly && value == p.at_lo) || (key.reach == kLowOnly && value == p.at_hi)) continue;
+      const KeyFile f = key_file(key, value);
+      INFO(f.text);
+      auto cfg = load(f);
+      INFO((cfg.ok() ? std::string() : cfg.error().message));
+      CHECK(cfg.ok());
+    }
+  }
+  fs::remove_all(dir);
 }
