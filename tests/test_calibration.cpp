@@ -543,7 +543,7 @@ TEST_CASE("calibration.yaml round-trips exactly and refuses truncated, corrupt a
   SECTION("a laser or support normal that is not a unit vector is refused, even in a well-sealed file") {
     // Triangulation and support removal read n . p = offset as metres only when |n| = 1.
     app::CalibrationRecord long_laser = record;
-    long_laser.sensor.laser_normal *= 1.001;
+    long_laser.sensor.laser_normal *= 0.999;  // each component stays within [-1, 1]: only the length is wrong
     app::CalibrationRecord long_support = record;
     long_support.has_support = true;
     long_support.support = {Eigen::Vector3d(0.0, 0.0, 0.999), 0.05};
