@@ -558,7 +558,8 @@ TEST_CASE("Given each numeric key just outside its range, when the config is loa
       const KeyFile f = key_file(key, value);
       INFO(f.text);
       auto cfg = load(f);
-      REQUIRE_FALSE(cfg.ok());
+      CHECK_FALSE(cfg.ok());
+      if (cfg.ok()) continue;  // every key is still tried: a table run names all wrong bounds at once
       const std::string where = file + ":" + std::to_string(f.line) + ":" + std::to_string(f.column) + ": " + key.path;
       CHECK(cfg.error().message == (key.kind == kVec3 ? where + ": is not valid, expected [x, y, z] with each " + p.range
                                                       : where + ": '" + value + "' is not valid, " + p.range));
