@@ -17,6 +17,7 @@
 #include "app/calibration_file.hpp"
 #include "app/cli.hpp"
 #include "drivers/sim/board.hpp"
+#include "tests/scratch_dir.hpp"
 
 using namespace cellsight;
 namespace fs = std::filesystem;
@@ -50,24 +51,7 @@ app::Config truth_config() {
   return cfg;
 }
 
-class TempDir {
- public:
-  TempDir() {
-    std::string pattern = (fs::temp_directory_path() / "cellsight-calib-XXXXXX").string();
-    REQUIRE(::mkdtemp(pattern.data()) != nullptr);
-    path_ = pattern;
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path_, ec);
-  }
-  TempDir(const TempDir&) = delete;
-  TempDir& operator=(const TempDir&) = delete;
-  [[nodiscard]] std::string operator/(const std::string& name) const { return (path_ / name).string(); }
-
- private:
-  fs::path path_;
-};
+using test::TempDir;
 
 std::string read_file(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
@@ -211,10 +195,10 @@ TEST_CASE("The technician procedure on the simulated cell recovers camera, laser
   const sim::Rig truth = sim::make_rig(config.rig);
   const auto& k_true = truth.params.camera.intrinsics;
   TempDir tmp;
-  const std::string file = tmp / "calibration.yaml";
+  const std::string file = tmp.file("calibration.yaml");
 
   // WHEN the three steps run on rendered board pictures only (--sim renders, then calibrates from the folder)
-  const Run camera = calibrate({"camera", "--sim", "--out", tmp / "camera", "--calibration", file}, config);
+  const Run camera = calibrate({"camera", "--sim", "--out", tmp.file("camera"), "--calibration", file}, config);
   INFO(camera.out << camera.err);
   REQUIRE(camera.code == app::kExitOk);
   const std::string after_camera = read_file(file);
@@ -223,10 +207,10 @@ TEST_CASE("The technician procedure on the simulated cell recovers camera, laser
   CHECK(cam->has_camera);
   CHECK_FALSE(cam->has_laser);
 
-  const Run laser = calibrate({"laser", "--sim", "--out", tmp / "laser", "--calibration", file}, config);
+  const Run laser = calibrate({"laser", "--sim", "--out", tmp.file("laser"), "--calibration", file}, config);
   INFO(laser.out << laser.err);
   REQUIRE(laser.code == app::kExitOk);
-  const Run conveyor = calibrate({"conveyor", "--sim", "--out", tmp / "conveyor", "--calibration", file}, config);
+  const Run conveyor = calibrate({"conveyor", "--sim", "--out", tmp.file("conveyor"), "--calibration", file}, config);
   INFO(conveyor.out << conveyor.err);
   REQUIRE(conveyor.code == app::kExitOk);
 
@@ -492,7 +476,7 @@ TEST_CASE("The conveyor scale is the board's travel per count, and backward coun
 
 TEST_CASE("calibration.yaml round-trips exactly and refuses truncated, corrupt and edited files", "[calibration][file]") {
   TempDir tmp;
-  const std::string file = tmp / "calibration.yaml";
+  const std::string file = tmp.file("calibration.yaml");
   const app::CalibrationRecord record = sample_record();
   const std::string text = app::calibration_yaml(record);
 
@@ -585,10 +569,10 @@ TEST_CASE("Bad calibration input is refused with one line saying what to do, and
   // GIVEN a valid calibration in force and a folder of camera pictures
   const app::Config config = truth_config();
   TempDir tmp;
-  const std::string file = tmp / "calibration.yaml";
+  const std::string file = tmp.file("calibration.yaml");
   REQUIRE(app::save_calibration(file, sample_record()).ok());
   const std::string before = read_file(file);
-  const std::string dir = tmp / "pictures";
+  const std::string dir = tmp.file("pictures");
   fs::create_directory(dir);
   const cv::Mat blank(768, 1024, CV_8UC1, cv::Scalar(40));
   for (int i = 0; i < 6; ++i) REQUIRE(cv::imwrite(dir + "/view_0" + std::to_string(i) + ".png", blank));

@@ -16,6 +16,7 @@
 #include "app/catalogue.hpp"
 #include "app/config.hpp"
 #include "app/sim_mode.hpp"
+#include "tests/scratch_dir.hpp"
 
 using namespace cellsight;
 namespace fs = std::filesystem;
@@ -27,9 +28,7 @@ const std::string kShippedCatalogue = CELLSIGHT_SOURCE_DIR "/config/parts.yaml";
 
 // A YAML file in a fresh temporary folder.
 std::string write_temp(const std::string& name, const std::string& text) {
-  static int counter = 0;
-  const fs::path dir = fs::temp_directory_path() / ("cellsight-test-config-" + std::to_string(::getpid()) + "-" + std::to_string(counter++));
-  fs::create_directories(dir);
+  const fs::path dir = test::numbered_scratch_dir("config");
   const std::string path = (dir / name).string();
   std::ofstream(path) << text;
   return path;
@@ -545,8 +544,7 @@ Probe probe(const RangedKey& key) {
 
 TEST_CASE("Given each numeric key just outside its range, when the config is loaded, then it is refused with file, "
           "line, column, key, value and range; at each bound it is accepted") {
-  const fs::path dir = fs::temp_directory_path() / ("cellsight-test-config-ranges-" + std::to_string(::getpid()));
-  fs::create_directories(dir);
+  const fs::path dir = test::scratch_dir("config-ranges");
   const std::string file = (dir / "c.yaml").string();
   auto load = [&](const KeyFile& f) {
     std::ofstream(file, std::ios::trunc) << f.text;

@@ -20,6 +20,7 @@
 #include "app/template_file.hpp"
 #include "drivers/sim/rig.hpp"
 #include "sim_test_util.hpp"
+#include "tests/scratch_dir.hpp"
 
 namespace fs = std::filesystem;
 using namespace cellsight;
@@ -51,7 +52,7 @@ struct SmallCell {
 
   // Under the temporary folder, per process.
   static SmallCell named(const std::string& name) {
-    return SmallCell(fs::temp_directory_path() / ("cellsight-test-db-" + std::to_string(::getpid())) / name);
+    return SmallCell(test::scratch_root() / "db" / name);
   }
 
   explicit SmallCell(const fs::path& where) {

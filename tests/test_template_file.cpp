@@ -23,6 +23,7 @@
 #include <vector>
 
 #include "app/template_file.hpp"
+#include "tests/scratch_dir.hpp"
 
 namespace {
 
@@ -111,31 +112,7 @@ Cell cell_of_centre(const Eigen::Vector3f& p, const GridSpec& g) {
   return {static_cast<int>(r.x()), static_cast<int>(r.y()), static_cast<int>(r.z())};
 }
 
-// A fresh folder, removed with everything in it at scope exit.
-class TempDir {
- public:
-  TempDir() {
-    std::string pattern = (fs::temp_directory_path() / "cellsight_template_XXXXXX").string();
-    REQUIRE(::mkdtemp(pattern.data()) != nullptr);
-    path_ = pattern;
-  }
-  TempDir(const TempDir&) = delete;
-  TempDir& operator=(const TempDir&) = delete;
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path_, ec);
-  }
-  [[nodiscard]] std::string file(const std::string& name) const { return (path_ / name).string(); }
-  [[nodiscard]] std::vector<std::string> entries() const {
-    std::vector<std::string> names;
-    for (const auto& e : fs::directory_iterator(path_)) names.push_back(e.path().filename().string());
-    std::sort(names.begin(), names.end());
-    return names;
-  }
-
- private:
-  fs::path path_;
-};
+using cellsight::test::TempDir;
 
 std::vector<char> read_bytes(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
