@@ -25,7 +25,9 @@ for t in "${RELEASE_TESTS[@]}"; do
   if [ $# -eq 0 ] || [[ $t =~ $1 ]]; then selected+=("$t"); fi
 done
 if [ ${#selected[@]} -gt 0 ]; then
-  cmake -S . -B "$RELEASE" -DCMAKE_BUILD_TYPE=Release -DCELLSIGHT_WERROR=ON >/dev/null
+  # (Warnings are not errors here: the sanitizer build above holds that line, and GCC 12 at -O3 reports false
+  # -Warray-bounds / -Wrestrict in libstdc++'s vector and string code, e.g. test_modbus.cpp's frame building.)
+  cmake -S . -B "$RELEASE" -DCMAKE_BUILD_TYPE=Release -DCELLSIGHT_WERROR=OFF >/dev/null
   cmake --build "$RELEASE" -j"$(nproc)" --target "${selected[@]}"
   regex=$(IFS='|'; echo "${selected[*]}")
   ctest --test-dir "$RELEASE" --output-on-failure -j"$(nproc)" -R "^($regex):"
