@@ -6,6 +6,7 @@
 #include <unistd.h>
 
 #include <cerrno>
+#include <csignal>
 #include <cstdlib>
 #include <cstring>
 #include <filesystem>
@@ -68,6 +69,20 @@ std::vector<std::string> remove_orphaned_temp_files(const std::string& dir) {
   return removed;
 }
 
+namespace {
+
+// Fault seam for the crash-consistency tests (issue 15): with CELLSIGHT_FAULT_KILL_BEFORE_RENAME set to a file name,
+// the process kills itself with SIGKILL when that file's new content is written and synced but not yet renamed into
+// place -- for "manifest.yaml", exactly between a teach's or train's other files and the manifest that names them.
+// A kill at any moment is what the atomic saves are for; the variable only picks the moment.
+void kill_here_if_asked(const std::string& path) {
+  const char* name = std::getenv("CELLSIGHT_FAULT_KILL_BEFORE_RENAME");
+  if (name == nullptr || *name == '\0') return;
+  if (std::filesystem::path(path).filename() == name) ::raise(SIGKILL);
+}
+
+}  // namespace
+
 Status write_file_atomic(const std::string& path, std::string_view content, Overwrite overwrite) {
   std::string temp = atomic_temp_template(path);
   const int fd = ::mkstemp(temp.data());
@@ -91,6 +106,7 @@ Status write_file_atomic(const std::string& path, std::string_view content, Over
     return make_error(path + ": cannot finish the file: " + why);
   }
   ::close(fd);
+  kill_here_if_asked(path);
   if (overwrite == Overwrite::kRefuse) {
     const int rc = ::link(temp.c_str(), path.c_str());
     const int saved = errno;

@@ -12,6 +12,7 @@
 #include <fstream>
 #include <set>
 #include <sstream>
+#include <string>
 
 #include "algo/features.hpp"
 #include "app/atomic_file.hpp"
@@ -383,7 +384,42 @@ Expected<ModelDb> ModelDb::open_for_writing(const std::string& dir, const algo::
     CS_LOG_WARN("model_db", "removed %s: the temporary file of a write that was interrupted (killed before its rename)",
                 path.c_str());
   }
+  for (const std::string& path : db->remove_unlisted_files()) {
+    CS_LOG_WARN("model_db", "removed %s: not in the manifest (a teach or train interrupted before it saved the "
+                "manifest, or the model a training replaced)", path.c_str());
+  }
   return db;
+}
+
+std::vector<std::string> ModelDb::remove_unlisted_files() const {
+  namespace fs = std::filesystem;
+  // What teach and train write before the manifest that names it (DESIGN.md "Model database": files first, the
+  // manifest last): templates/*.dmap, scans/PART/*.ply and svm-*.model in the folder itself.
+  std::set<std::string> listed;
+  for (const PartEntry& p : manifest_.parts) {
+    listed.insert(p.template_file);
+    for (const ScanEntry& s : p.scans) listed.insert(s.file);
+  }
+  if (manifest_.svm.present) listed.insert(manifest_.svm.file);
+  const fs::path root(dir_);
+  const auto ours = [&](const fs::path& relative) {
+    const std::string name = relative.filename().string();
+    const auto parts = std::distance(relative.begin(), relative.end());
+    if (parts == 1) return name.starts_with("svm-") && name.ends_with(".model");
+    if (parts == 2) return *relative.begin() == "templates" && name.ends_with(".dmap");
+    return parts == 3 && *relative.begin() == "scans" && name.ends_with(".ply");
+  };
+  std::vector<std::string> removed;
+  std::error_code ec;
+  for (fs::recursive_directory_iterator it(root, ec), end; !ec && it != end; it.increment(ec)) {
+    std::error_code type_ec;
+    if (!fs::is_regular_file(it->symlink_status(type_ec))) continue;
+    const fs::path relative = it->path().lexically_relative(root);
+    if (!ours(relative) || listed.count(relative.generic_string()) != 0) continue;
+    std::error_code remove_ec;
+    if (fs::remove(it->path(), remove_ec)) removed.push_back(it->path().string());
+  }
+  return removed;
 }
 
 const PartEntry* ModelDb::find(std::string_view name) const {

@@ -112,6 +112,10 @@ class ModelDb {
   // Empty when the SVM matches the parts; otherwise why it is stale and what to run.
   [[nodiscard]] std::string svm_stale_reason() const;
 
+  // Removes the templates (templates/*.dmap), taught scans (scans/PART/*.ply) and SVM models (svm-*.model) that the
+  // manifest does not name: what a teach or train killed between writing its files and saving the manifest left, or
+  // the model a training killed just after its save replaced. open_for_writing() calls it. Returns the paths removed.
+  [[nodiscard]] std::vector<std::string> remove_unlisted_files() const;
   // Writes manifest.yaml atomically (checksum on its last line).
   [[nodiscard]] Status save() const;
 

@@ -7,9 +7,11 @@
 
 #include <algorithm>
 #include <array>
+#include <csignal>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <set>
 #include <sstream>
 
 #include "algo/ply.hpp"
@@ -93,9 +95,10 @@ struct SmallCell {
     models = (dir / "models").string();
   }
 
-  [[nodiscard]] Run run(const std::string& args) const {
-    const std::string command =
-        kExe + " --config " + config_path + " --models " + models + " --log-level warn " + args + " 2>&1";
+  // `env`: "NAME=value ..." for the command's environment.
+  [[nodiscard]] Run run(const std::string& args, const std::string& env = "") const {
+    const std::string command = (env.empty() ? "" : env + " ") + kExe + " --config " + config_path + " --models " +
+                                models + " --log-level warn " + args + " 2>&1";
     FILE* pipe = ::popen(command.c_str(), "r");
     REQUIRE(pipe != nullptr);
     std::string out;
@@ -428,7 +431,7 @@ TEST_CASE("opening the database to write removes the temporary files an interrup
                                          models / "manifest.yaml.tmp-0aZ9kk"};
   for (const fs::path& p : orphans) touch(p);
   // ... and files that are not ours or not of that pattern.
-  const std::vector<fs::path> others = {models / "templates" / "plate.dmap", models / "notes.tmp-1",
+  const std::vector<fs::path> others = {models / "templates" / "plate.dmap.bak", models / "notes.tmp-1",
                                         models / "templates" / "plate.dmap.tmp-abc12", models / "plate.tmp-abcdefg",
                                         models / "templates" / "plate.dmap.tmp-ab_12c", models / ".tmp-abcdef"};
   for (const fs::path& p : others) touch(p);
@@ -504,5 +507,81 @@ TEST_CASE("parts list checks every template and the SVM as loading them does, ma
   CHECK(r.output.find("SVM: DAMAGED: " + db.path_of("svm-test.model") + ": checksum differs from the manifest") !=
         std::string::npos);
   CHECK(r.output.find("parts list: 2 damaged files") != std::string::npos);
+  fs::remove_all(cell.dir);
+}
+
+TEST_CASE("a teach and a train killed between their files and the manifest leave the database as it was; the next "
+          "writer removes what they wrote", "[model_db][crash]") {
+  const SmallCell cell = SmallCell::named("killed");
+  const fs::path models(cell.models);
+  for (const char* part : {"plate_4h", "bracket_l"}) {
+    const Run r = cell.run(std::string("teach --sim --part ") + part + " --count 5");
+    INFO(r.output);
+    REQUIRE(r.exit_code == 0);
+  }
+  const Run trained = cell.run("train");
+  INFO(trained.output);
+  REQUIRE(trained.exit_code == 0);
+  const fs::path probe = cell.dir / "probe.ply";
+  REQUIRE(cell.run("scan --sim --part plate_4h --seed 901 --calibration " + (cell.dir / "calibration.yaml").string() +
+                   " --out " + probe.string())
+              .exit_code == 0);
+  const std::string classify =
+      "classify --calibration " + (cell.dir / "calibration.yaml").string() + " " + probe.string();
+  REQUIRE(cell.run(classify).exit_code == 0);
+  const std::string manifest_before = read_all(models / "manifest.yaml");
+  const auto files = [&] {
+    std::set<std::string> out;
+    for (const auto& e : fs::recursive_directory_iterator(models)) {
+      if (e.is_regular_file()) out.insert(e.path().lexically_relative(models).generic_string());
+    }
+    return out;
+  };
+  const std::set<std::string> files_before = files();
+  const auto killed = [](const Run& r) { return r.exit_code == -1 || r.exit_code == 128 + SIGKILL; };
+  const std::string kill_at_manifest = "CELLSIGHT_FAULT_KILL_BEFORE_RENAME=manifest.yaml";
+  // The database is the one before: same manifest, the old parts and model classify as before.
+  const auto as_before = [&] {
+    CHECK(read_all(models / "manifest.yaml") == manifest_before);
+    const Run after = cell.run(classify);
+    INFO(after.output);
+    CHECK(after.exit_code == 0);
+    CHECK(after.output.find("plate_4h") != std::string::npos);
+  };
+
+  // When a teach of a new part dies after its template and scans are in place, before the manifest names them ...
+  const Run teach = cell.run("teach --sim --part plate_5h --count 5", kill_at_manifest);
+  INFO(teach.output);
+  CHECK(killed(teach));
+  CHECK(fs::exists(models / "templates" / "plate_5h.dmap"));
+  as_before();
+  // ... and a training dies the same way, its new model written (it removed the teach's orphans first) ...
+  const Run train = cell.run("train", kill_at_manifest);
+  INFO(train.output);
+  CHECK(killed(train));
+  CHECK(train.output.find("plate_5h.dmap: not in the manifest") != std::string::npos);
+  CHECK(train.output.find("plate_5h/00001.ply: not in the manifest") != std::string::npos);
+  CHECK_FALSE(fs::exists(models / "templates" / "plate_5h.dmap"));
+  as_before();
+  std::size_t extra_models = 0;
+  for (const std::string& f : files()) extra_models += f.starts_with("svm-") && files_before.count(f) == 0 ? 1 : 0;
+  CHECK(extra_models == 1);
+
+  // ... then the next teach removes the training's orphans (the model, the manifest's temporary file), says so, and
+  // leaves exactly the files its manifest names.
+  const Run again = cell.run("teach --sim --part plate_5h --count 5");
+  INFO(again.output);
+  REQUIRE(again.exit_code == 0);
+  CHECK(again.output.find(".model: not in the manifest") != std::string::npos);
+  CHECK(again.output.find("manifest.yaml.tmp-") != std::string::npos);
+  auto db = app::ModelDb::open(cell.models, app::grid_spec(cell.config), false);
+  REQUIRE(db.ok());
+  std::set<std::string> named = {"manifest.yaml", db->manifest().svm.file};
+  for (const app::PartEntry& p : db->manifest().parts) {
+    named.insert(p.template_file);
+    for (const app::ScanEntry& sc : p.scans) named.insert(sc.file);
+  }
+  CHECK(files() == named);
+  CHECK(cell.run("parts list").exit_code == 0);
   fs::remove_all(cell.dir);
 }
