@@ -55,18 +55,23 @@ bool is_atomic_temp_name(std::string_view file_name) {
   return true;
 }
 
-std::vector<std::string> remove_orphaned_temp_files(const std::string& dir) {
+std::vector<std::string> remove_files_below(const std::string& dir,
+                                            const std::function<bool(const std::filesystem::path&)>& chosen) {
   std::vector<std::string> removed;
   std::error_code ec;
-  for (fs::recursive_directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
+  const fs::path root(dir);
+  for (fs::recursive_directory_iterator it(root, ec), end; !ec && it != end; it.increment(ec)) {
     std::error_code type_ec;  // the entry itself: a link of that name is not a file the writer made
-    if (!fs::is_regular_file(it->symlink_status(type_ec)) || !is_atomic_temp_name(it->path().filename().string())) {
-      continue;
-    }
+    if (!fs::is_regular_file(it->symlink_status(type_ec)) || !chosen(it->path().lexically_relative(root))) continue;
     std::error_code remove_ec;
     if (fs::remove(it->path(), remove_ec)) removed.push_back(it->path().string());
   }
   return removed;
+}
+
+std::vector<std::string> remove_orphaned_temp_files(const std::string& dir) {
+  return remove_files_below(dir,
+                            [](const fs::path& relative) { return is_atomic_temp_name(relative.filename().string()); });
 }
 
 namespace {

@@ -1,6 +1,8 @@
 // Atomic saves: write beside the target, fsync, rename — a reader sees the old file or the new one, never half.
 #pragma once
 
+#include <filesystem>
+#include <functional>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -25,8 +27,12 @@ enum class Overwrite { kReplace, kRefuse };
 // the six letters or digits mkstemp chose.
 [[nodiscard]] bool is_atomic_temp_name(std::string_view file_name);
 
-// Removes, below `dir`, the regular files whose name is_atomic_temp_name: what a write killed before its rename left
-// behind. Only for a folder that no other process is writing into. Returns the paths removed.
+// Removes, below `dir`, the regular files (a link is never followed nor removed) for which `chosen(path relative to
+// dir)` is true. Only for a folder that no other process is writing into. Returns the paths removed.
+[[nodiscard]] std::vector<std::string> remove_files_below(const std::string& dir,
+                                                          const std::function<bool(const std::filesystem::path&)>& chosen);
+
+// remove_files_below the files whose name is_atomic_temp_name: what a write killed before its rename left behind.
 [[nodiscard]] std::vector<std::string> remove_orphaned_temp_files(const std::string& dir);
 
 // A folder filled under a temporary name and renamed into place by commit(); removed again if never committed.

@@ -385,8 +385,10 @@ Expected<ModelDb> ModelDb::open_for_writing(const std::string& dir, const algo::
                 path.c_str());
   }
   for (const std::string& path : db->remove_unlisted_files()) {
-    CS_LOG_WARN("model_db", "removed %s: not in the manifest (a teach or train interrupted before it saved the "
-                "manifest, or the model a training replaced)", path.c_str());
+    CS_LOG_WARN("model_db",
+                "removed %s: not in the manifest (a teach or train interrupted before it saved the "
+                "manifest, or the model a training replaced)",
+                path.c_str());
   }
   return db;
 }
@@ -401,25 +403,14 @@ std::vector<std::string> ModelDb::remove_unlisted_files() const {
     for (const ScanEntry& s : p.scans) listed.insert(s.file);
   }
   if (manifest_.svm.present) listed.insert(manifest_.svm.file);
-  const fs::path root(dir_);
-  const auto ours = [&](const fs::path& relative) {
+  return remove_files_below(dir_, [&](const fs::path& relative) {
     const std::string name = relative.filename().string();
-    const auto parts = std::distance(relative.begin(), relative.end());
-    if (parts == 1) return name.starts_with("svm-") && name.ends_with(".model");
-    if (parts == 2) return *relative.begin() == "templates" && name.ends_with(".dmap");
-    return parts == 3 && *relative.begin() == "scans" && name.ends_with(".ply");
-  };
-  std::vector<std::string> removed;
-  std::error_code ec;
-  for (fs::recursive_directory_iterator it(root, ec), end; !ec && it != end; it.increment(ec)) {
-    std::error_code type_ec;
-    if (!fs::is_regular_file(it->symlink_status(type_ec))) continue;
-    const fs::path relative = it->path().lexically_relative(root);
-    if (!ours(relative) || listed.count(relative.generic_string()) != 0) continue;
-    std::error_code remove_ec;
-    if (fs::remove(it->path(), remove_ec)) removed.push_back(it->path().string());
-  }
-  return removed;
+    const auto depth = std::distance(relative.begin(), relative.end());
+    const bool ours = depth == 1   ? name.starts_with("svm-") && name.ends_with(".model")
+                      : depth == 2 ? *relative.begin() == "templates" && name.ends_with(".dmap")
+                                   : depth == 3 && *relative.begin() == "scans" && name.ends_with(".ply");
+    return ours && listed.count(relative.generic_string()) == 0;
+  });
 }
 
 const PartEntry* ModelDb::find(std::string_view name) const {
