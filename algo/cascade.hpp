@@ -4,6 +4,7 @@
 
 #include <Eigen/Core>
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
@@ -49,6 +50,12 @@ struct CascadeParams {
   // leaves single empty cells). A hole of radius R leaves a blob of about pi (R - 1.2 (window + cell / 2))^2.
   double blob_window_m = 0.0044;
   double depth_tolerance_m = 0.005;
+  // ... and not only within the hull of the window's depths (which admits any depth between a relief's lowest and
+  // highest cell) but, where the other surface has cells within fine_window_m, within fine_depth_tolerance_m of one
+  // of them (see Cascade::depth_contradicted).
+  bool per_cell_depth = true;
+  double fine_window_m = 0.0022;
+  double fine_depth_tolerance_m = 0.0025;
   // Perfect Match's pose can be millimetres off on a flat sheet (its cost there is mostly depth, sampled sparsely),
   // so the check also aligns the x-y outlines (the scan's outline points to the distance transform of the template's
   // outline, truncated least squares, Gauss-Newton from Perfect Match's pose) and keeps whichever of the two poses
@@ -307,6 +314,9 @@ class Cascade {
                                    const PlanarPose& pose, int& outside_points);
   void level_scan_depth(const Roi& roi, const Eigen::Vector2d& centre_m, MatchReport& report);
   void window_range(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi);
+  // Whether `other` has occupied cells within fine_window_m of (x, y) but none with depths within tol of [lo, hi].
+  [[nodiscard]] bool depth_contradicted(int x, int y, float lo, float hi, const std::vector<float>& other_lo,
+                                const std::vector<float>& other_hi, float tol) const;
   // MatchReport::size_dx_m / size_dy_m from the rasters (see the definition).
   void measure_size(const Roi& roi, MatchReport& r);
   // Marks the missing cells that lie in a region of lost data (kLost): see the definition.
@@ -330,6 +340,7 @@ class Cascade {
   double resolution_m_ = 0.0;
   Eigen::Vector2d raster_origin_m_ = Eigen::Vector2d::Zero();
   int window_cells_ = 1;
+  std::vector<std::array<int, 2>> window_offsets_;  // (dx, dy) of the window's cells, nearest first
   std::vector<float> t_lo_, t_hi_;      // template depth range per cell (+inf / -inf when empty)
   std::vector<float> s_lo_, s_hi_;      // scan depth range per cell, template frame
   std::vector<float> w_lo_, w_hi_;      // window min / max of one of them

@@ -233,6 +233,9 @@ void read_rest(YamlSection& root, Config& cfg) {
     s.number("near_fail_factor", cfg.cascade.near_fail_factor, 1.0, 100.0, "");
     s.number("blob_window_m", cfg.cascade.blob_window_m, 0.0, 0.05, "m");
     s.number("depth_tolerance_m", cfg.cascade.depth_tolerance_m, 1e-4, 0.1, "m");
+    s.boolean("per_cell_depth", cfg.cascade.per_cell_depth);
+    s.number("fine_window_m", cfg.cascade.fine_window_m, 0.0, 0.05, "m");
+    s.number("fine_depth_tolerance_m", cfg.cascade.fine_depth_tolerance_m, 1e-4, 0.1, "m");
     s.integer("refine_iterations", cfg.cascade.refine_iterations, 0, 1000, "");
     s.boolean("level_depth", cfg.cascade.level_depth);
     s.number("error_factor", cfg.cascade.error_factor, 1.0, 100.0, "");

@@ -128,6 +128,9 @@ TEST_CASE("Given the shipped config file, when it is loaded, then it is valid an
   CHECK(cfg->cascade.depth_tolerance_m == d.cascade.depth_tolerance_m);
   CHECK(cfg->cascade.refine_iterations == d.cascade.refine_iterations);
   CHECK(cfg->cascade.level_depth == d.cascade.level_depth);
+  CHECK(cfg->cascade.per_cell_depth == d.cascade.per_cell_depth);
+  CHECK(cfg->cascade.fine_window_m == d.cascade.fine_window_m);
+  CHECK(cfg->cascade.fine_depth_tolerance_m == d.cascade.fine_depth_tolerance_m);
   CHECK(cfg->cascade.error_factor == d.cascade.error_factor);
   CHECK(cfg->cascade.error_floor == d.cascade.error_floor);
   CHECK(cfg->cascade.area_factor == d.cascade.area_factor);
@@ -458,6 +461,8 @@ const RangedKey kRangedKeys[] = {
     {"cascade.near_fail_factor", kNumber, "1", "100", ""},
     {"cascade.blob_window_m", kNumber, "0", "0.05", "m"},
     {"cascade.depth_tolerance_m", kNumber, "1e-4", "0.1", "m"},
+    {"cascade.fine_window_m", kNumber, "0", "0.05", "m"},
+    {"cascade.fine_depth_tolerance_m", kNumber, "1e-4", "0.1", "m"},
     {"cascade.refine_iterations", kInteger, "0", "1000", ""},
     {"cascade.error_factor", kNumber, "1", "100", ""},
     {"cascade.error_floor", kNumber, "0", "1", ""},

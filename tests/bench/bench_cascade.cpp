@@ -126,11 +126,13 @@ struct Taught {
 namespace {
 
 int run(int argc, char** argv) {
-  bool truth = false;
+  bool truth = false, hull_only = false;
   int n_train = 10, n_test = 3, runs = 3;
   for (int i = 1; i < argc; ++i) {
     if (std::strcmp(argv[i], "--truth") == 0) {
       truth = true;
+    } else if (std::strcmp(argv[i], "--hull-only") == 0) {
+      hull_only = true;  // the two-way check without its per-cell depth test (cascade.per_cell_depth: false)
     } else if (std::strcmp(argv[i], "--train") == 0 && i + 1 < argc) {
       n_train = std::max(2, std::atoi(argv[++i]));
     } else if (std::strcmp(argv[i], "--test") == 0 && i + 1 < argc) {
@@ -138,7 +140,7 @@ int run(int argc, char** argv) {
     } else if (std::strcmp(argv[i], "--runs") == 0 && i + 1 < argc) {
       runs = std::max(1, std::atoi(argv[++i]));
     } else {
-      std::fprintf(stderr, "usage: bench_cascade [--truth] [--train N] [--test N] [--runs N]\n");
+      std::fprintf(stderr, "usage: bench_cascade [--truth] [--hull-only] [--train N] [--test N] [--runs N]\n");
       return 2;
     }
   }
@@ -239,7 +241,11 @@ int run(int argc, char** argv) {
   std::printf("teaching (scans + %zu maps): %.1f s\n", names.size(), ms_between(t_teach, Clock::now()) / 1000.0);
 
   // --- thresholds from the own-class training scans ------------------------------------------------------------------
-  const algo::CascadeParams cascade_params;
+  const algo::CascadeParams cascade_params = [&] {
+    algo::CascadeParams p;
+    p.per_cell_depth = !hull_only;
+    return p;
+  }();
   algo::PerfectMatchParams pm_params;
   pm_params.lc_m = cfg->pm.lc_m;
   pm_params.eta_plus = cfg->pm.eta_plus;
