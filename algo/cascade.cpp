@@ -576,6 +576,15 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
       if (std::find(bt->confusable.begin(), bt->confusable.end(), c.class_index) == bt->confusable.end()) continue;
       const TemplateModel* ct = template_of(c.class_index);
       if (ct == nullptr || !near_pass(c.report, ct->thresholds, params_.near_fail_factor)) continue;
+      // ... unless it fails its outer size clearly: a deviation's limit is the own maximum plus size_floor_m, not a
+      // multiple, and a part 5 mm taller deviates by 5 mm +-0.3 on every pass, so within near_fail_factor of a
+      // 3.5 mm limit it is not narrow. The evidence (areas) cannot give the margin there: a size twin's are a
+      // winner's (catalogue 8601's rnd02 / rnd06 came out ambiguous on all 20 passes).
+      const double size_slack_m = (params_.near_fail_factor - 1.0) * params_.size_floor_m;
+      if (ct->thresholds.size_deviation(c.report.size_dx_m, c.report.size_dy_m) >
+          ct->thresholds.max_size_dev_m + size_slack_m) {
+        continue;
+      }
       const double r = c.report.evidence_m2;
       if (!(b <= params_.margin_ratio * r && r - b >= params_.margin_floor_m2)) clear = false;
     }

@@ -40,7 +40,7 @@ struct CascadeParams {
   double margin_ratio = 0.5;
   double margin_floor_m2 = 100e-6;
   // A look-alike of the winner that failed with every figure within this factor of its limit leaves no clear margin
-  // either (the scan is unknown).
+  // either (the scan is unknown); its outer size counts as near within (factor - 1) * size_floor_m of its limit.
   double near_fail_factor = 1.5;
 
   // Two-way check (see Cascade). A template cell counts as seen when the scan has a surface within blob_window_m

@@ -1288,3 +1288,50 @@ SCENARIO("Of two candidates that both pass, the one with clearly less evidence a
     }
   }
 }
+
+SCENARIO("A look-alike that fails only its outer size leaves the winner ambiguous when it fails narrowly, not when it "
+         "fails by a size twin's millimetres",
+         "[cascade][policy]") {
+  GIVEN("a plate_4h scan, and a look-alike of plate_4h whose template is plate_4h's but whose size centre lies D above "
+        "the scan's (limit 3.5 mm): it fails the size gate alone, with the same evidence as plate_4h") {
+    Catalogue4& cat = catalogue4();
+    const auto scan = sample_part(part("plate_4h"), kTestPose, 1301);
+    const MatchReport own = cat.cascade().evaluate(cat.models()[0], scan);
+    REQUIRE(own.passes(cat.models()[0].thresholds));
+    REQUIRE(std::isfinite(own.size_dx_m));
+    REQUIRE(std::isfinite(own.size_dy_m));
+    const algo::CascadeParams& params = cat.cascade().params();
+    const double limit_m = 0.0035;
+    // Within near_fail_factor of the limit either way; the slack is (near_fail_factor - 1) * size_floor_m = 0.75 mm.
+    const double slack_m = (params.near_fail_factor - 1.0) * params.size_floor_m;
+    REQUIRE((limit_m + 2.0 * slack_m) < params.near_fail_factor * limit_m);
+    static constexpr int kLookAlike[] = {1};
+    for (const double beyond_m : {0.4 * slack_m, 2.0 * slack_m}) {
+      WHEN("the look-alike's size deviation is " << (limit_m + beyond_m) * 1e3 << " mm") {
+        std::vector<TemplateModel> models(cat.models().begin(), cat.models().end());
+        models[0].confusable = kLookAlike;
+        models[1] = cat.models()[0];
+        models[1].class_index = 1;
+        models[1].part_id = 102;
+        models[1].confusable = {};
+        algo::TemplateThresholds& t = models[1].thresholds;
+        t.size_centre_x_m = own.size_dx_m;
+        t.size_centre_y_m = own.size_dy_m - (limit_m + beyond_m);
+        t.max_size_dev_m = limit_m;
+        const ClassProbability svm[] = {{0, 0.55}, {1, 0.40}, {2, 0.03}, {3, 0.02}};
+        const Decision d = cat.cascade().decide(svm, models, scan, far_deadline());
+        REQUIRE(d.verified_count >= 2);
+        REQUIRE(d.candidates[1].class_index == 1);
+        REQUIRE(d.candidates[1].rejected_by == algo::RejectReason::kSize);
+        if (beyond_m < slack_m) {
+          THEN("a narrow failure: no clear margin, unknown") { CHECK(d.source == DecisionSource::kUnknown); }
+        } else {
+          THEN("a clear size difference: plate_4h") {
+            CHECK(d.source == DecisionSource::kPm);
+            CHECK(d.class_index == 0);
+          }
+        }
+      }
+    }
+  }
+}
