@@ -1266,6 +1266,12 @@ TEST_CASE("loop: through a real Modbus server on 127.0.0.1 a libmodbus PLC takes
     modbus_t* ctx = modbus_new_tcp("127.0.0.1", server.bound_port());
     REQUIRE(ctx != nullptr);
     REQUIRE(modbus_connect(ctx) == 0);
+    // The PLC's patience per request. libmodbus's default of 0.5 s is wall-clock luck under ThreadSanitizer on a
+    // loaded machine (it failed so once): after one late reply every later call reads the reply to the call
+    // before it (libmodbus does not resynchronise) and the PLC never sees a result. Reply time is not what this
+    // test is about; a server stalled for longer than this still fails it.
+    constexpr int kPlcResponseTimeoutS = 10;
+    (void)modbus_set_response_timeout(ctx, kPlcResponseTimeoutS, 0);
     const auto deadline = Clock::now() + std::chrono::seconds(60);
     std::uint16_t status[2] = {0, 0};
     if (modbus_write_register(ctx, map::kControl, map::kControlTriggerEnable) != 1) ++errors;
