@@ -89,8 +89,8 @@ Status GpiodIo::open() {
       return make_error("gpio: cannot read line " + std::to_string(config_.part_present.offset) + " of " +
                         config_.chip + " (gpio.part_present_line): " + errno_text(-level));
     }
-    part_present_.state = part_present_.raw = (level != 0) != part_present_.active_low;
-    part_present_.raw_since_ns = gpio_now_ns();
+    part_present_.debounce = EdgeDebounce(config_.debounce_us * kNsPerUs);
+    part_present_.debounce.reset((level != 0) != part_present_.active_low, gpio_now_ns());
   }
   undo.dismiss();
   open_ = true;
@@ -180,13 +180,9 @@ DeviceStatus GpiodIo::wait_edge(EdgeEvent& out, int timeout_ms) {
   if (lost_) return DeviceStatus::kDeviceLost;
   InputLine& input = part_present_;
   if (input.line == nullptr) return DeviceStatus::kInvalidArgument;
-  const std::int64_t debounce_ns = config_.debounce_us * kNsPerUs;
   const std::int64_t deadline_ns = gpio_now_ns() + std::max(0, timeout_ms) * kNsPerMs;
 
   auto deliver = [&](bool level, std::int64_t timestamp_ns) {
-    input.state = level;
-    input.have_accepted = true;
-    input.accepted_ns = timestamp_ns;
     out.input = Input::kPartPresent;
     out.edge = level ? Edge::kRising : Edge::kFalling;
     out.timestamp_ns = timestamp_ns;
@@ -198,11 +194,12 @@ DeviceStatus GpiodIo::wait_edge(EdgeEvent& out, int timeout_ms) {
     const std::int64_t now_ns = gpio_now_ns();
     // Bounces were ignored but left the pin at the other level: once the debounce window has passed, that level
     // is the truth (a part shorter than the window must still end its pass).
-    const bool unsettled = input.raw != input.state;
-    const std::int64_t settle_ns = input.accepted_ns + debounce_ns;
+    const bool unsettled = input.debounce.unsettled();
+    const std::int64_t settle_ns = input.debounce.settle_at_ns();
     if (unsettled && now_ns >= settle_ns) {
       ++stats_.settled_edges;
-      return deliver(input.raw, input.raw_since_ns);
+      const std::int64_t since_ns = input.debounce.settle();
+      return deliver(input.debounce.state(), since_ns);
     }
     const std::int64_t until_ns = unsettled ? std::min(deadline_ns, settle_ns) : deadline_ns;
     const timespec timeout = to_timespec(std::max<std::int64_t>(0, until_ns - now_ns));
@@ -218,9 +215,7 @@ DeviceStatus GpiodIo::wait_edge(EdgeEvent& out, int timeout_ms) {
     if (result = api_.line_event_read(input.line, event); result < 0) return fail(result);
     const std::int64_t timestamp_ns = to_ns(event.ts);
     const bool level = (event.event_type == GPIOD_LINE_EVENT_RISING_EDGE) != input.active_low;
-    input.raw = level;
-    input.raw_since_ns = timestamp_ns;
-    if (level == input.state || (input.have_accepted && timestamp_ns - input.accepted_ns < debounce_ns)) {
+    if (!input.debounce.on_edge(level, timestamp_ns)) {
       ++stats_.bounces;
       continue;
     }

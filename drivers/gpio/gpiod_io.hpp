@@ -5,6 +5,7 @@
 #include <string>
 
 #include "drivers/digital_io.hpp"
+#include "drivers/edge_debounce.hpp"
 #include "drivers/gpio/gpiod_api.hpp"
 
 namespace cellsight::drivers {
@@ -69,11 +70,7 @@ class GpiodIo final : public DigitalIo {
   struct InputLine {
     gpiod_line* line = nullptr;
     bool active_low = false;
-    bool state = false;             // debounced, active-high logic
-    bool raw = false;               // level of the last raw edge
-    std::int64_t raw_since_ns = 0;  // when the pin reached `raw`
-    bool have_accepted = false;
-    std::int64_t accepted_ns = 0;  // time of the last delivered edge
+    EdgeDebounce debounce;  // active-high logic
   };
 
   [[nodiscard]] OutputLine* output(Output line);
