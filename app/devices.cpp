@@ -58,7 +58,7 @@ Expected<Devices> make_devices(const Config& config, sim::SimLine* line, bool fo
     d.camera = std::make_unique<drivers::V4L2Camera>(seams->sys, c);
   }
   if (sim_gpio) {
-    d.io = std::make_unique<sim::SimDigitalIo>(*line);
+    d.io = std::make_unique<sim::SimDigitalIo>(*line, config.gpio.debounce_us);
     d.encoder = std::make_unique<sim::SimEncoder>(*line);
   } else {
     drivers::GpiodIoConfig io;

@@ -34,18 +34,23 @@
 #include "app/template_file.hpp"
 #include "drivers/log.hpp"
 #include "drivers/sim/sim_devices.hpp"
+#include "drivers/sim/sim_faults.hpp"
 
 namespace cellsight::app {
 
 const char* const kRunUsage =
     "  run [--sim] [--parts N] [--models DIR] [--calibration FILE] [--port P]\n"
-    "      [--sim: --seed S --sim-parts A,B,.. --truth-log FILE --wait-plc --sim-oracle]\n"
+    "      [--sim: --seed S --sim-parts A,B,.. --truth-log FILE --wait-plc --sim-oracle --sim-faults SPEC\n"
+    "       --sim-replay K]\n"
     "        the production cell: scan, recognise, publish to the PLC over Modbus TCP until SIGTERM/SIGINT or N\n"
     "        parts; --sim runs the simulated camera, GPIO and conveyor (as fast as the CPU allows), with random\n"
     "        catalogue parts (--sim-parts: only these); --wait-plc lets\n"
     "        the simulated conveyor wait for TRIGGER_ENABLE and a free result queue; --truth-log writes the\n"
     "        simulator's truth per acquisition (JSON lines); --sim-oracle decides from that truth (runtime tests\n"
-    "        without a model database, not recognition)\n";
+    "        without a model database, not recognition); --sim-faults KIND@EVERY[/VALUE],... injects faults into\n"
+    "        every EVERY-th simulated pass (camera_stall, camera_hiccup, encoder_glitch, chatter; the soak test);\n"
+    "        --sim-replay K: the conveyor brings K distinct passes over and over, each rendered once and then\n"
+    "        replayed byte for byte from memory (K x one pass of frames), so the loop runs as fast as it works\n";
 
 namespace {
 
@@ -131,9 +136,11 @@ struct SimFeed {
 };
 
 Expected<SimFeed> draw_passes(const sim::SimCell& cell, std::uint64_t seed, std::uint64_t parts,
-                              const std::vector<std::string>& only) {
+                              const std::vector<std::string>& only, std::uint64_t distinct) {
   SimFeed feed;
-  const std::size_t count = parts == 0 ? kPregeneratedPasses : std::min<std::uint64_t>(parts, kPregeneratedPasses);
+  const std::size_t count = distinct > 0 ? distinct
+                            : parts == 0 ? kPregeneratedPasses
+                                         : std::min<std::uint64_t>(parts, kPregeneratedPasses);
   const auto& catalogue = cell.catalogue();
   std::vector<std::size_t> candidates;  // catalogue indices that may arrive
   for (std::size_t i = 0; i < catalogue.size(); ++i) {
@@ -203,8 +210,9 @@ class SimOracle final : public Recogniser {
 // with fprintf into the FILE's buffer (no operator new).
 class TruthLog final : public LoopObserver {
  public:
-  TruthLog(std::FILE* file, const sim::SimLine& line, const SimFeed& feed, bool with_oracle_ids)
-      : file_(file), line_(line), feed_(feed), with_oracle_ids_(with_oracle_ids) {
+  TruthLog(std::FILE* file, const sim::SimLine& line, const SimFeed& feed, const sim::FaultPlan& faults,
+           bool with_oracle_ids)
+      : file_(file), line_(line), feed_(feed), faults_(faults), with_oracle_ids_(with_oracle_ids) {
     pass_of_acq_.fill(-1);
   }
 
@@ -230,6 +238,8 @@ class TruthLog final : public LoopObserver {
                  record.acq_id, pass_index, pass.part.c_str(), pass.seed, pass.pose.x_m, pass.pose.y_m,
                  pass.pose.theta_rad * kDegPerRad, pass.pose.swing_rad * kDegPerRad, pass.coating_a.name.c_str());
     if (with_oracle_ids_) std::fprintf(file_, ", \"oracle_part_id\": %d", feed_.part_index[k] + 1);
+    const std::string_view fault = faults_.kind_of(static_cast<std::uint64_t>(pass_index));
+    if (!fault.empty()) std::fprintf(file_, ", \"fault\": \"%.*s\"", static_cast<int>(fault.size()), fault.data());
     std::fputs("}\n", file_);
     std::fflush(file_);
   }
@@ -238,6 +248,7 @@ class TruthLog final : public LoopObserver {
   std::FILE* file_;
   const sim::SimLine& line_;
   const SimFeed& feed_;
+  const sim::FaultPlan& faults_;
   bool with_oracle_ids_;
   std::array<std::int64_t, kAcqRing> pass_of_acq_{};
 };
@@ -300,13 +311,18 @@ Expected<RunOptions> parse_run_args(const std::vector<std::string>& args) {
     } else if (a == "--config" || a == "--log-level") {
       if (!has_value) return make_error(a + " needs a value");
       ++i;  // handled by the front end
-    } else if (a == "--parts" || a == "--seed" || a == "--port") {
+    } else if (a == "--parts" || a == "--seed" || a == "--port" || a == "--sim-replay") {
       auto value = need_value();
       if (!value) return value.error();
       std::uint64_t number = 0;
       if (!parse_u64(*value, number)) return make_error(a + " '" + *value + "': expected a whole number >= 0");
       if (a == "--parts") {
         options.parts = number;
+      } else if (a == "--sim-replay") {
+        if (number == 0 || number > kPregeneratedPasses) {
+          return make_error("--sim-replay " + *value + ": 1.." + std::to_string(kPregeneratedPasses) + " passes");
+        }
+        options.sim_replay = number;
       } else if (a == "--seed") {
         options.seed = number;
         seed_given = true;
@@ -314,6 +330,10 @@ Expected<RunOptions> parse_run_args(const std::vector<std::string>& args) {
         if (number > static_cast<std::uint64_t>(kPortMax)) return make_error("--port " + *value + ": 0..65535");
         options.port = static_cast<int>(number);
       }
+    } else if (a == "--sim-faults") {
+      auto value = need_value();
+      if (!value) return value.error();
+      options.sim_faults = *value;
     } else if (a == "--sim-parts") {
       auto value = need_value();
       if (!value) return value.error();
@@ -335,11 +355,12 @@ Expected<RunOptions> parse_run_args(const std::vector<std::string>& args) {
     }
   }
   if (!options.sim && (seed_given || !options.truth_log.empty() || options.wait_plc || options.sim_oracle ||
-                       !options.sim_parts.empty())) {
+                       !options.sim_parts.empty() || !options.sim_faults.empty() || options.sim_replay > 0)) {
     return make_error(
-        "--seed, --sim-parts, --truth-log, --wait-plc and --sim-oracle apply to the simulated cell: add "
-        "--sim");
+        "--seed, --sim-parts, --sim-faults, --sim-replay, --truth-log, --wait-plc and --sim-oracle apply to the "
+        "simulated cell: add --sim");
   }
+  if (auto plan = sim::FaultPlan::parse(options.sim_faults, {}); !plan) return plan.error();
   return options;
 }
 
@@ -383,14 +404,27 @@ int run_run(const std::vector<std::string>& args, const Config& config) {
   std::optional<sim::SimCell> cell;
   std::optional<sim::SimLine> line;
   SimFeed feed;
+  auto parsed_faults = sim::FaultPlan::parse(options.sim_faults, {config.camera.timeout_ms, config.gpio.debounce_us});
+  if (!parsed_faults) return fail(kExitUsage, parsed_faults.error().message);
+  const sim::FaultPlan faults = std::move(*parsed_faults);
+  if (!faults.empty()) {
+    CS_LOG_WARN(kComponent, "--sim-faults %s: faults are injected into the simulated devices",
+                options.sim_faults.c_str());
+  }
   if (sim) {
     auto made = make_sim_cell(config);
     if (!made) return fail(kExitUsage, made.error().message);
     cell.emplace(std::move(*made));
     line.emplace(*cell);
-    auto drawn = draw_passes(*cell, options.seed, options.parts, options.sim_parts);
+    auto drawn = draw_passes(*cell, options.seed, options.parts, options.sim_parts, options.sim_replay);
     if (!drawn) return fail(kExitUsage, drawn.error().message);
     feed = std::move(*drawn);
+    if (options.sim_replay > 0) {
+      if (auto ok = line->enable_frame_memo(options.sim_replay); !ok) return fail(kExitFailure, ok.error().message);
+      CS_LOG_WARN(kComponent, "--sim-replay %" PRIu64 ": %" PRIu64
+                  " distinct passes, each rendered once and then replayed from memory",
+                  options.sim_replay, options.sim_replay);
+    }
   }
   std::FILE* truth_file = nullptr;
   if (!options.truth_log.empty()) {
@@ -461,7 +495,7 @@ int run_run(const std::vector<std::string>& args, const Config& config) {
   std::optional<TruthLog> truth;
   if (truth_file != nullptr && line) {
     if (!options.sim_oracle) write_template_truth(truth_file, config, *cell, models_dir);
-    truth.emplace(truth_file, *line, feed, options.sim_oracle);
+    truth.emplace(truth_file, *line, feed, faults, options.sim_oracle);
     loop.set_observer(&*truth);
   }
 
@@ -492,7 +526,9 @@ int run_run(const std::vector<std::string>& args, const Config& config) {
       // The simulated conveyor: a couple of parts waiting; time only moves when the loop asks for edges or frames.
       // Fed until the loop has its parts (an aborted pass does not count, so N passes may not be enough).
       while (!loop.finished() && line->queued() < kQueuedPassesAhead) {
-        line->enqueue(feed.passes[fed % feed.passes.size()]);
+        const std::uint64_t k = fed % feed.passes.size();
+        line->enqueue(feed.passes[k], faults.for_pass(fed, cell->frame_count()),
+                      options.sim_replay > 0 ? static_cast<std::int64_t>(k) : -1);
         ++fed;
       }
     }
@@ -521,14 +557,22 @@ int run_run(const std::vector<std::string>& args, const Config& config) {
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
   CS_LOG_INFO(kComponent,
               "stopped after %.1f s: %" PRIu64 " parts, %" PRIu64 " results (%" PRIu64 " timeouts, %" PRIu64
-              " aborted scans, %" PRIu64 " rejected), %" PRIu64 " faults, %" PRIu64
-              " missed triggers, max cycle "
-              "%.1f ms; PLC: %" PRIu64 " presented, %" PRIu64 " acknowledged%s; Modbus clients: %" PRIu64
-              " accepted, %" PRIu64 " evicted, %" PRIu64 " refused, %" PRIu64 " dropped",
-              seconds, stats.triggers, stats.results, stats.timeouts, stats.aborted_scans, stats.results_rejected,
-              stats.faults, stats.missed_triggers, stats.max_cycle_ms, link.results_presented, link.results_acked,
+              " late decisions, %" PRIu64 " aborted scans, %" PRIu64 " rejected), %" PRIu64 " faults (%" PRIu64
+              " recovered), %" PRIu64 " missed triggers, max cycle %.1f ms; PLC: %" PRIu64 " presented, %" PRIu64
+              " acknowledged%s; Modbus clients: %" PRIu64 " accepted, %" PRIu64 " evicted, %" PRIu64
+              " refused, %" PRIu64 " dropped",
+              seconds, stats.triggers, stats.results, stats.timeouts, stats.late_decisions, stats.aborted_scans,
+              stats.results_rejected, stats.faults, stats.recoveries, stats.missed_triggers, stats.max_cycle_ms,
+              link.results_presented, link.results_acked,
               options.wait_plc && options.parts > 0 && !all_taken ? " (not all taken)" : "", link.clients_accepted,
               link.clients_evicted, link.clients_refused, link.clients_dropped);
+  if (line) {
+    const auto* sim_io = dynamic_cast<const sim::SimDigitalIo*>(devices->io.get());
+    CS_LOG_INFO(kComponent, "simulated line: %" PRIu64 " passes started, %" PRIu64 " fed, %" PRIu64
+                " part-present bounces filtered, %" PRIu64 " frames replayed, %" PRIu64 " rendered into the memo",
+                line->passes_started(), fed, sim_io != nullptr ? sim_io->bounces() : 0, line->frame_memo().hits(),
+                line->frame_memo().stores());
+  }
   return kExitOk;
 }
 

@@ -27,6 +27,8 @@ struct RunOptions {
                             // and has room in the result queue; with --parts, exit once it acknowledged all
   bool sim_oracle = false;  // --sim-oracle (--sim): decide from the simulator's truth instead of a model database
                             // (tests of the runtime without a trained database; NOT recognition)
+  std::uint64_t sim_replay = 0;  // --sim-replay K (--sim): K distinct passes, rendered once, replayed from memory
+  std::string sim_faults;   // --sim-faults SPEC (--sim): faults injected into the simulated devices (the soak test)
   int port = -1;            // --port P: overrides modbus.port (0: any free port, printed in the log)
 };
 

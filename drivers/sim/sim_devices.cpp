@@ -2,6 +2,7 @@
 #include "drivers/sim/sim_devices.hpp"
 
 #include <cmath>
+#include <cstring>
 
 namespace cellsight::sim {
 
@@ -9,9 +10,15 @@ using drivers::DeviceStatus;
 
 SimLine::SimLine(SimCell& cell, double gap_between_parts_m) : cell_(cell), gap_m_(gap_between_parts_m) {}
 
-void SimLine::enqueue(const PassSpec& pass) {
+void SimLine::enqueue(const PassSpec& pass, const PassFaults& faults, std::int64_t memo_slot) {
   std::lock_guard lock(mutex_);
-  queue_.push_back(pass);
+  queue_.push_back({pass, faults, memo_slot});
+}
+
+Status SimLine::enable_frame_memo(std::size_t slots) {
+  std::lock_guard lock(mutex_);
+  const auto& k = cell_.rig().params.camera.intrinsics;
+  return memo_.allocate(slots, cell_.frame_count(), k.width_px, k.height_px);
 }
 
 std::size_t SimLine::queued() const {
@@ -40,20 +47,50 @@ std::int64_t SimLine::now_ns_locked() const {
   return static_cast<std::int64_t>(std::llround(travel_m / c.speed_m_per_s * 1e9));
 }
 
+std::int64_t SimLine::now_ns() const {
+  std::lock_guard lock(mutex_);
+  return now_ns_locked();
+}
+
+void SimLine::queue_bounces_locked(bool after_level, std::int64_t edge_ns) {
+  const std::int64_t spacing_ns = static_cast<std::int64_t>(faults_.bounce_spacing_us) * 1000;
+  std::int64_t t = edge_ns;
+  for (int i = 0; i < faults_.bounce_pairs; ++i) {
+    for (const bool level : {!after_level, after_level}) {
+      t += spacing_ns;
+      bounces_.push_back({drivers::Input::kPartPresent, level ? drivers::Edge::kRising : drivers::Edge::kFalling, t});
+    }
+  }
+}
+
 DeviceStatus SimLine::next_edge(drivers::EdgeEvent& out) {
   std::lock_guard lock(mutex_);
   out.input = drivers::Input::kPartPresent;
+  if (!bounces_.empty()) {
+    out = bounces_.front();
+    bounces_.pop_front();
+    return DeviceStatus::kOk;
+  }
   if (falling_pending_) {
     falling_pending_ = false;
     counts_ += cell_.rig().params.conveyor.trigger_every_counts;  // the carrier's end clears the eye a trigger later
     out.edge = drivers::Edge::kFalling;
     out.timestamp_ns = now_ns_locked();
+    queue_bounces_locked(false, out.timestamp_ns);
     return DeviceStatus::kOk;
   }
   if (state_ == State::kIdle && !queue_.empty()) {
-    current_ = queue_.front();
+    current_ = std::move(queue_.front().pass);
+    faults_ = queue_.front().faults;
+    memo_slot_ = memo_.enabled() ? queue_.front().memo_slot : -1;
     queue_.pop_front();
-    if (auto ok = cell_.begin_pass(current_); !ok) return DeviceStatus::kIoError;
+    stall_started_ = false;
+    encoder_ok_from_ = {};
+    scene_ready_ = false;
+    if (memo_slot_ < 0) {  // with the memo the scene is built only when a frame must be rendered
+      if (auto ok = cell_.begin_pass(current_); !ok) return DeviceStatus::kIoError;
+      scene_ready_ = true;
+    }
     // The conveyor runs the gap between carriers before the next part reaches the photo-eye.
     const auto& c = cell_.rig().params.conveyor;
     counts_ += static_cast<std::int64_t>(std::llround(gap_m_ * 1e3 * c.counts_per_mm));
@@ -63,6 +100,7 @@ DeviceStatus SimLine::next_edge(drivers::EdgeEvent& out) {
     ++passes_;
     out.edge = drivers::Edge::kRising;
     out.timestamp_ns = now_ns_locked();
+    queue_bounces_locked(true, out.timestamp_ns);
     return DeviceStatus::kOk;
   }
   return DeviceStatus::kTimeout;
@@ -71,7 +109,36 @@ DeviceStatus SimLine::next_edge(drivers::EdgeEvent& out) {
 DeviceStatus SimLine::next_frame(cv::Mat& image, std::int32_t exposure_us, std::int64_t& timestamp_ns) {
   std::lock_guard lock(mutex_);
   if (stalled_ || state_ != State::kInPass) return DeviceStatus::kTimeout;
-  cell_.render_frame(frame_, exposure_us, image, nullptr, laser_on_);
+  if (frame_ == faults_.camera_stall_frame && faults_.camera_stall_ms > 0) {
+    const WallClock::time_point now = WallClock::now();
+    if (!stall_started_) {
+      stall_started_ = true;
+      stall_until_ = now + std::chrono::milliseconds(faults_.camera_stall_ms);
+    }
+    if (now < stall_until_) return DeviceStatus::kTimeout;
+  }
+  const std::uint8_t* memo =
+      memo_slot_ >= 0 ? memo_.find(static_cast<std::size_t>(memo_slot_), frame_, exposure_us, laser_on_) : nullptr;
+  if (memo != nullptr) {
+    const auto& k = cell_.rig().params.camera.intrinsics;
+    image.create(k.height_px, k.width_px, CV_8UC1);
+    for (int y = 0; y < image.rows; ++y) {
+      std::memcpy(image.ptr<std::uint8_t>(y), memo + static_cast<std::size_t>(y) * static_cast<std::size_t>(image.cols),
+                  static_cast<std::size_t>(image.cols));
+    }
+  } else {
+    if (!scene_ready_) {
+      if (auto ok = cell_.begin_pass(current_); !ok) return DeviceStatus::kIoError;
+      scene_ready_ = true;
+    }
+    cell_.render_frame(frame_, exposure_us, image, nullptr, laser_on_);
+    if (memo_slot_ >= 0) {
+      memo_.store(static_cast<std::size_t>(memo_slot_), frame_, exposure_us, laser_on_, image.data, image.step);
+    }
+  }
+  if (frame_ == faults_.encoder_glitch_frame) {
+    encoder_ok_from_ = WallClock::now() + std::chrono::milliseconds(faults_.encoder_glitch_ms);
+  }
   counts_ = pass_start_counts_ + cell_.frame_info(frame_).encoder_counts;
   timestamp_ns = now_ns_locked();
   ++frame_;
@@ -100,6 +167,11 @@ bool SimLine::part_present() const {
 std::int64_t SimLine::encoder_counts() const {
   std::lock_guard lock(mutex_);
   return counts_;
+}
+
+bool SimLine::encoder_readable() const {
+  std::lock_guard lock(mutex_);
+  return WallClock::now() >= encoder_ok_from_;
 }
 
 std::uint64_t SimLine::trigger_pulses() const {
@@ -159,6 +231,7 @@ void SimCamera::release(const drivers::Frame& frame) {
 
 // --- digital I/O -----------------------------------------------------------------------------------------
 Status SimDigitalIo::open() {
+  debounce_.reset(line_.part_present(), line_.now_ns());
   open_ = true;
   return {};
 }
@@ -189,9 +262,24 @@ DeviceStatus SimDigitalIo::read(drivers::Input /*line*/, bool& active) {
   return DeviceStatus::kOk;
 }
 
-DeviceStatus SimDigitalIo::wait_edge(drivers::EdgeEvent& out, int /*timeout_ms*/) {
+DeviceStatus SimDigitalIo::wait_edge(drivers::EdgeEvent& out, int /*timeout_ms: simulated time does not wait*/) {
   if (!open_) return DeviceStatus::kNotStarted;
-  return line_.next_edge(out);
+  for (;;) {
+    if (debounce_.unsettled() && line_.now_ns() >= debounce_.settle_at_ns()) {
+      out.input = drivers::Input::kPartPresent;
+      out.timestamp_ns = debounce_.settle();
+      out.edge = debounce_.state() ? drivers::Edge::kRising : drivers::Edge::kFalling;
+      return DeviceStatus::kOk;
+    }
+    drivers::EdgeEvent raw;
+    const DeviceStatus status = line_.next_edge(raw);
+    if (status != DeviceStatus::kOk) return status;
+    if (debounce_.on_edge(raw.edge == drivers::Edge::kRising, raw.timestamp_ns)) {
+      out = raw;
+      return DeviceStatus::kOk;
+    }
+    ++bounces_;
+  }
 }
 
 // --- encoder ---------------------------------------------------------------------------------------------
@@ -205,6 +293,7 @@ void SimEncoder::close() { open_ = false; }
 
 DeviceStatus SimEncoder::read_counts(std::int64_t& counts) {
   if (!open_) return DeviceStatus::kNotStarted;
+  if (!line_.encoder_readable()) return DeviceStatus::kIoError;
   counts = line_.encoder_counts() - offset_;
   return DeviceStatus::kOk;
 }
