@@ -1720,6 +1720,33 @@ TEST_CASE("server: a client that polls keeps its slot however early it connected
   CHECK(running.server.stats().clients_evicted == 1);
 }
 
+TEST_CASE("server: a storm of new connections that send nothing does not push out a client that polls",
+          "[modbus][server][robustness]") {
+  // Found by the soak (tests/soak.py): a port scanner's burst of connections evicted the polling PLC, because each
+  // newcomer counted as active from its connection and the PLC had been quiet for one poll period.
+  ModbusServerConfig config = loopback_config();
+  config.max_clients = 3;
+  RunningServer running(config);
+  // Given a PLC that polls, and a second client that polls too
+  MbClient plc(running.port);
+  MbClient hmi(running.port);
+  REQUIRE(plc.connected());
+  REQUIRE(hmi.connected());
+  std::uint16_t version = 0;
+  REQUIRE(plc.read(110, &version, 1) == 0);
+  REQUIRE(hmi.read(110, &version, 1) == 0);
+  // When, after their last poll, connections arrive one after another and send nothing
+  std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  auto storm = connect_idle(running, 6);
+  // Then each newcomer took the slot of the silent one before it, never a client that polls
+  CHECK(running.server.stats().clients_evicted == 5);
+  CHECK(plc.read(110, &version, 1) == 0);
+  CHECK(hmi.read(110, &version, 1) == 0);
+  CHECK(version == 1);
+  for (std::size_t i = 0; i + 1 < storm.size(); ++i) CHECK(storm[i]->closed_within(2000));
+  CHECK(served(*storm.back(), 11));
+}
+
 TEST_CASE("server: a client in the middle of a request is not evicted in preference to an idle one",
           "[modbus][server][robustness]") {
   ModbusServerConfig config = loopback_config();

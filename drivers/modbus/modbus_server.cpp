@@ -59,6 +59,7 @@ struct Client {
   std::int64_t partial_since_ns = 0;  // when the unfinished frame at the front of rx started arriving
   std::int64_t last_activity_ns = 0;
   std::int64_t last_request_ns = 0;  // the last complete request (or the connection) arrived: eviction order
+  bool answered = false;             // it has made a complete request since it connected
   std::array<char, kPeerNameBytes> peer{};
 };
 
@@ -259,6 +260,7 @@ void ModbusServer::Impl::accept_clients(std::int64_t now_ns) {
     slot->partial_since_ns = now_ns;
     slot->last_activity_ns = now_ns;
     slot->last_request_ns = now_ns;
+    slot->answered = false;
     slot->peer = name;
     clients_accepted.fetch_add(1, std::memory_order_relaxed);
     clients_connected.fetch_add(1, std::memory_order_relaxed);
@@ -266,24 +268,32 @@ void ModbusServer::Impl::accept_clients(std::int64_t now_ns) {
   }
 }
 
-// An empty slot, else the slot of the client longest without a complete request, closed for the newcomer. Idle
-// holders (a crashed HMI, a port scanner, an attacker) must not lock a reconnecting PLC out until the idle timeout;
-// a client that polls keeps its slot. A client with half a request buffered is left alone: it is working, and it
-// finishes or is dropped within byte_timeout_ms. nullptr when every client is such a one.
+// An empty slot, else a slot closed for the newcomer: of a client that has made no request since it connected (the
+// one connected longest), else of the client longest without a complete request. Idle holders (a crashed HMI, a port
+// scanner, an attacker) must not lock a reconnecting PLC out until the idle timeout, and a storm of new connections
+// that send nothing must not push out a client that polls, however briefly that one has been quiet (the soak found
+// a polling PLC evicted by every burst of port-scan connections). A client with half a request buffered is left
+// alone: it is working, and it finishes or is dropped within byte_timeout_ms. nullptr when every client is such a one.
 Client* ModbusServer::Impl::free_slot(const char* newcomer, std::int64_t now_ns) {
-  Client* longest_idle = nullptr;
+  Client* victim = nullptr;
+  const auto before = [](const Client& a, const Client& b) {
+    if (a.answered != b.answered) return !a.answered;
+    return a.last_request_ns < b.last_request_ns;
+  };
   for (Client& client : clients) {
     if (client.fd < 0) return &client;
     if (client.rx_bytes > 0) continue;
-    if (longest_idle == nullptr || client.last_request_ns < longest_idle->last_request_ns) longest_idle = &client;
+    if (victim == nullptr || before(client, *victim)) victim = &client;
   }
-  if (longest_idle == nullptr) return nullptr;
-  const double idle_s = static_cast<double>(now_ns - longest_idle->last_request_ns) / kNsPerS;
-  CS_LOG_WARN(kComponent, "client %s evicted: no request for %.3f s, the longest of %d clients; its slot goes to %s",
-              longest_idle->peer.data(), idle_s, config.max_clients, newcomer);
+  if (victim == nullptr) return nullptr;
+  const double idle_s = static_cast<double>(now_ns - victim->last_request_ns) / kNsPerS;
+  CS_LOG_WARN(kComponent, "client %s evicted: %s %.3f s, %s of %d clients; its slot goes to %s", victim->peer.data(),
+              victim->answered ? "no request for" : "no request since it connected", idle_s,
+              victim->answered ? "the longest" : "the longest silent newcomer", config.max_clients, newcomer);
   clients_evicted.fetch_add(1, std::memory_order_relaxed);
-  close_client(*longest_idle, false, "evicted (longest idle, table full)");
-  return longest_idle;
+  close_client(*victim, false, victim->answered ? "evicted (longest idle, table full)"
+                                                : "evicted (no request since it connected, table full)");
+  return victim;
 }
 
 void ModbusServer::Impl::read_client(Client& client, std::int64_t now_ns) {
@@ -330,6 +340,7 @@ void ModbusServer::Impl::serve_frames(Client& client, std::int64_t now_ns) {
       }
       exceptions_sent.fetch_add(1, std::memory_order_relaxed);
       client.last_request_ns = now_ns;
+      client.answered = true;
     } else {
       (void)modbus_set_socket(ctx, client.fd);
       if (modbus_reply(ctx, pending.data(), static_cast<int>(screened.frame_bytes), &mapping) < 0) {
@@ -338,6 +349,7 @@ void ModbusServer::Impl::serve_frames(Client& client, std::int64_t now_ns) {
       }
       requests_served.fetch_add(1, std::memory_order_relaxed);
       client.last_request_ns = now_ns;
+      client.answered = true;
       if (is_write_function(screened.function)) {
         core.on_plc_write(now_ns);
         core.service(now_ns);  // an ack or a cleared ack takes effect before the next request is read
