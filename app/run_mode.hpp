@@ -23,13 +23,13 @@ struct RunOptions {
   std::string truth_log;               // --truth-log FILE (--sim): one JSON line of simulator truth per acquisition
   std::uint64_t seed = 1;              // --seed S (--sim): which parts and poses arrive
   std::vector<std::string> sim_parts;  // --sim-parts A,B,... (--sim): only these catalogue parts arrive
-  bool wait_plc = false;    // --wait-plc (--sim): the conveyor brings parts only while the PLC enables triggers
-                            // and has room in the result queue; with --parts, exit once it acknowledged all
-  bool sim_oracle = false;  // --sim-oracle (--sim): decide from the simulator's truth instead of a model database
-                            // (tests of the runtime without a trained database; NOT recognition)
+  bool wait_plc = false;         // --wait-plc (--sim): the conveyor brings parts only while the PLC enables triggers
+                                 // and has room in the result queue; with --parts, exit once it acknowledged all
+  bool sim_oracle = false;       // --sim-oracle (--sim): decide from the simulator's truth instead of a model database
+                                 // (tests of the runtime without a trained database; NOT recognition)
   std::uint64_t sim_replay = 0;  // --sim-replay K (--sim): K distinct passes, rendered once, replayed from memory
-  std::string sim_faults;   // --sim-faults SPEC (--sim): faults injected into the simulated devices (the soak test)
-  int port = -1;            // --port P: overrides modbus.port (0: any free port, printed in the log)
+  std::string sim_faults;  // --sim-faults SPEC (--sim): faults injected into the simulated devices (the soak test)
+  int port = -1;           // --port P: overrides modbus.port (0: any free port, printed in the log)
 };
 
 // Parses the words after "run" (a "--config F" or "--log-level L" pair is skipped: the front end handles those).

@@ -53,8 +53,8 @@ class EdgeDebounce {
   }
 
   std::int64_t debounce_ns_ = 0;
-  bool state_ = false;            // debounced, active-high logic
-  bool raw_ = false;              // level of the last raw edge
+  bool state_ = false;             // debounced, active-high logic
+  bool raw_ = false;               // level of the last raw edge
   std::int64_t raw_since_ns_ = 0;  // when the pin reached raw_
   bool have_accepted_ = false;
   std::int64_t accepted_ns_ = 0;  // time of the last delivered edge

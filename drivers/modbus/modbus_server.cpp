@@ -291,8 +291,9 @@ Client* ModbusServer::Impl::free_slot(const char* newcomer, std::int64_t now_ns)
               victim->answered ? "no request for" : "no request since it connected", idle_s,
               victim->answered ? "the longest" : "the longest silent newcomer", config.max_clients, newcomer);
   clients_evicted.fetch_add(1, std::memory_order_relaxed);
-  close_client(*victim, false, victim->answered ? "evicted (longest idle, table full)"
-                                                : "evicted (no request since it connected, table full)");
+  close_client(
+      *victim, false,
+      victim->answered ? "evicted (longest idle, table full)" : "evicted (no request since it connected, table full)");
   return victim;
 }
 

@@ -6,8 +6,8 @@
 #include <cstdint>
 #include <deque>
 #include <mutex>
-#include <utility>
 #include <opencv2/core.hpp>
+#include <utility>
 #include <vector>
 
 #include "drivers/camera.hpp"
@@ -86,12 +86,12 @@ class SimLine {
     std::int64_t memo_slot = -1;
   };
   std::deque<Queued> queue_;
-  PassFaults faults_;                         // of the current pass
-  std::int64_t memo_slot_ = -1;               // of the current pass
-  bool scene_ready_ = false;                  // cell_ holds the current pass's scene
+  PassFaults faults_;            // of the current pass
+  std::int64_t memo_slot_ = -1;  // of the current pass
+  bool scene_ready_ = false;     // cell_ holds the current pass's scene
   FrameMemo memo_;
-  std::deque<drivers::EdgeEvent> bounces_;    // raw edges still to come
-  WallClock::time_point stall_until_{};       // injected camera stall: no frames before this
+  std::deque<drivers::EdgeEvent> bounces_;  // raw edges still to come
+  WallClock::time_point stall_until_{};     // injected camera stall: no frames before this
   bool stall_started_ = false;
   WallClock::time_point encoder_ok_from_{};  // injected encoder glitch: unreadable before this
   State state_ = State::kIdle;

@@ -7,7 +7,7 @@
 namespace cellsight::sim {
 namespace {
 
-constexpr int kStallTimeoutFactor = 2;   // a stall lasts twice the camera timeout: the loop must give up the pass
+constexpr int kStallTimeoutFactor = 2;    // a stall lasts twice the camera timeout: the loop must give up the pass
 constexpr int kHiccupTimeoutDivisor = 4;  // a hiccup a quarter of it: the loop must wait it out
 constexpr int kGlitchMs = 300;
 constexpr int kChatterPairs = 3;
@@ -52,7 +52,8 @@ Expected<FaultPlan> FaultPlan::parse(std::string_view spec, const FaultDefaults&
     const std::size_t at = item.find('@');
     if (at == std::string_view::npos) return make_error(bad + "expected KIND@EVERY[/VALUE], e.g. camera_stall@50");
     const std::string_view name = item.substr(0, at);
-    const auto* known = std::find_if(std::begin(kKinds), std::end(kKinds), [&](const KindName& k) { return k.name == name; });
+    const auto* known =
+        std::find_if(std::begin(kKinds), std::end(kKinds), [&](const KindName& k) { return k.name == name; });
     if (known == std::end(kKinds)) {
       return make_error(bad + "unknown kind; known: camera_stall, camera_hiccup, encoder_glitch, chatter");
     }
