@@ -517,6 +517,11 @@ def disk_full(args, problems, results):
                str(args.teach_count), "--first-part", args.first_part]
     command += ["--models", args.models] if args.models else ["--sim-oracle"]
     r = subprocess.run(command, capture_output=True, text=True)
+    if r.returncode != 0 and not r.stdout.strip() and "unshare" in r.stderr:
+        # No private mount namespace here (not root, or a container without CAP_SYS_ADMIN): said, not hidden.
+        print(f"soak: disk-full teach SKIPPED: {r.stderr.strip()}", flush=True)
+        results.append({"skipped": r.stderr.strip()})
+        return
     try:
         report = json.loads(r.stdout.strip().splitlines()[-1])
     except (ValueError, IndexError):
@@ -832,15 +837,22 @@ def main_phase(args, work, problems, summary):
     for m in PART_RE.finditer(text):
         cycles[int(m.group(1))] = float(m.group(3))
     ok_cycles = [cycles[b["acq_id"]] for _, b, _, _ in taken if b["code"] != CODE_BAD_SCAN and b["acq_id"] in cycles]
+    # CYCLE_MS is taken when the result is made, the log's cycle once the link took it: the register can only be
+    # the shorter (by the hand-over, which a loaded machine stretches), never the longer.
+    handover_ms = [0.0]
     for _, b, _, _ in taken:
         c = cycles.get(b["acq_id"])
-        if c is not None and b["code"] != CODE_BAD_SCAN and abs(c - b["cycle_ms"]) > 1.0:
+        if c is None or b["code"] == CODE_BAD_SCAN:
+            continue
+        handover_ms.append(c - b["cycle_ms"])
+        if b["cycle_ms"] > c + 0.5:
             problems.add(f"main: acq {b['acq_id']}: CYCLE_MS {b['cycle_ms']} but the log says {c} ms")
     summary["main"] = {
         "parts": args.parts, "results_taken": len(taken), "lost": args.parts - len(set(passes)),
         "deadline_misses": deadline_misses, "codes": {str(k): v for k, v in sorted(codes.items())},
         "correct": correct, "unknown": unknown, "wrong_ids": wrong_ids,
-        "cycle_ms": {"p50": percentile(ok_cycles, 50), "p99": percentile(ok_cycles, 99), "max": max(ok_cycles, default=None)},
+        "cycle_ms": {"p50": percentile(ok_cycles, 50), "p99": percentile(ok_cycles, 99),
+                     "max": max(ok_cycles, default=None), "register_below_log_max": round(max(handover_ms), 1)},
         "faults": fault_report, "memory": mem,
         "plc_a": {"reconnects": plc.reconnects, "torn": plc.torn, "valid_with_error": plc.valid_with_error},
         "plc_b": {"polls": shared.b_polls, "results_seen": shared.b_seen, "reconnects": shared.b_reconnects},
