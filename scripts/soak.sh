@@ -34,7 +34,7 @@ done
 scripts/setup.sh >/dev/null
 if [ -z "${CELLSIGHT_BIN:-}" ]; then
   BUILD=${CELLSIGHT_SOAK_BUILD:-build-soak}
-  cmake -S . -B "$BUILD" -DCMAKE_BUILD_TYPE=Release -DCELLSIGHT_BUILD_TESTS=OFF >/dev/null
+  cmake -S . -B "$BUILD" -DCMAKE_BUILD_TYPE=Release >/dev/null
   cmake --build "$BUILD" -j"$(nproc)" --target cellsight
   CELLSIGHT_BIN=$BUILD/app/cellsight
 fi
@@ -80,7 +80,8 @@ fi
 echo "$STAMP" > "$CELL/stamp"
 
 ARGS=(--cellsight "$BIN" --config "$CONFIG" --calibration "$CELL/calibration.yaml" --models "$CELL/models"
-      --sim-parts plate_4h,plate_5h,bracket_l --parts "$PARTS" --restarts "$RESTARTS" --disk-full)
+      --sim-parts plate_4h,plate_5h,bracket_l --parts "$PARTS" --restarts "$RESTARTS" --disk-full
+      --timeout $((PARTS / 2 + 600)))  # a hung run fails instead of holding CI
 [ -n "$JSON" ] && ARGS+=(--json "$JSON")
 [ -n "$KEEP" ] && ARGS+=(--keep "$KEEP")
 echo "== soak: $PARTS parts, $RESTARTS restarts after SIGTERM mid-pass, faults injected (tests/soak.py)"

@@ -360,47 +360,68 @@ def plc_b(port, shared, problems):
         client.close()
 
 
+class RoundProblems:
+    """Problems of one abuse round, kept only if the run was not over when the round ended: cellsight closes its port
+    and exits by itself once the PLC has every result, and a round overlapping that sees refused connections."""
+
+    def __init__(self):
+        self.items = []
+
+    def add(self, what):
+        self.items.append(what)
+
+
 def abuser(port, shared, problems):
-    """Rounds of abuse, one every couple of seconds, until stopped."""
+    """Rounds of abuse, one every couple of seconds, until stopped or the run is over."""
     rounds = 0
-    while not shared.stop:
+    while not shared.stop and not shared.run_over():
         rounds += 1
-        # Exception replies and broken framing (test_run_plc's cases), one round.
-        plc_test.abuser(port, shared, problems, 1)
-        shared.abuse_answered_total += shared.abuse_answered
-        # Idle connections held open: they may be evicted for a newcomer, never lock anybody out.
-        idle = []
-        for _ in range(3):
-            try:
-                idle.append(socket.create_connection(("127.0.0.1", port), timeout=2))
-            except OSError as error:
-                problems.add(f"abuser: cannot open an idle connection: {error}")
-        # A half frame (slowloris): dropped after modbus.byte_timeout_ms.
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=3) as s:
-                s.sendall(plc_test.mbap(1, struct.pack(">BHH", 0x03, 200, 27))[:5])
-                s.settimeout(3)
-                if s.recv(16) != b"":
-                    problems.add("abuser: a half frame got an answer instead of a closed connection")
-                shared.slowloris_closed += 1
-        except socket.timeout:
-            problems.add("abuser: a half frame kept its connection for 3 s")
-        except OSError:
-            shared.slowloris_closed += 1
-        # A reconnect storm.
-        for _ in range(20):
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=2).close()
-                shared.storm_connects += 1
-            except OSError as error:
-                problems.add(f"abuser: storm connection refused: {error}")
-        for _ in range(40):  # hold the idle ones a couple of seconds
-            if shared.stop:
-                break
-            time.sleep(0.05)
-        for s in idle:
-            s.close()
+        found = RoundProblems()
+        abuse_round(port, shared, found)
+        if shared.run_over():
+            break
+        for what in found.items:
+            problems.add(what)
     shared.abuse_rounds = rounds
+
+
+def abuse_round(port, shared, problems):
+    """One round: exception cases, broken framing, idle connections, a half frame, a storm of connections."""
+    # Exception replies and broken framing (test_run_plc's cases), one round.
+    plc_test.abuser(port, shared, problems, 1)
+    shared.abuse_answered_total += shared.abuse_answered
+    # Idle connections held open: they may be evicted for a newcomer, never lock anybody out.
+    idle = []
+    for _ in range(3):
+        try:
+            idle.append(socket.create_connection(("127.0.0.1", port), timeout=2))
+        except OSError as error:
+            problems.add(f"abuser: cannot open an idle connection: {error}")
+    # A half frame (slowloris): dropped after modbus.byte_timeout_ms.
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=3) as s:
+            s.sendall(plc_test.mbap(1, struct.pack(">BHH", 0x03, 200, 27))[:5])
+            s.settimeout(3)
+            if s.recv(16) != b"":
+                problems.add("abuser: a half frame got an answer instead of a closed connection")
+            shared.slowloris_closed += 1
+    except socket.timeout:
+        problems.add("abuser: a half frame kept its connection for 3 s")
+    except OSError:
+        shared.slowloris_closed += 1
+    # A reconnect storm.
+    for _ in range(20):
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=2).close()
+            shared.storm_connects += 1
+        except OSError as error:
+            problems.add(f"abuser: storm connection refused: {error}")
+    for _ in range(40):  # hold the idle ones a couple of seconds
+        if shared.stop:
+            break
+        time.sleep(0.05)
+    for s in idle:
+        s.close()
 
 
 # ------------------------------------------------------------------------------------------------ disk full
@@ -644,13 +665,14 @@ def main_phase(args, work, problems, summary):
     shared.abuse_answered = shared.abuse_answered_total = shared.abuse_rounds = 0
     shared.b_polls = shared.b_seen = shared.b_reconnects = 0
     shared.slowloris_closed = shared.storm_connects = 0
+    plc = PlcA(port, problems)
+    shared.run_over = lambda: len(plc.results) >= args.parts or cell.process.poll() is not None
     samples = []  # (results taken,) + proc_sample()
     disk_reports = []
     disk_at = set()
     if args.disk_full:
         disk_at = {max(1, args.parts // 3)} if args.parts < 3000 else {args.parts // 3, 2 * args.parts // 3}
     disk_threads = []
-    plc = PlcA(port, problems)
 
     def on_result(_block):
         n = len(plc.results)
