@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # The test command (README): installs what is missing, builds with AddressSanitizer + UndefinedBehaviorSanitizer
 # and warnings as errors, and runs every test with ctest, then the timing-sensitive tests in a Release build, the
-# threaded tests under ThreadSanitizer ($CELLSIGHT_TSAN=0 skips), then every fuzz target for a few seconds
-# (scripts/fuzz.sh; $CELLSIGHT_FUZZ_SECONDS each, 0 skips). Usage: scripts/test.sh [regex]: the ctest tests, test
-# binaries and fuzz targets it matches
+# threaded tests under ThreadSanitizer ($CELLSIGHT_TSAN=0 skips), the soak (scripts/soak.sh --ci: 500 parts with
+# faults injected; CELLSIGHT_SOAK=0 skips it), then every fuzz target for a few seconds (scripts/fuzz.sh;
+# $CELLSIGHT_FUZZ_SECONDS each, 0 skips). Usage: scripts/test.sh [regex]: the ctest tests, test binaries and fuzz
+# targets it matches ("soak" also matches the soak)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -78,5 +79,11 @@ if [ ${#selected[@]} -gt 0 ]; then
     echo "tsan: FAILED: ${failed[*]}" >&2
     exit 1
   fi
+fi
+# The soak (README "Soak and fault injection"): `run --sim` for 500 parts in the Release build with an acknowledging
+# PLC, a polling client, an abusive one and faults injected, SIGTERM mid-pass and a teach into a full disk; about
+# 2 minutes here.
+if [ "${CELLSIGHT_SOAK:-1}" != 0 ] && { [ $# -eq 0 ] || [[ soak =~ $1 ]]; }; then
+  CELLSIGHT_SOAK_BUILD=$RELEASE scripts/soak.sh --ci --work "$RELEASE/soak"
 fi
 scripts/fuzz.sh --ci "${CELLSIGHT_FUZZ_SECONDS:-10}" "$@"
