@@ -613,8 +613,10 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
     report_candidates(best, false);
     return finish();
   }
-  // Unknown: the figures of the most probable verified candidate (or the ambiguous winner) stay for the log.
-  report_candidates(nullptr, best != nullptr);
+  // Unknown: the figures of the most probable verified candidate (or the ambiguous winner) stay for the log. A clear
+  // winner that is unknown only because the search was cut short (budget) is reported as passed, not as ambiguous:
+  // the reason is the candidates left unverified.
+  report_candidates(nullptr, best != nullptr && !clear);
   const Candidate* shown = best != nullptr ? best : top_verified;
   if (best != nullptr) {
     d.unknown_reason = clear ? RejectReason::kNotVerified : RejectReason::kAmbiguous;

@@ -789,6 +789,21 @@ SCENARIO("The cascade decides by the thesis 6.4.4 table and verifies every accep
         CHECK(d.probability == 0.50);
       }
     }
+    WHEN("the true class passes first but the budget runs out before an almost as probable candidate") {
+      CascadeParams p = cat.cascade().params();
+      p.verify_budget_ms = 1e-6;
+      Cascade tight(p, pm_params(), test_grid());
+      const ClassProbability svm[] = {{0, 0.50}, {1, 0.45}, {2, 0.03}, {3, 0.02}};
+      const Decision d = tight.decide(svm, cat.models(), scan, far_deadline());
+      THEN("the scan is unknown for want of verification, and the passing candidate is not called ambiguous") {
+        CHECK(d.source == DecisionSource::kUnknown);
+        CHECK(d.unknown_reason == algo::RejectReason::kNotVerified);
+        CHECK(d.verified_count == 1);
+        CHECK(d.candidates[0].passed);
+        CHECK(d.candidates[0].rejected_by == algo::RejectReason::kNone);
+        CHECK(d.candidates[1].rejected_by == algo::RejectReason::kNotVerified);
+      }
+    }
     WHEN("the deadline has already passed") {
       const ClassProbability svm[] = {{0, 0.90}, {2, 0.05}, {1, 0.03}, {3, 0.02}};
       const Decision d = cat.cascade().decide(svm, cat.models(), scan, Clock::now() - std::chrono::milliseconds(1));
