@@ -3,7 +3,7 @@
 
 #include <cstdint>
 
-#include "algo/result.hpp"
+#include "base/result.hpp"
 #include "drivers/device.hpp"
 
 namespace cellsight::drivers {

@@ -7,7 +7,7 @@
 #include <cstdint>
 #include <string>
 
-#include "algo/result.hpp"
+#include "base/result.hpp"
 
 namespace cellsight::drivers {
 

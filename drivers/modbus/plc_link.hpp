@@ -6,7 +6,7 @@
 #include <cstdint>
 #include <limits>
 
-#include "algo/result.hpp"
+#include "base/result.hpp"
 #include "drivers/modbus/register_map.hpp"
 
 namespace cellsight::drivers {

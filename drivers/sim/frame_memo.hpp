@@ -7,7 +7,7 @@
 #include <cstdint>
 #include <vector>
 
-#include "algo/result.hpp"
+#include "base/result.hpp"
 
 namespace cellsight::sim {
 

@@ -7,7 +7,7 @@
 #include <string>
 #include <vector>
 
-#include "algo/result.hpp"
+#include "base/result.hpp"
 #include "drivers/sim/renderer.hpp"
 #include "drivers/sim/rig.hpp"
 #include "drivers/sim/scene.hpp"

@@ -7,7 +7,7 @@
 #include <string_view>
 #include <vector>
 
-#include "algo/result.hpp"
+#include "base/result.hpp"
 #include "drivers/sim/sim_devices.hpp"
 
 namespace cellsight::sim {
