@@ -13,6 +13,8 @@
 #include <mutex>
 #include <type_traits>
 
+#include "base/crc32.hpp"
+
 namespace cellsight::algo {
 
 static_assert(std::endian::native == std::endian::little, "the model byte format is written in host order");
@@ -25,24 +27,6 @@ constexpr int kMaxDegree = 10;
 constexpr int kMaxClasses = 4096;
 
 void discard_libsvm_output(const char* /*text*/) {}
-
-// ---- CRC-32 (IEEE 802.3, reflected), for the blob trailer ----
-constexpr std::array<std::uint32_t, 256> make_crc_table() {
-  std::array<std::uint32_t, 256> table{};
-  for (std::uint32_t i = 0; i < 256; ++i) {
-    std::uint32_t c = i;
-    for (int k = 0; k < 8; ++k) c = (c & 1U) != 0 ? 0xEDB88320U ^ (c >> 1) : c >> 1;
-    table[i] = c;
-  }
-  return table;
-}
-constexpr std::array<std::uint32_t, 256> kCrcTable = make_crc_table();
-
-std::uint32_t crc32(std::string_view bytes) {
-  std::uint32_t c = 0xFFFFFFFFU;
-  for (char ch : bytes) c = kCrcTable[(c ^ static_cast<std::uint8_t>(ch)) & 0xFFU] ^ (c >> 8);
-  return c ^ 0xFFFFFFFFU;
-}
 
 class ByteWriter {
  public:
@@ -455,7 +439,7 @@ std::string SvmModel::serialize() const {
   w.put_doubles(rho_);
   w.put_doubles(prob_a_);
   w.put_doubles(prob_b_);
-  const std::uint32_t crc = crc32(w.bytes());
+  const std::uint32_t crc = base::crc32(w.bytes());
   w.put(crc);
   return std::move(w.bytes());
 }
@@ -468,7 +452,9 @@ Expected<SvmModel> SvmModel::deserialize(std::string_view blob) {
   std::uint32_t stored_crc = 0;
   std::memcpy(&stored_crc, blob.data() + blob.size() - 4, 4);
   const std::string_view body = blob.substr(0, blob.size() - 4);
-  if (crc32(body) != stored_crc) return make_error(refuse + "checksum mismatch (the file is corrupt or truncated)");
+  if (base::crc32(body) != stored_crc) {
+    return make_error(refuse + "checksum mismatch (the file is corrupt or truncated)");
+  }
 
   ByteReader r(body.substr(kMagic.size()));
   const auto truncated = [&] { return make_error(refuse + "truncated or malformed content"); };

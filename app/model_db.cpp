@@ -1,8 +1,6 @@
 // The model database: manifest.yaml reader/writer with checksum, part bookkeeping, staleness of the SVM.
 #include "app/model_db.hpp"
 
-#include <zlib.h>
-
 #include <cerrno>
 #include <cinttypes>
 #include <cstdio>
@@ -19,6 +17,7 @@
 #include "app/input_file.hpp"
 #include "app/local_time.hpp"
 #include "app/yaml_reader.hpp"
+#include "base/crc32.hpp"
 #include "drivers/log.hpp"
 
 namespace cellsight::app {
@@ -132,7 +131,7 @@ std::string manifest_text(const Manifest& m) {
     t << "  hyper: " << quoted(s.hyper) << "\n";
   }
   std::string text = t.str();
-  text += std::string(kChecksumKey) + ": \"" + hex32(crc32_of(text)) + "\"\n";
+  text += std::string(kChecksumKey) + ": \"" + hex32(base::crc32(text)) + "\"\n";
   return text;
 }
 
@@ -168,7 +167,7 @@ Expected<Manifest> parse_manifest(const std::string& path, const std::string& by
     if (q2 == std::string::npos || !parse_hex32(line.substr(q1 + 1, q2 - q1 - 1), stored)) {
       return make_error(path + ": unreadable " + kChecksumKey + " line");
     }
-    const std::uint32_t actual = crc32_of(std::string_view(bytes).substr(0, at));
+    const std::uint32_t actual = base::crc32(std::string_view(bytes).substr(0, at));
     if (actual != stored) {
       return make_error(path + ": checksum mismatch (stored " + hex32(stored) + ", content " + hex32(actual) +
                         "): the manifest was changed or damaged; restore it from a backup or teach again");
@@ -318,17 +317,6 @@ std::string grid_text(const algo::GridSpec& g) {
 
 }  // namespace
 
-std::uint32_t crc32_of(std::string_view bytes) {
-  uLong crc = ::crc32(0L, Z_NULL, 0);
-  // zlib takes uInt lengths: feed large buffers in pieces.
-  constexpr std::size_t kPiece = 1U << 30;
-  for (std::size_t at = 0; at < bytes.size(); at += kPiece) {
-    const std::size_t n = std::min(kPiece, bytes.size() - at);
-    crc = ::crc32(crc, reinterpret_cast<const Bytef*>(bytes.data() + at), static_cast<uInt>(n));
-  }
-  return static_cast<std::uint32_t>(crc);
-}
-
 Expected<std::string> read_whole_file(const std::string& path) {
   // A folder opens as a stream and reads as nothing; a device may never end.
   if (Status regular = check_regular_file(path, ""); !regular) return regular.error();
@@ -434,7 +422,7 @@ std::string ModelDb::parts_fingerprint() const {
     for (const ScanEntry& s : p.scans) identity += hex32(s.crc32) + ",";
     identity += ";";
   }
-  return hex32(crc32_of(identity)) + "-" + std::to_string(manifest_.parts.size());
+  return hex32(base::crc32(identity)) + "-" + std::to_string(manifest_.parts.size());
 }
 
 std::string ModelDb::svm_stale_reason() const {

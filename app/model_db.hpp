@@ -76,9 +76,6 @@ struct Manifest {
   SvmEntry svm;
 };
 
-// crc32 (zlib) of bytes, for the database's files.
-[[nodiscard]] std::uint32_t crc32_of(std::string_view bytes);
-
 // The manifest's text, checksum line last (what save() writes).
 [[nodiscard]] std::string manifest_text(const Manifest& manifest);
 // Checks the checksum line, then parses and validates every field; `path` names the file in messages. What open()

@@ -8,6 +8,7 @@
 #include "algo/support.hpp"
 #include "app/calibration_file.hpp"
 #include "app/scan_mode.hpp"
+#include "base/crc32.hpp"
 #include "drivers/log.hpp"
 
 namespace cellsight::app {
@@ -183,7 +184,7 @@ Expected<algo::SvmModel> load_svm(const ModelDb& db) {
   const std::string svm_path = db.path_of(m.svm.file);
   auto blob = read_whole_file(svm_path);
   if (!blob) return blob.error();
-  if (crc32_of(*blob) != m.svm.crc32) {
+  if (base::crc32(*blob) != m.svm.crc32) {
     return make_error(svm_path + ": checksum differs from the manifest: the model was changed or damaged; run "
                                  "'cellsight train' again");
   }

@@ -22,6 +22,7 @@
 #include "app/scan_mode.hpp"
 #include "app/template_file.hpp"
 #include "app/train_mode.hpp"
+#include "base/crc32.hpp"
 #include "drivers/log.hpp"
 
 namespace cellsight::app {
@@ -454,7 +455,7 @@ int run_teach(const std::vector<std::string>& words, const Config& config, const
     }
     written.push_back(file);
     if (static_cast<std::size_t>(&s - scans->data()) == template_index) entry.template_scan = file;
-    entry.scans.push_back({file, crc32_of(bytes), s.source});
+    entry.scans.push_back({file, base::crc32(bytes), s.source});
   }
   if (existing != nullptr) {
     *existing = entry;

@@ -5,7 +5,6 @@
 #include <sys/mman.h>
 #include <sys/stat.h>
 #include <unistd.h>
-#include <zlib.h>
 
 #include <algorithm>
 #include <array>
@@ -25,6 +24,7 @@
 #include <utility>
 
 #include "app/atomic_file.hpp"
+#include "base/crc32.hpp"
 
 namespace cellsight::app {
 namespace {
@@ -88,12 +88,8 @@ std::size_t align_up(std::size_t n) {
   return (n + kTemplateSectionAlignment - 1) / kTemplateSectionAlignment * kTemplateSectionAlignment;
 }
 
-std::uint32_t crc_of(std::uint32_t crc, const void* data, std::size_t bytes) {
-  return static_cast<std::uint32_t>(crc32_z(crc, static_cast<const Bytef*>(data), bytes));
-}
-
 std::uint32_t header_crc(const TemplateHeader& h) {
-  return crc_of(crc32_z(0, nullptr, 0), &h, kHeaderCrcBytes);
+  return base::crc32_update(base::kCrc32Empty, &h, kHeaderCrcBytes);
 }
 
 algo::GridDims dims_of(const algo::GridSpec& grid) {
@@ -533,13 +529,13 @@ Status write_template(const std::string& path, const TemplateModel& model, const
 
   // The body CRC over exactly the bytes about to be written, straight from the model's buffers.
   const std::array<Segment, 4> body = body_segments(model, l);
-  std::uint32_t crc = static_cast<std::uint32_t>(crc32_z(0, nullptr, 0));
+  std::uint32_t crc = base::kCrc32Empty;
   for (const Segment& s : body) {
     if (s.data != nullptr) {
-      crc = crc_of(crc, s.data, s.bytes);
+      crc = base::crc32_update(crc, s.data, s.bytes);
     } else {
       for (std::size_t done = 0; done < s.bytes; done += kZeros.size()) {
-        crc = crc_of(crc, kZeros.data(), std::min(kZeros.size(), s.bytes - done));
+        crc = base::crc32_update(crc, kZeros.data(), std::min(kZeros.size(), s.bytes - done));
       }
     }
   }
@@ -645,8 +641,8 @@ Expected<TemplateFile> TemplateFile::open(const std::string& path, const algo::G
   file.timing_.map_ms = ms_since(start);
 
   const auto verify_start = std::chrono::steady_clock::now();
-  const std::uint32_t crc = crc_of(static_cast<std::uint32_t>(crc32_z(0, nullptr, 0)),
-                                   file.mapping_ + kTemplateHeaderBytes, *length - kTemplateHeaderBytes);
+  const std::uint32_t crc =
+      base::crc32_update(base::kCrc32Empty, file.mapping_ + kTemplateHeaderBytes, *length - kTemplateHeaderBytes);
   if (crc != h.body_crc32) {
     return make_error(path + ": body checksum mismatch: the maps or surface points are corrupt; re-teach the part");
   }

@@ -20,6 +20,7 @@
 #include "app/recognition.hpp"
 #include "app/scan_mode.hpp"
 #include "app/train_report.hpp"
+#include "base/crc32.hpp"
 #include "drivers/log.hpp"
 
 namespace cellsight::app {
@@ -76,7 +77,7 @@ Expected<std::vector<algo::ScanPoint>> load_taught_scan(const ModelDb& db, const
   const std::string path = db.path_of(scan.file);
   auto bytes = read_whole_file(path);
   if (!bytes) return bytes.error();
-  const std::uint32_t crc = crc32_of(*bytes);
+  const std::uint32_t crc = base::crc32(*bytes);
   if (crc != scan.crc32) {
     return make_error(path + ": checksum differs from the manifest: the scan was changed or damaged; delete the "
                              "part ('cellsight parts delete') and teach it again");
@@ -393,7 +394,7 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
   mm.feature_version = algo::kFeatureVersion;
   mm.svm.present = true;
   mm.svm.file = model_file;
-  mm.svm.crc32 = crc32_of(blob);
+  mm.svm.crc32 = base::crc32(blob);
   mm.svm.trained_at = local_time_text();
   mm.svm.parts_fingerprint = db->parts_fingerprint();
   mm.svm.test_accuracy = report.svm.test_accuracy;

@@ -20,6 +20,7 @@
 #include "app/model_db.hpp"
 #include "app/recognition.hpp"
 #include "app/template_file.hpp"
+#include "base/crc32.hpp"
 #include "drivers/sim/rig.hpp"
 #include "sim_test_util.hpp"
 #include "tests/scratch_dir.hpp"
@@ -480,7 +481,7 @@ TEST_CASE("parts list checks every template and the SVM as loading them does, ma
   // ... a trained SVM on them whose file does not match its checksum ...
   db.manifest().svm.present = true;
   db.manifest().svm.file = "svm-test.model";
-  db.manifest().svm.crc32 = app::crc32_of("the model as it was written");
+  db.manifest().svm.crc32 = base::crc32("the model as it was written");
   db.manifest().svm.trained_at = "2026-12-01 12:00:00";
   db.manifest().svm.parts_fingerprint = db.parts_fingerprint();
   std::ofstream(db.path_of("svm-test.model"), std::ios::binary) << "a model changed after training";

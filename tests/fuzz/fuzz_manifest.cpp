@@ -7,6 +7,7 @@
 #include <string>
 
 #include "app/model_db.hpp"
+#include "base/crc32.hpp"
 #include "tests/fuzz/fuzz_util.hpp"
 
 namespace {
@@ -21,7 +22,7 @@ void repair_checksum(std::string& text) {
   std::string body = at == std::string::npos ? text : text.substr(0, at + 1);
   if (!body.empty() && body.back() != '\n') body += '\n';
   char line[40];
-  std::snprintf(line, sizeof line, "%s \"%08x\"\n", kChecksumKey, static_cast<unsigned>(app::crc32_of(body)));
+  std::snprintf(line, sizeof line, "%s \"%08x\"\n", kChecksumKey, static_cast<unsigned>(base::crc32(body)));
   text = body + line;
 }
 

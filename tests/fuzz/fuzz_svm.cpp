@@ -6,7 +6,7 @@
 #include <string>
 
 #include "algo/svm.hpp"
-#include "app/model_db.hpp"
+#include "base/crc32.hpp"
 #include "tests/fuzz/fuzz_util.hpp"
 
 namespace {
@@ -22,7 +22,7 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   fuzz::ChecksummedInput in = fuzz::split_mode_byte(data, size);
   if (in.repair && in.file.size() >= kCrcBytes) {
     const std::size_t body = in.file.size() - kCrcBytes;
-    fuzz::store_u32(in.file, body, app::crc32_of(std::string_view(in.file).substr(0, body)));
+    fuzz::store_u32(in.file, body, base::crc32(std::string_view(in.file).substr(0, body)));
   }
   auto model = algo::SvmModel::deserialize(in.file);
   if (!model) return 0;

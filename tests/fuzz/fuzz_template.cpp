@@ -6,8 +6,8 @@
 #include <cstdint>
 #include <string>
 
-#include "app/model_db.hpp"
 #include "app/template_file.hpp"
+#include "base/crc32.hpp"
 #include "tests/fuzz/fuzz_util.hpp"
 #include "tests/fuzz/seed_grid.hpp"
 
@@ -21,8 +21,8 @@ constexpr std::size_t kMaxSamples = 256;
 void repair_checksums(std::string& file) {
   if (file.size() < app::kTemplateHeaderBytes) return;
   const std::string_view bytes(file);
-  fuzz::store_u32(file, app::kTemplateBodyCrcOffset, app::crc32_of(bytes.substr(app::kTemplateHeaderBytes)));
-  fuzz::store_u32(file, kHeaderCrcOffset, app::crc32_of(bytes.substr(0, kHeaderCrcOffset)));
+  fuzz::store_u32(file, app::kTemplateBodyCrcOffset, base::crc32(bytes.substr(app::kTemplateHeaderBytes)));
+  fuzz::store_u32(file, kHeaderCrcOffset, base::crc32(bytes.substr(0, kHeaderCrcOffset)));
 }
 
 void sample(const app::TemplateFile& t) {
