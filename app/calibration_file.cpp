@@ -2,19 +2,16 @@
 #include "app/calibration_file.hpp"
 
 #include <algorithm>
-#include <cerrno>
 #include <cinttypes>
 #include <cmath>
 #include <cstdio>
-#include <cstring>
 #include <ctime>
 #include <filesystem>
-#include <fstream>
-#include <sstream>
 
 #include "app/atomic_file.hpp"
 #include "app/local_time.hpp"
 #include "app/yaml_reader.hpp"
+#include "base/file_read.hpp"
 
 namespace cellsight::app {
 namespace {
@@ -22,6 +19,8 @@ namespace {
 namespace fs = std::filesystem;
 
 constexpr const char* kChecksumKey = "checksum_fnv1a64";
+// A calibration file is a few kB; the cap of base::read_file only keeps a wrong path from filling the memory.
+constexpr std::size_t kMaxCalibrationBytes = std::size_t{16} << 20;
 constexpr double kOrthonormalTolerance = 1e-6;
 constexpr double kUnitTolerance = 1e-6;
 
@@ -54,15 +53,6 @@ std::string quoted(const std::string& s) {
     out += c;
   }
   return out + "\"";
-}
-
-Expected<std::string> read_bytes(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return make_error(path + ": cannot open: " + std::strerror(errno));
-  std::ostringstream out;
-  out << in.rdbuf();
-  if (in.bad()) return make_error(path + ": read failed");
-  return out.str();
 }
 
 // Where the checksum line starts (the last line beginning with the key), or npos.
@@ -219,7 +209,7 @@ std::string calibration_yaml(const CalibrationRecord& r) {
 }
 
 Expected<CalibrationRecord> load_calibration(const std::string& path) {
-  auto bytes = read_bytes(path);
+  auto bytes = base::read_file(path, kMaxCalibrationBytes);
   if (!bytes) return bytes.error();
   // A file cut short loses its last line first: say so before any syntax error it causes.
   const std::size_t at = checksum_line_start(*bytes);
@@ -282,7 +272,7 @@ Expected<std::string> save_calibration(const std::string& path, const Calibratio
   std::error_code ec;
   std::string backup;
   if (fs::exists(path, ec)) {
-    auto old = read_bytes(path);
+    auto old = base::read_file(path, kMaxCalibrationBytes);
     if (!old) return make_error(old.error().message + " (needed for the backup; nothing was changed)");
     const std::string stem = path + "." + local_time_text("%Y%m%d-%H%M%S");
     backup = stem + ".bak";

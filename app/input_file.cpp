@@ -1,26 +1,17 @@
 // Reading files from outside: refused from a stat and the first bytes when they cannot be what they should be.
 #include "app/input_file.hpp"
 
-#include <sys/stat.h>
-
 #include <algorithm>
 #include <cerrno>
 #include <cstring>
 #include <fstream>
 
+#include "base/file_read.hpp"
+
 namespace cellsight::app {
 namespace {
 
 constexpr const char* kScanIsPly = "; a scan is a PLY file";
-
-// The size of a regular file, or why the path is not one.
-Expected<std::size_t> regular_file_size(const std::string& path, const std::string& what) {
-  struct stat st {};
-  if (::stat(path.c_str(), &st) != 0) return make_error(path + ": cannot open: " + std::strerror(errno));
-  if (S_ISDIR(st.st_mode)) return make_error(path + ": is a directory" + what);
-  if (!S_ISREG(st.st_mode)) return make_error(path + ": is not a regular file (a device, pipe or socket)" + what);
-  return static_cast<std::size_t>(st.st_size);
-}
 
 struct CheckedPly {
   std::string bytes;  // the first bytes, header included
@@ -29,7 +20,7 @@ struct CheckedPly {
 
 // Opens `path` into `in`, reads at most limits.max_header_bytes and checks the header against the file's size.
 Expected<CheckedPly> open_ply(const std::string& path, std::ifstream& in, const algo::PlyLimits& limits) {
-  auto size = regular_file_size(path, kScanIsPly);
+  auto size = base::regular_file_size(path, kScanIsPly);
   if (!size) return size.error();
   in.open(path, std::ios::binary);
   if (!in) return make_error(path + ": cannot open: " + std::strerror(errno));
@@ -54,7 +45,7 @@ Expected<CheckedPly> open_ply(const std::string& path, std::ifstream& in, const 
 }  // namespace
 
 Status check_regular_file(const std::string& path, const std::string& what) {
-  auto size = regular_file_size(path, what);
+  auto size = base::regular_file_size(path, what);
   if (!size) return size.error();
   return {};
 }

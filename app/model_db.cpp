@@ -7,17 +7,16 @@
 #include <cstring>
 #include <ctime>
 #include <filesystem>
-#include <fstream>
 #include <set>
 #include <sstream>
 #include <string>
 
 #include "algo/features.hpp"
 #include "app/atomic_file.hpp"
-#include "app/input_file.hpp"
 #include "app/local_time.hpp"
 #include "app/yaml_reader.hpp"
 #include "base/crc32.hpp"
+#include "base/file_read.hpp"
 #include "drivers/log.hpp"
 
 namespace cellsight::app {
@@ -317,17 +316,6 @@ std::string grid_text(const algo::GridSpec& g) {
 
 }  // namespace
 
-Expected<std::string> read_whole_file(const std::string& path) {
-  // A folder opens as a stream and reads as nothing; a device may never end.
-  if (Status regular = check_regular_file(path, ""); !regular) return regular.error();
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return make_error(path + ": cannot open: " + std::strerror(errno));
-  std::ostringstream out;
-  out << in.rdbuf();
-  if (in.bad()) return make_error(path + ": read failed");
-  return out.str();
-}
-
 bool valid_part_name(std::string_view name) {
   if (name.empty() || name.size() > kMaxPartName) return false;
   for (const char c : name) {
@@ -352,7 +340,7 @@ Expected<ModelDb> ModelDb::open(const std::string& dir, const algo::GridSpec& gr
     db.manifest_.feature_version = algo::kFeatureVersion;
     return db;
   }
-  auto bytes = read_whole_file(path);
+  auto bytes = base::read_file(path, kMaxManifestBytes);
   if (!bytes) return bytes.error();
   auto manifest = parse_manifest(path, *bytes);
   if (!manifest) return manifest.error();

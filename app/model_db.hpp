@@ -2,6 +2,7 @@
 // Every write is atomic; every file is checked (checksum, version, grid) before use and refused when it fails.
 #pragma once
 
+#include <cstddef>
 #include <cstdint>
 #include <optional>
 #include <string>
@@ -82,8 +83,12 @@ struct Manifest {
 // does with the file's bytes, in memory (the fuzz target's entry point).
 [[nodiscard]] Expected<Manifest> parse_manifest(const std::string& path, const std::string& bytes);
 
-// Reads a whole file; a clear error naming it otherwise.
-[[nodiscard]] Expected<std::string> read_whole_file(const std::string& path);
+// Size caps of base::read_file for the database's files: far above any real one (a manifest of 1000 parts with
+// 1000 scans each is ~200 MB, a model of 10 000 support vectors of 74 features 6 MB, a scan of the most vertices
+// algo::PlyLimits lets in, written as ASCII, ~1 GB), low enough that a wrong path cannot exhaust the memory.
+inline constexpr std::size_t kMaxManifestBytes = std::size_t{256} << 20;
+inline constexpr std::size_t kMaxSvmModelBytes = std::size_t{1} << 30;
+inline constexpr std::size_t kMaxTaughtScanBytes = std::size_t{4} << 30;
 
 class ModelDb {
  public:

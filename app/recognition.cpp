@@ -9,6 +9,7 @@
 #include "app/calibration_file.hpp"
 #include "app/scan_mode.hpp"
 #include "base/crc32.hpp"
+#include "base/file_read.hpp"
 #include "drivers/log.hpp"
 
 namespace cellsight::app {
@@ -182,7 +183,7 @@ LoadedTemplates open_templates(const Config& config, const ModelDb& db) {
 Expected<algo::SvmModel> load_svm(const ModelDb& db) {
   const Manifest& m = db.manifest();
   const std::string svm_path = db.path_of(m.svm.file);
-  auto blob = read_whole_file(svm_path);
+  auto blob = base::read_file(svm_path, kMaxSvmModelBytes);
   if (!blob) return blob.error();
   if (base::crc32(*blob) != m.svm.crc32) {
     return make_error(svm_path + ": checksum differs from the manifest: the model was changed or damaged; run "

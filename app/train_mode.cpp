@@ -21,6 +21,7 @@
 #include "app/scan_mode.hpp"
 #include "app/train_report.hpp"
 #include "base/crc32.hpp"
+#include "base/file_read.hpp"
 #include "drivers/log.hpp"
 
 namespace cellsight::app {
@@ -75,7 +76,7 @@ Expected<algo::Plane> load_support_plane(const std::string& calibration_path) {
 
 Expected<std::vector<algo::ScanPoint>> load_taught_scan(const ModelDb& db, const ScanEntry& scan) {
   const std::string path = db.path_of(scan.file);
-  auto bytes = read_whole_file(path);
+  auto bytes = base::read_file(path, kMaxTaughtScanBytes);
   if (!bytes) return bytes.error();
   const std::uint32_t crc = base::crc32(*bytes);
   if (crc != scan.crc32) {

@@ -18,6 +18,7 @@
 #include "app/config.hpp"
 #include "app/recognition.hpp"
 #include "app/train_mode.hpp"
+#include "base/file_read.hpp"
 
 namespace {
 
@@ -71,7 +72,7 @@ int main(int argc, char** argv) {
   std::vector<double> bin_conf(kBins, 0.0), bin_hit(kBins, 0.0), bin_n(kBins, 0.0);
   std::vector<double> prepare_ms;  // support removal .. features (the canonical frame included)
   for (const fs::path& f : files) {
-    auto bytes = app::read_whole_file(f.string());
+    auto bytes = base::read_file(f.string(), app::kMaxTaughtScanBytes);
     if (!bytes) continue;
     auto points = algo::parse_ply(*bytes);
     if (!points) continue;
@@ -114,7 +115,7 @@ int main(int argc, char** argv) {
   // One scan's preparation, and its canonical mapping alone, on this thread (figures: wall time, median of 20).
   if (auto support = app::load_support_plane(cal != nullptr ? cal : app::default_calibration_path(*config));
       support && !files.empty()) {
-    auto bytes = app::read_whole_file(files.front().string());
+    auto bytes = base::read_file(files.front().string(), app::kMaxTaughtScanBytes);
     auto points = bytes ? algo::parse_ply(*bytes) : Expected<std::vector<algo::ScanPoint>>(make_error("unread"));
     if (points) {
       app::ScanPreparer preparer(*config, *support, points->size() + 1);

@@ -12,6 +12,7 @@
 #include "algo/svm.hpp"
 #include "app/model_db.hpp"
 #include "app/template_file.hpp"
+#include "base/file_read.hpp"
 #include "tests/fuzz/seed_grid.hpp"
 
 namespace {
@@ -62,7 +63,8 @@ Expected<std::string> template_file(const fs::path& scratch) {
   if (Status written = app::write_template(path, *model, {"seed_part", 7, 1700000000}); !written) {
     return written.error();
   }
-  return app::read_whole_file(path);
+  constexpr std::size_t kMaxSeedTemplateBytes = std::size_t{64} << 20;  // an 8 x 8 x 8 grid's: a few kB
+  return base::read_file(path, kMaxSeedTemplateBytes);
 }
 
 Expected<std::string> svm_file() {
