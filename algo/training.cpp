@@ -10,11 +10,10 @@
 #include <memory>
 #include <numeric>
 #include <random>
-#include <system_error>
-#include <thread>
 #include <unordered_map>
 
 #include "algo/splitmix.hpp"
+#include "base/parallel_for.hpp"
 
 namespace cellsight::algo {
 
@@ -38,36 +37,6 @@ int largest(const std::vector<int>& v) {
   int top = 0;
   for (int x : v) top = std::max(top, x);
   return top;
-}
-
-// Runs task(i) for every i in [0, count) on up to `threads` threads (the caller's included) and joins them.
-// Returns false when the stop flag was seen, in which case some tasks did not run and the caller discards the lot.
-bool parallel_for(int count, int threads, const std::function<void(int)>& task, const std::atomic<bool>* stop) {
-  std::atomic<int> next{0};
-  std::atomic<bool> aborted{false};
-  auto worker = [&] {
-    for (;;) {
-      if (stop_requested(stop)) {
-        aborted.store(true);
-        return;
-      }
-      const int i = next.fetch_add(1);
-      if (i >= count) return;
-      task(i);
-    }
-  };
-  std::vector<std::thread> pool;
-  const int wanted = std::clamp(threads, 1, std::max(1, count));
-  for (int t = 1; t < wanted; ++t) {
-    try {
-      pool.emplace_back(worker);
-    } catch (const std::system_error&) {
-      break;  // no more threads available: the ones we have (at least this one) finish the work
-    }
-  }
-  worker();
-  for (std::thread& t : pool) t.join();
-  return !aborted.load();
 }
 
 // What every candidate evaluation shares: the scaled training split and its folds.
@@ -156,9 +125,9 @@ class SvmEvaluator final : public Evaluator {
     }
     const int tasks = grid_size() * ctx.folds;
     std::vector<int> task_correct(static_cast<std::size_t>(tasks), 0);
-    const bool done = parallel_for(
+    const bool done = base::parallel_for(
         tasks, ctx.threads,
-        [&](int t) {
+        [&](int t, int /*worker*/) {
           const int fold = t % ctx.folds;
           const SvmHyper& h = grid_[static_cast<std::size_t>(t / ctx.folds)];
           std::vector<svm_node*> x;
@@ -188,6 +157,7 @@ class SvmEvaluator final : public Evaluator {
           }
           svm_free_and_destroy_model(&model);
           task_correct[static_cast<std::size_t>(t)] = ok;
+          return true;
         },
         ctx.stop);
     if (!done) return false;
@@ -216,11 +186,11 @@ class KnnEvaluator final : public Evaluator {
     const std::vector<double> rows = gather(ctx.scaled, n, mask);
     const int k_max = largest(k_);
     std::vector<std::uint8_t> hit(n * k_.size(), 0);
-    const bool done = parallel_for(
+    const bool done = base::parallel_for(
         ctx.n, ctx.threads,
-        [&](int ii) {
+        [&](int ii, int /*worker*/) {
           const auto i = static_cast<std::size_t>(ii);
-          if (ctx.scored[i] == 0) return;  // hit[] stays 0: a variant does not score
+          if (ctx.scored[i] == 0) return true;  // hit[] stays 0: a variant does not score
           std::vector<std::pair<double, int>> near;
           for (std::size_t j = 0; j < n; ++j) {
             if (ctx.fold[j] == ctx.fold[i]) continue;  // only the other folds are "training" for sample i
@@ -247,6 +217,7 @@ class KnnEvaluator final : public Evaluator {
             }
             hit[i * k_.size() + q] = winner == ctx.train->labels[i] ? 1 : 0;
           }
+          return true;
         },
         ctx.stop);
     if (!done) return false;
@@ -297,9 +268,9 @@ class MlpEvaluator final : public Evaluator {
     const std::vector<double> rows = gather(ctx.scaled, n, mask);
     const int tasks = grid_size() * ctx.folds;
     std::vector<int> task_correct(static_cast<std::size_t>(tasks), 0);
-    const bool done = parallel_for(
+    const bool done = base::parallel_for(
         tasks, ctx.threads,
-        [&](int t) {
+        [&](int t, int /*worker*/) {
           const int fold = t % ctx.folds, layout = t / ctx.folds;
           std::vector<double> x;
           std::vector<int> y;
@@ -318,6 +289,7 @@ class MlpEvaluator final : public Evaluator {
             ok += net.predict(std::span<const double>(rows).subspan(i * d, d)) == ctx.train->labels[i] ? 1 : 0;
           }
           task_correct[static_cast<std::size_t>(t)] = ok;
+          return true;
         },
         ctx.stop);
     if (!done) return false;
@@ -545,7 +517,7 @@ Expected<Context> make_context(const Dataset& set, const Scaler& scaler, const T
   ctx.n = static_cast<int>(set.size());
   ctx.classes = static_cast<int>(set.classes.size());
   ctx.folds = params.folds;
-  const int cores = std::max(1, static_cast<int>(std::thread::hardware_concurrency()));
+  const int cores = base::hardware_threads();
   ctx.threads = params.threads > 0 ? std::min(params.threads, cores) : cores;
   ctx.fold = std::move(*folds);
   ctx.scaled = scale_all(scaler, set.features);

@@ -3,12 +3,10 @@
 
 #include <unistd.h>
 
-#include <atomic>
 #include <cmath>
 #include <ctime>
 #include <filesystem>
 #include <mutex>
-#include <thread>
 
 #include "algo/ply.hpp"
 #include "algo/support.hpp"
@@ -20,6 +18,7 @@
 #include "app/local_time.hpp"
 #include "app/perturb_mode.hpp"
 #include "app/sim_mode.hpp"
+#include "base/parallel_for.hpp"
 #include "drivers/log.hpp"
 
 namespace cellsight::app {
@@ -188,53 +187,43 @@ int run_calibrate_support(const std::vector<std::string>& args, const Config& co
 Status acquire_sim_passes(const Config& config, const std::string& part, int count, std::uint64_t first_seed,
                           const std::string& calibration_path, const std::string& label, const PassConsumer& take,
                           const PassPerturbation* perturb) {
-  std::atomic<int> next{0};
   int done = 0;
   std::mutex mutex;
   std::string first_error;
   const bool terminal = ::isatty(::fileno(stdout)) != 0;
-  const auto worker = [&] {
-    for (int i = next++; i < count; i = next++) {
-      {
-        const std::lock_guard<std::mutex> lock(mutex);
-        if (!first_error.empty()) return;
-      }
-      ScanOptions options;
-      options.sim = true;
-      options.part = part;
-      options.seed = first_seed + static_cast<std::uint64_t>(i);
-      options.calibration_path = calibration_path;
-      ScanSummary summary;
-      auto points = acquire_scan(config, options, summary);
-      if (points && perturb != nullptr) {
-        (void)algo::perturb_scan(*points, perturb->spec, perturb->support, perturb->seed_for(options.seed));
-      }
-      const std::lock_guard<std::mutex> lock(mutex);
-      if (!first_error.empty()) return;
-      if (!points) {
-        first_error = part + " seed " + std::to_string(options.seed) + ": " + points.error().message;
-        return;
-      }
-      if (auto ok = take(i, options.seed, std::move(*points)); !ok) {
-        first_error = ok.error().message;
-        return;
-      }
-      const int n = ++done;
-      if (terminal) {
-        std::printf("\r  %s %d / %d   ", label.c_str(), n, count);
-      } else if (n % 10 == 0 || n == count) {
-        std::printf("  %s %d / %d\n", label.c_str(), n, count);
-      }
-      std::fflush(stdout);
+  // One pass per index on every core; the first failure stops the handing out of further passes.
+  const bool complete = base::parallel_for(count, base::hardware_threads(), [&](int i, int /*worker*/) {
+    ScanOptions options;
+    options.sim = true;
+    options.part = part;
+    options.seed = first_seed + static_cast<std::uint64_t>(i);
+    options.calibration_path = calibration_path;
+    ScanSummary summary;
+    auto points = acquire_scan(config, options, summary);
+    if (points && perturb != nullptr) {
+      (void)algo::perturb_scan(*points, perturb->spec, perturb->support, perturb->seed_for(options.seed));
     }
-  };
-  const int threads = static_cast<int>(std::max(1U, std::thread::hardware_concurrency()));
-  std::vector<std::thread> pool;
-  for (int t = 1; t < std::min(threads, count); ++t) pool.emplace_back(worker);
-  worker();
-  for (auto& t : pool) t.join();
+    const std::lock_guard<std::mutex> lock(mutex);
+    if (!first_error.empty()) return false;
+    if (!points) {
+      first_error = part + " seed " + std::to_string(options.seed) + ": " + points.error().message;
+      return false;
+    }
+    if (auto ok = take(i, options.seed, std::move(*points)); !ok) {
+      first_error = ok.error().message;
+      return false;
+    }
+    const int n = ++done;
+    if (terminal) {
+      std::printf("\r  %s %d / %d   ", label.c_str(), n, count);
+    } else if (n % 10 == 0 || n == count) {
+      std::printf("  %s %d / %d\n", label.c_str(), n, count);
+    }
+    std::fflush(stdout);
+    return true;
+  });
   if (terminal && done > 0) std::printf("\n");
-  if (!first_error.empty()) return make_error(first_error);
+  if (!complete) return make_error(first_error);  // a pass failed: first_error says which
   return {};
 }
 

@@ -7,7 +7,6 @@
 #include <mutex>
 #include <optional>
 #include <set>
-#include <thread>
 
 #include "algo/augment.hpp"
 #include "algo/ply.hpp"
@@ -22,6 +21,7 @@
 #include "app/train_report.hpp"
 #include "base/crc32.hpp"
 #include "base/file_read.hpp"
+#include "base/parallel_for.hpp"
 #include "drivers/log.hpp"
 
 namespace cellsight::app {
@@ -61,6 +61,26 @@ std::uint64_t augment_seed(const Config& config, std::size_t scan, int variant) 
   return algo::stream_seed(algo::stream_seed(static_cast<std::uint64_t>(config.svm.seed), scan),
                         static_cast<std::uint64_t>(variant));
 }
+
+// What a thread of build_dataset keeps from one scan to the next (built on that thread, at its first scan).
+struct FeatureWorker {
+  FeatureWorker(const Config& config, const algo::Plane& support, bool with_cascade)
+      : preparer(config, support, max_scan_points(config)) {
+    if (with_cascade) cascade.emplace(cascade_params(config), perfect_match_params(config), grid_spec(config));
+  }
+  ScanPreparer preparer;
+  std::vector<algo::ScanPoint> origin, variant;
+  std::optional<algo::Cascade> cascade;
+};
+
+// ... and a thread of cross_matches.
+struct MatchWorker {
+  MatchWorker(const Config& config, const algo::Plane& support)
+      : preparer(config, support, max_scan_points(config)),
+        cascade(cascade_params(config), perfect_match_params(config), grid_spec(config)) {}
+  ScanPreparer preparer;
+  algo::Cascade cascade;
+};
 
 }  // namespace
 
@@ -108,58 +128,50 @@ Expected<TaughtData> build_dataset(const Config& config, const ModelDb& db, cons
   std::vector<algo::MatchReport> matches(templates != nullptr ? jobs.size() : 0);
   std::mutex mutex;
   std::string first_error;
-  std::atomic<std::size_t> next{0};
   std::atomic<std::size_t> done{0};
-  const auto worker = [&] {
-    ScanPreparer preparer(config, support, max_scan_points(config));
-    std::vector<algo::ScanPoint> origin, variant;
-    std::optional<algo::Cascade> cascade;
-    if (templates != nullptr) cascade.emplace(cascade_params(config), perfect_match_params(config), grid_spec(config));
-    for (std::size_t i = next++; i < jobs.size(); i = next++) {
-      if (stop != nullptr && stop->load()) return;
-      {
-        const std::lock_guard<std::mutex> lock(mutex);
-        if (!first_error.empty()) return;
-      }
-      auto points = load_taught_scan(db, *jobs[i].scan);
-      std::string error;
-      if (!points) {
-        error = points.error().message;
-      } else {
-        const PrepareReport r = preparer.prepare(*points);
-        if (r.status != PrepareStatus::kOk) {
-          error = db.path_of(jobs[i].scan->file) + ": " + std::string(to_string(r.status)) + " (" + r.describe() + ")";
+  const bool with_cascade = templates != nullptr;
+  const bool complete = base::parallel_for_with_state<FeatureWorker>(
+      static_cast<int>(jobs.size()), std::max(1, threads), stop,
+      [&](int job, FeatureWorker& w) {
+        const auto i = static_cast<std::size_t>(job);
+        auto points = load_taught_scan(db, *jobs[i].scan);
+        std::string error;
+        if (!points) {
+          error = points.error().message;
         } else {
-          job_features[i].push_back(preparer.features());
-          if (cascade) {
-            matches[i] = cascade->evaluate(templates->models[static_cast<std::size_t>(jobs[i].label)],
-                                           preparer.part_points());
-          }
-          const std::span<const algo::ScanPoint> part = preparer.part_points();
-          origin.assign(part.begin(), part.end());
-          for (int v = 1; v <= variants; ++v) {
-            algo::augment_scan(origin, algo::AugmentParams{}, augment_seed(config, i, v), variant);
-            if (preparer.prepare_part(variant).status == PrepareStatus::kOk)
-              job_features[i].push_back(preparer.features());  // a variant that lost the part is left out
+          const PrepareReport r = w.preparer.prepare(*points);
+          if (r.status != PrepareStatus::kOk) {
+            error = db.path_of(jobs[i].scan->file) + ": " + std::string(to_string(r.status)) + " (" + r.describe() +
+                    ")";
+          } else {
+            job_features[i].push_back(w.preparer.features());
+            if (w.cascade) {
+              matches[i] = w.cascade->evaluate(templates->models[static_cast<std::size_t>(jobs[i].label)],
+                                               w.preparer.part_points());
+            }
+            const std::span<const algo::ScanPoint> part = w.preparer.part_points();
+            w.origin.assign(part.begin(), part.end());
+            for (int v = 1; v <= variants; ++v) {
+              algo::augment_scan(w.origin, algo::AugmentParams{}, augment_seed(config, i, v), w.variant);
+              if (w.preparer.prepare_part(w.variant).status == PrepareStatus::kOk)
+                job_features[i].push_back(w.preparer.features());  // a variant that lost the part is left out
+            }
           }
         }
-      }
-      if (!error.empty()) {
-        const std::lock_guard<std::mutex> lock(mutex);
-        if (first_error.empty()) first_error = error;
-        return;
-      }
-      const std::size_t n = ++done;
-      if (n % 50 == 0 || n == jobs.size()) CS_LOG_INFO("train", "features of %zu / %zu scans", n, jobs.size());
-    }
-  };
-  const int count = std::max(1, threads);
-  std::vector<std::thread> pool;
-  for (int t = 1; t < count; ++t) pool.emplace_back(worker);
-  worker();
-  for (auto& t : pool) t.join();
+        if (!error.empty()) {
+          const std::lock_guard<std::mutex> lock(mutex);
+          if (first_error.empty()) first_error = error;
+          return false;
+        }
+        const std::size_t n = ++done;
+        if (n % 50 == 0 || n == jobs.size()) CS_LOG_INFO("train", "features of %zu / %zu scans", n, jobs.size());
+        return true;
+      },
+      config, support, with_cascade);
   if (!first_error.empty()) return make_error(first_error);
-  if (stop != nullptr && stop->load()) return make_error("stopped before the features of every scan were computed");
+  if (!complete || (stop != nullptr && stop->load())) {
+    return make_error("stopped before the features of every scan were computed");
+  }
   for (std::size_t i = 0; i < jobs.size(); ++i) {
     for (std::size_t v = 0; v < job_features[i].size(); ++v)
       data.push(job_features[i][v], jobs[i].label, static_cast<int>(i), static_cast<int>(v));
@@ -193,31 +205,26 @@ Expected<std::vector<std::vector<algo::MatchReport>>> cross_matches(const Config
   std::vector<std::vector<algo::MatchReport>> reports(jobs.size());
   std::mutex mutex;
   std::string first_error;
-  std::atomic<std::size_t> next{0};
-  const auto worker = [&] {
-    ScanPreparer preparer(config, support, max_scan_points(config));
-    algo::Cascade cascade(cascade_params(config), perfect_match_params(config), grid_spec(config));
-    for (std::size_t i = next++; i < jobs.size(); i = next++) {
-      if (stop != nullptr && stop->load()) return;
-      auto points = load_taught_scan(db, *jobs[i].scan);
-      if (!points || preparer.prepare(*points).status != PrepareStatus::kOk) {
-        const std::lock_guard<std::mutex> lock(mutex);
-        if (first_error.empty()) first_error = db.path_of(jobs[i].scan->file) + ": cannot be prepared";
-        return;
-      }
-      reports[i].resize(classes);
-      for (std::size_t c = 0; c < classes; ++c) {
-        if (c == jobs[i].label || templates.models[c].map.cells() == nullptr) continue;
-        reports[i][c] = cascade.evaluate(templates.models[c], preparer.part_points());
-      }
-    }
-  };
-  std::vector<std::thread> pool;
-  for (int t = 1; t < std::max(1, threads); ++t) pool.emplace_back(worker);
-  worker();
-  for (auto& t : pool) t.join();
+  const bool complete = base::parallel_for_with_state<MatchWorker>(
+      static_cast<int>(jobs.size()), std::max(1, threads), stop,
+      [&](int job, MatchWorker& w) {
+        const auto i = static_cast<std::size_t>(job);
+        auto points = load_taught_scan(db, *jobs[i].scan);
+        if (!points || w.preparer.prepare(*points).status != PrepareStatus::kOk) {
+          const std::lock_guard<std::mutex> lock(mutex);
+          if (first_error.empty()) first_error = db.path_of(jobs[i].scan->file) + ": cannot be prepared";
+          return false;
+        }
+        reports[i].resize(classes);
+        for (std::size_t c = 0; c < classes; ++c) {
+          if (c == jobs[i].label || templates.models[c].map.cells() == nullptr) continue;
+          reports[i][c] = w.cascade.evaluate(templates.models[c], w.preparer.part_points());
+        }
+        return true;
+      },
+      config, support);
   if (!first_error.empty()) return make_error(first_error);
-  if (stop != nullptr && stop->load()) return make_error("stopped");
+  if (!complete || (stop != nullptr && stop->load())) return make_error("stopped");
   std::vector<std::vector<algo::MatchReport>> out(classes);
   for (std::size_t i = 0; i < jobs.size(); ++i) {
     for (std::size_t c = 0; c < classes; ++c) {
@@ -303,8 +310,7 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
   if (!support) return fail(kExitUsage, support.error().message);
 
   StopOnSignal stop_on_signal;
-  const int threads = config.svm.threads > 0 ? config.svm.threads
-                                             : static_cast<int>(std::max(1U, std::thread::hardware_concurrency()));
+  const int threads = config.svm.threads > 0 ? config.svm.threads : base::hardware_threads();
   std::printf("computing the features of %zu taught scans of %zu parts...\n", [&] {
     std::size_t n = 0;
     for (const PartEntry& p : m.parts) n += p.scans.size();
