@@ -235,6 +235,25 @@ void Scaler::apply(const FeatureVector& features, const FeatureMask& mask, std::
 
 // ---- training -----------------------------------------------------------------------------------------------------
 
+svm_parameter make_svm_parameter(const SvmHyper& hyper, int active_features, PlattFit platt) {
+  // Until both callers used this, the cross-validation had a 40 MB cache and the shipped model 100 MB: the cache
+  // only saves recomputing kernel columns, so the models are the same with either.
+  constexpr double kCacheMb = 100;
+  constexpr double kStopTolerance = 1e-3;  // libsvm's default eps
+  svm_parameter param{};
+  param.svm_type = C_SVC;
+  param.kernel_type = hyper.kernel == KernelType::kRbf ? RBF : POLY;
+  param.degree = hyper.degree;
+  param.gamma = hyper.gamma(active_features);
+  param.coef0 = hyper.coef0;
+  param.cache_size = kCacheMb;
+  param.eps = kStopTolerance;
+  param.C = hyper.c;
+  param.shrinking = 1;
+  param.probability = platt == PlattFit::kYes ? 1 : 0;
+  return param;
+}
+
 Expected<SvmModel> SvmModel::train(std::span<const FeatureVector> features, std::span<const int> labels,
                                    std::vector<ClassInfo> classes, const FeatureMask& mask, const Scaler& scaler,
                                    const SvmHyper& hyper, std::uint64_t seed) {
@@ -275,17 +294,7 @@ Expected<SvmModel> SvmModel::train(std::span<const FeatureVector> features, std:
     y[i] = labels[i];
   }
   svm_problem problem{static_cast<int>(n), y.data(), rows.data()};
-  svm_parameter param{};
-  param.svm_type = C_SVC;
-  param.kernel_type = hyper.kernel == KernelType::kRbf ? RBF : POLY;
-  param.degree = hyper.degree;
-  param.gamma = hyper.gamma(dims);
-  param.coef0 = hyper.coef0;
-  param.cache_size = 100;
-  param.eps = 1e-3;
-  param.C = hyper.c;
-  param.shrinking = 1;
-  param.probability = 1;
+  const svm_parameter param = make_svm_parameter(hyper, dims, PlattFit::kYes);  // the shipped model: probabilities
   if (const char* why = svm_check_parameter(&problem, &param)) {
     return make_error(std::string("SVM training: libsvm refused the parameters: ") + why);
   }

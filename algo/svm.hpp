@@ -11,6 +11,8 @@
 #include "algo/features.hpp"
 #include "algo/result.hpp"
 
+struct svm_parameter;  // libsvm/svm.h: only the files that call libsvm include it
+
 namespace cellsight::algo {
 
 enum class KernelType : std::uint8_t {
@@ -28,6 +30,17 @@ struct SvmHyper {
   [[nodiscard]] double gamma(int active_features) const { return gamma_factor / active_features; }
   [[nodiscard]] std::string describe(int active_features) const;  // "rbf C=4 gamma=0.0667 (i=1)"
 };
+
+// Whether libsvm fits Platt's sigmoids after training (svm_parameter::probability).
+enum class PlattFit : bool { kNo = false, kYes = true };
+
+// The libsvm parameters of every C-SVC cellsight trains, so the cross-validation scores the very machine that is
+// shipped: C-SVC, the kernel of `hyper` (gamma from `active_features`), eps 1e-3, shrinking, a 100 MB kernel cache
+// (speed only, never the result; libsvm allocates it as the columns are used). They differ on purpose only in
+// `platt`: the shipped model needs probabilities (kYes); a cross-validation model is scored on its decision alone
+// (kNo), and Platt's fit would run an inner 5-fold CV per model and shuffle with the process-wide rand() from
+// several threads at once.
+[[nodiscard]] svm_parameter make_svm_parameter(const SvmHyper& hyper, int active_features, PlattFit platt);
 
 struct ClassInfo {
   std::string name;

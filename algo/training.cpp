@@ -138,17 +138,8 @@ class SvmEvaluator final : public Evaluator {
             y.push_back(ctx.train->labels[i]);
           }
           svm_problem problem{static_cast<int>(x.size()), y.data(), x.data()};
-          svm_parameter param{};
-          param.svm_type = C_SVC;
-          param.kernel_type = h.kernel == KernelType::kRbf ? RBF : POLY;
-          param.degree = h.degree;
-          param.gamma = h.gamma(dims);
-          param.coef0 = h.coef0;
-          param.cache_size = 40;
-          param.eps = 1e-3;
-          param.C = h.c;
-          param.shrinking = 1;
-          param.probability = 0;  // CV needs only the decision; libsvm's Platt fit would also call rand()
+          // CV needs only the decision; libsvm's Platt fit would also call rand() (make_svm_parameter).
+          const svm_parameter param = make_svm_parameter(h, dims, PlattFit::kNo);
           svm_model* model = svm_train(&problem, &param);
           int ok = 0;
           for (std::size_t i = 0; i < n; ++i) {
