@@ -6,80 +6,19 @@
 
 #include <algorithm>
 #include <array>
-#include <atomic>
 #include <catch2/catch.hpp>
 #include <cerrno>
 #include <cstdint>
 #include <cstdlib>
 #include <cstring>
 #include <limits>
-#include <new>
 #include <random>
 #include <string>
 #include <vector>
 
 #include "drivers/camera/v4l2_camera.hpp"
 #include "drivers/sys_seam.hpp"
-
-// ---- Allocation counter: proves grab()/release()/set_exposure_us() never reach the heap. ----
-namespace {
-std::atomic<bool> g_count_allocations{false};
-std::atomic<long> g_allocations{0};
-
-void* counted_malloc(std::size_t size) noexcept {
-  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1, std::memory_order_relaxed);
-  return std::malloc(size == 0 ? 1 : size);
-}
-void* counted_new(std::size_t size) {
-  void* memory = counted_malloc(size);
-  if (memory == nullptr) throw std::bad_alloc();
-  return memory;
-}
-
-// Counts allocations made while alive.
-class AllocationWindow {
- public:
-  AllocationWindow() {
-    g_allocations.store(0);
-    g_count_allocations.store(true);
-  }
-  ~AllocationWindow() { g_count_allocations.store(false); }
-  AllocationWindow(const AllocationWindow&) = delete;
-  AllocationWindow& operator=(const AllocationWindow&) = delete;
-  [[nodiscard]] long count() const { return g_allocations.load(); }
-};
-}  // namespace
-
-void* operator new(std::size_t size) {
-  return counted_new(size);
-}
-void* operator new[](std::size_t size) {
-  return counted_new(size);
-}
-void* operator new(std::size_t size, const std::nothrow_t&) noexcept {
-  return counted_malloc(size);
-}
-void* operator new[](std::size_t size, const std::nothrow_t&) noexcept {
-  return counted_malloc(size);
-}
-void operator delete(void* memory) noexcept {
-  std::free(memory);
-}
-void operator delete[](void* memory) noexcept {
-  std::free(memory);
-}
-void operator delete(void* memory, std::size_t) noexcept {
-  std::free(memory);
-}
-void operator delete[](void* memory, std::size_t) noexcept {
-  std::free(memory);
-}
-void operator delete(void* memory, const std::nothrow_t&) noexcept {
-  std::free(memory);
-}
-void operator delete[](void* memory, const std::nothrow_t&) noexcept {
-  std::free(memory);
-}
+#include "tests/support/alloc_counter.hpp"
 
 namespace {
 
@@ -90,6 +29,8 @@ using cellsight::drivers::RealSys;
 using cellsight::drivers::SysSeam;
 using cellsight::drivers::V4L2Camera;
 using cellsight::drivers::V4L2CameraConfig;
+// Proves grab()/release()/set_exposure_us() never reach the heap.
+using cellsight::test::AllocationWindow;
 
 constexpr int kFakeFd = 7;
 constexpr std::uint32_t kOffsetStride = 0x100000;  // mmap cookie per buffer, like vb2's PLANE_INDEX_SHIFT

@@ -13,11 +13,7 @@
 #include "algo/features.hpp"
 #include "algo/grid.hpp"
 #include "algo/training.hpp"
-
-namespace cellsight::test {
-void begin_counting_allocations();  // tests/test_features.cpp
-long end_counting_allocations();
-}  // namespace cellsight::test
+#include "tests/support/alloc_counter.hpp"
 
 using namespace cellsight;
 
@@ -184,9 +180,13 @@ TEST_CASE("Given the scratch sized at start-up, when a part is mapped, then noth
   algo::CanonicalScratch scratch(spec);
   std::vector<algo::ScanPoint> out(in.size());
   algo::CanonicalPose pose;
-  test::begin_counting_allocations();
-  const algo::CanonicalStatus status = algo::canonicalise(in, spec, {}, scratch, out, pose);
-  const long allocations = test::end_counting_allocations();
+  long allocations = 0;
+  algo::CanonicalStatus status{};
+  {
+    const test::AllocationWindow window;
+    status = algo::canonicalise(in, spec, {}, scratch, out, pose);
+    allocations = window.count();
+  }
   CHECK(status == algo::CanonicalStatus::kOk);
   CHECK(allocations == 0);
 }

@@ -4,7 +4,6 @@
 // (drivers/sim/scene build_part) at known poses, so the truth is the simulator's pose.
 #include <Eigen/Geometry>
 #include <algorithm>
-#include <atomic>
 #include <catch2/catch.hpp>
 #include <chrono>
 #include <cmath>
@@ -12,7 +11,6 @@
 #include <cstdlib>
 #include <map>
 #include <memory>
-#include <new>
 #include <numbers>
 #include <random>
 #include <set>
@@ -28,47 +26,7 @@
 #include "drivers/sim/rig.hpp"
 #include "drivers/sim/scene.hpp"
 #include "drivers/sim/sim_cell.hpp"
-
-// ---- Allocation counter: proves decide() never reaches the heap. ----
-namespace {
-std::atomic<bool> g_count_allocations{false};
-std::atomic<long> g_allocations{0};
-
-void* counted_malloc(std::size_t size) noexcept {
-  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1, std::memory_order_relaxed);
-  return std::malloc(size == 0 ? 1 : size);
-}
-void* counted_new(std::size_t size) {
-  void* memory = counted_malloc(size);
-  if (memory == nullptr) throw std::bad_alloc();
-  return memory;
-}
-}  // namespace
-
-void* operator new(std::size_t size) {
-  return counted_new(size);
-}
-void* operator new[](std::size_t size) {
-  return counted_new(size);
-}
-void* operator new(std::size_t size, const std::nothrow_t&) noexcept {
-  return counted_malloc(size);
-}
-void* operator new[](std::size_t size, const std::nothrow_t&) noexcept {
-  return counted_malloc(size);
-}
-void operator delete(void* memory) noexcept {
-  std::free(memory);
-}
-void operator delete[](void* memory) noexcept {
-  std::free(memory);
-}
-void operator delete(void* memory, std::size_t) noexcept {
-  std::free(memory);
-}
-void operator delete[](void* memory, std::size_t) noexcept {
-  std::free(memory);
-}
+#include "tests/support/alloc_counter.hpp"
 
 using namespace cellsight;
 using algo::Cascade;
@@ -1275,14 +1233,17 @@ TEST_CASE("decide() allocates nothing", "[cascade][alloc]") {
   const auto untaught = sample_part(part("frame_window"), kTestPose, 702);
   (void)cat.cascade().decide(sure_wrong, cat.models(), scan, far_deadline());          // warm-up
   // When it decides along every path
-  g_allocations.store(0);
-  g_count_allocations.store(true);
-  const Decision a = cat.cascade().decide(sure_wrong, cat.models(), scan, far_deadline());
-  const Decision b = cat.cascade().decide(unsure, cat.models(), untaught, far_deadline());
-  const Decision c = cat.cascade().decide(sure_wrong, cat.models(), scan, Clock::now() - std::chrono::seconds(1));
-  g_count_allocations.store(false);
+  long allocations = 0;
+  Decision a, b, c;
+  {
+    const test::AllocationWindow window;  // proves decide() never reaches the heap
+    a = cat.cascade().decide(sure_wrong, cat.models(), scan, far_deadline());
+    b = cat.cascade().decide(unsure, cat.models(), untaught, far_deadline());
+    c = cat.cascade().decide(sure_wrong, cat.models(), scan, Clock::now() - std::chrono::seconds(1));
+    allocations = window.count();
+  }
   // Then no allocation happened
-  CHECK(g_allocations.load() == 0);
+  CHECK(allocations == 0);
   CHECK(a.source == DecisionSource::kPm);
   CHECK(b.source == DecisionSource::kUnknown);
   CHECK(c.source == DecisionSource::kTimeout);

@@ -1,57 +1,15 @@
 // Tests of algo/distance_map: exact EDT against brute force, gradient maps against analytic fields, trilinear sampling.
-#include <atomic>
 #include <catch2/catch.hpp>
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
 #include <limits>
-#include <new>
 #include <numbers>
 #include <random>
 #include <vector>
 
 #include "algo/distance_map.hpp"
-
-// Allocation counter for the "nothing allocates per call" checks: counts only while armed, so Catch2's own
-// allocations elsewhere do not matter.
-namespace {
-std::atomic<bool> g_count_allocations{false};
-std::atomic<long> g_allocations{0};
-}  // namespace
-
-void* operator new(std::size_t size) {
-  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1, std::memory_order_relaxed);
-  if (void* p = std::malloc(size == 0 ? 1 : size)) return p;
-  throw std::bad_alloc();
-}
-void* operator new[](std::size_t size) {
-  return operator new(size);
-}
-void* operator new(std::size_t size, const std::nothrow_t&) noexcept {
-  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1, std::memory_order_relaxed);
-  return std::malloc(size == 0 ? 1 : size);
-}
-void* operator new[](std::size_t size, const std::nothrow_t& tag) noexcept {
-  return operator new(size, tag);
-}
-void operator delete(void* p, const std::nothrow_t&) noexcept {
-  std::free(p);
-}
-void operator delete[](void* p, const std::nothrow_t&) noexcept {
-  std::free(p);
-}
-void operator delete(void* p) noexcept {
-  std::free(p);
-}
-void operator delete[](void* p) noexcept {
-  std::free(p);
-}
-void operator delete(void* p, std::size_t) noexcept {
-  std::free(p);
-}
-void operator delete[](void* p, std::size_t) noexcept {
-  std::free(p);
-}
+#include "tests/support/alloc_counter.hpp"
 
 namespace {
 
@@ -67,6 +25,8 @@ using cellsight::algo::gradients_xy;
 using cellsight::algo::GridDims;
 using cellsight::algo::MapCell;
 using cellsight::algo::MapSample;
+// Counts only while open, so Catch2's own allocations elsewhere do not matter.
+using cellsight::test::AllocationWindow;
 
 constexpr double kResolutionM = 0.0022;  // the thesis grid's cell; the code never assumes it
 
@@ -74,18 +34,6 @@ struct Cell {
   int x;
   int y;
   int z;
-};
-
-class AllocationGuard {
- public:
-  AllocationGuard() {
-    g_allocations = 0;
-    g_count_allocations = true;
-  }
-  ~AllocationGuard() { g_count_allocations = false; }
-  AllocationGuard(const AllocationGuard&) = delete;
-  AllocationGuard& operator=(const AllocationGuard&) = delete;
-  [[nodiscard]] long count() const { return g_allocations.load(); }
 };
 
 std::vector<Cell> occupied_list(const std::vector<std::uint8_t>& occ, const GridDims& d) {
@@ -316,7 +264,7 @@ SCENARIO("Building a map again for the same grid allocates nothing", "[distance_
     REQUIRE(build_distance_map(occ.data(), d, origin, GradientMethod::kSobelAveraged, scratch, work.data(), map).ok());
     WHEN("it is rebuilt with the same buffers (other content, other method)") {
       occ[cell(rng)] = 1;
-      AllocationGuard guard;
+      AllocationWindow guard;
       const auto status =
           build_distance_map(occ.data(), d, origin, GradientMethod::kCentralDifference, scratch, work.data(), map);
       const long allocations = guard.count();
@@ -822,7 +770,7 @@ SCENARIO("Sampling a built point-field map approximates the true distance", "[di
       double worst_under_m = 0.0;
       double worst_gradient = 0.0;  // |error| * r_min^2, r in cells
       long tested = 0;
-      AllocationGuard guard;
+      AllocationWindow guard;
       while (tested < 20000) {
         const Eigen::Vector3d p =
             origin + kResolutionM * (Eigen::Vector3d{ux(rng), uy(rng), uz(rng)} + Eigen::Vector3d::Constant(0.5));

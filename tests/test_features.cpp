@@ -2,13 +2,11 @@
 // allocation counter, and depth images of simulated parts at several poses (which features are pose-invariant).
 #include <algorithm>
 #include <array>
-#include <atomic>
 #include <catch2/catch.hpp>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <map>
-#include <new>
 #include <numbers>
 #include <opencv2/imgproc.hpp>
 #include <random>
@@ -20,58 +18,7 @@
 #include "algo/scan.hpp"
 #include "app/config.hpp"
 #include "app/sim_mode.hpp"
-
-// ---- Allocation counter (shared with test_svm.cpp): proves compute() and predict() never reach the heap. ----
-namespace {
-std::atomic<bool> g_count_allocations{false};
-std::atomic<long> g_allocations{0};
-
-void* counted_malloc(std::size_t size) noexcept {
-  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1, std::memory_order_relaxed);
-  return std::malloc(size == 0 ? 1 : size);
-}
-void* counted_new(std::size_t size) {
-  void* memory = counted_malloc(size);
-  if (memory == nullptr) throw std::bad_alloc();
-  return memory;
-}
-}  // namespace
-
-void* operator new(std::size_t size) {
-  return counted_new(size);
-}
-void* operator new[](std::size_t size) {
-  return counted_new(size);
-}
-void* operator new(std::size_t size, const std::nothrow_t&) noexcept {
-  return counted_malloc(size);
-}
-void* operator new[](std::size_t size, const std::nothrow_t&) noexcept {
-  return counted_malloc(size);
-}
-void operator delete(void* memory) noexcept {
-  std::free(memory);
-}
-void operator delete[](void* memory) noexcept {
-  std::free(memory);
-}
-void operator delete(void* memory, std::size_t) noexcept {
-  std::free(memory);
-}
-void operator delete[](void* memory, std::size_t) noexcept {
-  std::free(memory);
-}
-
-namespace cellsight::test {
-void begin_counting_allocations() {
-  g_allocations.store(0);
-  g_count_allocations.store(true);
-}
-long end_counting_allocations() {
-  g_count_allocations.store(false);
-  return g_allocations.load();
-}
-}  // namespace cellsight::test
+#include "tests/support/alloc_counter.hpp"
 
 using namespace cellsight;
 using algo::FeatureVector;
@@ -383,10 +330,13 @@ SCENARIO("compute() does not allocate once the extractor exists", "[features]") 
     FeatureVector f{};
     REQUIRE(extractor.compute(image, f) == algo::FeatureStatus::kOk);  // warm: nothing is lazily built anyway
     WHEN("features are computed 20 times") {
-      test::begin_counting_allocations();
       int ok = 0;
-      for (int i = 0; i < 20; ++i) ok += extractor.compute(image, f) == algo::FeatureStatus::kOk ? 1 : 0;
-      const long allocations = test::end_counting_allocations();
+      long allocations = 0;
+      {
+        const test::AllocationWindow window;  // proves compute() never reaches the heap
+        for (int i = 0; i < 20; ++i) ok += extractor.compute(image, f) == algo::FeatureStatus::kOk ? 1 : 0;
+        allocations = window.count();
+      }
       THEN("no allocation happened") {
         CHECK(ok == 20);
         CHECK(allocations == 0);

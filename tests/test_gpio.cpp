@@ -1,7 +1,6 @@
 // GpiodIo and GpiodEncoder against a simulated GPIO chip behind GpiodApi, plus the pure quadrature decoder.
 #include <algorithm>
 #include <array>
-#include <atomic>
 #include <catch2/catch.hpp>
 #include <cerrno>
 #include <chrono>
@@ -11,7 +10,6 @@
 #include <cstdlib>
 #include <deque>
 #include <mutex>
-#include <new>
 #include <random>
 #include <string>
 #include <thread>
@@ -20,53 +18,7 @@
 #include "drivers/gpio/gpiod_api.hpp"
 #include "drivers/gpio/gpiod_encoder.hpp"
 #include "drivers/gpio/gpiod_io.hpp"
-
-// ---- Allocation counter: proves the real-time calls never reach the heap. ----
-namespace {
-std::atomic<bool> g_count_allocations{false};
-std::atomic<long> g_allocations{0};
-
-void* counted_malloc(std::size_t size) noexcept {
-  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1, std::memory_order_relaxed);
-  return std::malloc(size == 0 ? 1 : size);
-}
-void* counted_new(std::size_t size) {
-  void* memory = counted_malloc(size);
-  if (memory == nullptr) throw std::bad_alloc();
-  return memory;
-}
-}  // namespace
-
-void* operator new(std::size_t size) {
-  return counted_new(size);
-}
-void* operator new[](std::size_t size) {
-  return counted_new(size);
-}
-void* operator new(std::size_t size, const std::nothrow_t&) noexcept {
-  return counted_malloc(size);
-}
-void* operator new[](std::size_t size, const std::nothrow_t&) noexcept {
-  return counted_malloc(size);
-}
-void operator delete(void* memory) noexcept {
-  std::free(memory);
-}
-void operator delete[](void* memory) noexcept {
-  std::free(memory);
-}
-void operator delete(void* memory, std::size_t) noexcept {
-  std::free(memory);
-}
-void operator delete[](void* memory, std::size_t) noexcept {
-  std::free(memory);
-}
-void operator delete(void* memory, const std::nothrow_t&) noexcept {
-  std::free(memory);
-}
-void operator delete[](void* memory, const std::nothrow_t&) noexcept {
-  std::free(memory);
-}
+#include "tests/support/alloc_counter.hpp"
 
 namespace {
 
@@ -769,16 +721,16 @@ SCENARIO("set, pulse, read, wait_edge and read_counts never allocate", "[gpio]")
       std::int64_t counts = 0;
       bool active = false;
       EdgeEvent edge;
-      g_allocations.store(0);
-      g_count_allocations.store(true);
-      statuses[0] = io.set(Output::kLaserEnable, true);
-      statuses[1] = io.pulse(Output::kCameraTrigger, 20);
-      statuses[2] = io.read(Input::kPartPresent, active);
-      statuses[3] = io.wait_edge(edge, 20);
-      statuses[4] = io.wait_edge(edge, 1);
-      statuses[5] = running.read_counts(counts);
-      g_count_allocations.store(false);
-      allocations = g_allocations.load();
+      {
+        const cellsight::test::AllocationWindow window;  // proves the real-time calls never reach the heap
+        statuses[0] = io.set(Output::kLaserEnable, true);
+        statuses[1] = io.pulse(Output::kCameraTrigger, 20);
+        statuses[2] = io.read(Input::kPartPresent, active);
+        statuses[3] = io.wait_edge(edge, 20);
+        statuses[4] = io.wait_edge(edge, 1);
+        statuses[5] = running.read_counts(counts);
+        allocations = window.count();
+      }
       THEN("they worked and nothing was allocated") {
         CHECK(statuses[0] == DeviceStatus::kOk);
         CHECK(statuses[1] == DeviceStatus::kOk);

@@ -23,7 +23,6 @@
 #include <limits>
 #include <map>
 #include <memory>
-#include <new>
 #include <optional>
 #include <random>
 #include <string>
@@ -35,79 +34,19 @@
 #include "drivers/modbus/register_map.hpp"
 #include "drivers/modbus/request_screen.hpp"
 #include "drivers/modbus/sim_plc_link.hpp"
+#include "tests/support/alloc_counter.hpp"
 
 extern char** environ;
-
-// ------------------------------------------------------------------ allocation counter (proves "no allocation")
-namespace {
-std::atomic<bool> g_count_allocations{false};
-std::atomic<std::size_t> g_allocations{0};
-
-// Out of line on purpose: when GCC inlines these it pairs new-expressions with free() and warns
-// (-Wmismatched-new-delete) although both sides are replaced consistently here.
-[[gnu::noinline]] void* counted_malloc(std::size_t size) noexcept {
-  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1, std::memory_order_relaxed);
-  return std::malloc(size == 0 ? 1 : size);
-}
-[[gnu::noinline]] void counted_free(void* memory) noexcept {
-  std::free(memory);
-}
-}  // namespace
-
-[[gnu::noinline]] void* operator new(std::size_t size) {
-  void* memory = counted_malloc(size);
-  if (memory == nullptr) throw std::bad_alloc();
-  return memory;
-}
-[[gnu::noinline]] void* operator new[](std::size_t size) {
-  return operator new(size);
-}
-// The nothrow forms too, or ASan sees their memory released by our delete as a mismatch.
-[[gnu::noinline]] void* operator new(std::size_t size, const std::nothrow_t&) noexcept {
-  return counted_malloc(size);
-}
-[[gnu::noinline]] void* operator new[](std::size_t size, const std::nothrow_t&) noexcept {
-  return counted_malloc(size);
-}
-[[gnu::noinline]] void operator delete(void* memory, const std::nothrow_t&) noexcept {
-  counted_free(memory);
-}
-[[gnu::noinline]] void operator delete[](void* memory, const std::nothrow_t&) noexcept {
-  counted_free(memory);
-}
-[[gnu::noinline]] void operator delete(void* memory) noexcept {
-  counted_free(memory);
-}
-[[gnu::noinline]] void operator delete[](void* memory) noexcept {
-  counted_free(memory);
-}
-[[gnu::noinline]] void operator delete(void* memory, std::size_t) noexcept {
-  counted_free(memory);
-}
-[[gnu::noinline]] void operator delete[](void* memory, std::size_t) noexcept {
-  counted_free(memory);
-}
 
 namespace {
 
 using namespace cellsight::drivers;
 namespace map = cellsight::drivers::modbus_map;
 using Clock = std::chrono::steady_clock;
+// Counts allocations made by any thread while alive (proves "no allocation").
+using cellsight::test::AllocationWindow;
 
 constexpr std::int64_t kNsPerMs = 1'000'000;
-
-// Counts allocations made by any thread while alive.
-class AllocationWindow {
- public:
-  AllocationWindow() {
-    g_allocations.store(0);
-    g_count_allocations.store(true);
-  }
-  ~AllocationWindow() { g_count_allocations.store(false); }
-  AllocationWindow(const AllocationWindow&) = delete;
-  AllocationWindow& operator=(const AllocationWindow&) = delete;
-  [[nodiscard]] std::size_t count() const { return g_allocations.load(); }
-};
 
 template <class Predicate>
 bool wait_until(Predicate predicate, int timeout_ms) {
@@ -1242,7 +1181,7 @@ TEST_CASE("production side allocates nothing after start (simulated and real bac
     SimPlcLink link(config);
     REQUIRE(link.start().ok());
     std::array<std::uint16_t, 27> block{};
-    std::size_t allocations = 0;
+    long allocations = 0;
     std::size_t accepted = 0;
     {
       AllocationWindow window;
@@ -1271,7 +1210,7 @@ TEST_CASE("production side allocates nothing after start (simulated and real bac
     REQUIRE(client.connected());
     std::array<std::uint16_t, 27> block{};
     REQUIRE(client.read(200, block.data(), 27) == 0);  // connection accepted and served once before counting
-    std::size_t allocations = 0;
+    long allocations = 0;
     int failures = 0;
     {
       AllocationWindow window;  // counts the network thread too

@@ -2,7 +2,6 @@
 // shape discrimination and the no-allocation guarantee of match().
 #include <algorithm>
 #include <array>
-#include <atomic>
 #include <catch2/catch.hpp>
 #include <cmath>
 #include <cstdint>
@@ -20,47 +19,7 @@
 #include "app/catalogue.hpp"
 #include "drivers/sim/scene.hpp"
 #include "tests/sim_test_util.hpp"
-
-// Allocation counter for the "match() allocates nothing" check: counts only while armed. new and delete are kept out of
-// line so that GCC does not pair an inlined malloc() or free() with the new-expression (-Wmismatched-new-delete).
-namespace {
-std::atomic<bool> g_count_allocations{false};
-std::atomic<long> g_allocations{0};
-}  // namespace
-
-[[gnu::noinline]] void* operator new(std::size_t size) {
-  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1, std::memory_order_relaxed);
-  if (void* p = std::malloc(size == 0 ? 1 : size)) return p;
-  throw std::bad_alloc();
-}
-[[gnu::noinline]] void* operator new[](std::size_t size) {
-  return operator new(size);
-}
-[[gnu::noinline]] void* operator new(std::size_t size, const std::nothrow_t&) noexcept {
-  if (g_count_allocations.load(std::memory_order_relaxed)) g_allocations.fetch_add(1, std::memory_order_relaxed);
-  return std::malloc(size == 0 ? 1 : size);
-}
-[[gnu::noinline]] void* operator new[](std::size_t size, const std::nothrow_t& tag) noexcept {
-  return operator new(size, tag);
-}
-[[gnu::noinline]] void operator delete(void* p, const std::nothrow_t&) noexcept {
-  std::free(p);
-}
-[[gnu::noinline]] void operator delete[](void* p, const std::nothrow_t&) noexcept {
-  std::free(p);
-}
-[[gnu::noinline]] void operator delete(void* p) noexcept {
-  std::free(p);
-}
-[[gnu::noinline]] void operator delete[](void* p) noexcept {
-  std::free(p);
-}
-[[gnu::noinline]] void operator delete(void* p, std::size_t) noexcept {
-  std::free(p);
-}
-[[gnu::noinline]] void operator delete[](void* p, std::size_t) noexcept {
-  std::free(p);
-}
+#include "tests/support/alloc_counter.hpp"
 
 namespace {
 
@@ -75,18 +34,7 @@ using algo::PerfectMatchParams;
 using algo::PerfectMatchResult;
 using algo::PlanarPose;
 using algo::ScanPoint;
-
-class AllocationGuard {
- public:
-  AllocationGuard() {
-    g_allocations = 0;
-    g_count_allocations = true;
-  }
-  ~AllocationGuard() { g_count_allocations = false; }
-  AllocationGuard(const AllocationGuard&) = delete;
-  AllocationGuard& operator=(const AllocationGuard&) = delete;
-  [[nodiscard]] long count() const { return g_allocations.load(); }
-};
+using test::AllocationWindow;  // for the "match() allocates nothing" check
 
 constexpr double kResolutionM = 0.0022;  // the thesis grid's cell
 constexpr double kDeg = std::numbers::pi / 180.0;
@@ -481,7 +429,7 @@ SCENARIO("match() and set_scan() allocate nothing", "[perfect_match][alloc]") {
       long count = 0;
       PerfectMatchResult r;
       {
-        AllocationGuard guard;
+        AllocationWindow guard;
         pm.set_scan(scan);
         r = pm.match(t.view, t.centroid_m, pm.centroid_start(t.centroid_m));
         count = guard.count();
@@ -489,7 +437,7 @@ SCENARIO("match() and set_scan() allocate nothing", "[perfect_match][alloc]") {
       THEN("no allocation happened (the counter does count one) and the match did its work") {
         long probe = 0;
         {
-          AllocationGuard guard;
+          AllocationWindow guard;
           static void* volatile sink = nullptr;  // escapes, so the pair cannot be elided
           sink = ::operator new(16);
           ::operator delete(sink);

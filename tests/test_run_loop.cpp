@@ -25,7 +25,6 @@
 #include <fstream>
 #include <iterator>
 #include <mutex>
-#include <new>
 #include <numbers>
 #include <optional>
 #include <random>
@@ -49,59 +48,7 @@
 #include "drivers/sim/sim_devices.hpp"
 #include "sim_test_util.hpp"
 #include "tests/scratch_dir.hpp"
-
-// ------------------------------------------------------------------ allocation counter (proves "no allocation")
-// Counts operator new on every thread while the window is open, except inside the simulated world (the simulator's
-// renderer and scene building, the test's PLC): those stand for the camera, the conveyor and the PLC, which are not
-// the loop. thread_local int has constant initialisation, so reading it here never allocates.
-namespace {
-std::atomic<bool> g_count_allocations{false};
-std::atomic<std::size_t> g_allocations{0};
-thread_local int t_world_depth = 0;
-
-[[gnu::noinline]] void* counted_malloc(std::size_t size) noexcept {
-  if (g_count_allocations.load(std::memory_order_relaxed) && t_world_depth == 0) {
-    g_allocations.fetch_add(1, std::memory_order_relaxed);
-  }
-  return std::malloc(size == 0 ? 1 : size);
-}
-[[gnu::noinline]] void counted_free(void* memory) noexcept {
-  std::free(memory);
-}
-}  // namespace
-
-[[gnu::noinline]] void* operator new(std::size_t size) {
-  void* memory = counted_malloc(size);
-  if (memory == nullptr) throw std::bad_alloc();
-  return memory;
-}
-[[gnu::noinline]] void* operator new[](std::size_t size) {
-  return operator new(size);
-}
-[[gnu::noinline]] void* operator new(std::size_t size, const std::nothrow_t&) noexcept {
-  return counted_malloc(size);
-}
-[[gnu::noinline]] void* operator new[](std::size_t size, const std::nothrow_t&) noexcept {
-  return counted_malloc(size);
-}
-[[gnu::noinline]] void operator delete(void* memory, const std::nothrow_t&) noexcept {
-  counted_free(memory);
-}
-[[gnu::noinline]] void operator delete[](void* memory, const std::nothrow_t&) noexcept {
-  counted_free(memory);
-}
-[[gnu::noinline]] void operator delete(void* memory) noexcept {
-  counted_free(memory);
-}
-[[gnu::noinline]] void operator delete[](void* memory) noexcept {
-  counted_free(memory);
-}
-[[gnu::noinline]] void operator delete(void* memory, std::size_t) noexcept {
-  counted_free(memory);
-}
-[[gnu::noinline]] void operator delete[](void* memory, std::size_t) noexcept {
-  counted_free(memory);
-}
+#include "tests/support/alloc_counter.hpp"
 
 namespace {
 
@@ -116,24 +63,11 @@ using std::chrono::milliseconds;
 
 constexpr std::int64_t kNsPerMs = 1'000'000;
 
-struct WorldScope {
-  WorldScope() { ++t_world_depth; }
-  ~WorldScope() { --t_world_depth; }
-  WorldScope(const WorldScope&) = delete;
-  WorldScope& operator=(const WorldScope&) = delete;
-};
-
-class AllocationWindow {
- public:
-  AllocationWindow() {
-    g_allocations.store(0);
-    g_count_allocations.store(true);
-  }
-  ~AllocationWindow() { g_count_allocations.store(false); }
-  AllocationWindow(const AllocationWindow&) = delete;
-  AllocationWindow& operator=(const AllocationWindow&) = delete;
-  [[nodiscard]] std::size_t count() const { return g_allocations.load(); }
-};
+// Allocation counter (proves "no allocation"): operator new on every thread while the window is open, except inside
+// the simulated world (the simulator's renderer and scene building, the test's PLC): those stand for the camera,
+// the conveyor and the PLC, which are not the loop.
+using WorldScope = test::UncountedScope;
+using test::AllocationWindow;
 
 std::int64_t monotonic_ns() {
   return std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now().time_since_epoch()).count();
@@ -935,7 +869,7 @@ TEST_CASE("loop: nothing is allocated inside the loop over several simulated par
   app::ProductionLoop& loop = cell.make_loop(lc);
   REQUIRE(loop.start().ok());
   REQUIRE(wait_until([&] { return loop.stats().results >= kWarmUp; }, 60'000));
-  std::size_t allocations = 0;
+  long allocations = 0;
   std::uint64_t counted_from = 0, counted_to = 0;
   std::uint64_t frames_from = 0;
   {

@@ -1,53 +1,14 @@
 // Tests of algo/stripe against analytic Gaussian stripes with known sub-pixel centres and widths.
 #include <algorithm>
-#include <atomic>
 #include <catch2/catch.hpp>
 #include <cmath>
-#include <cstdlib>
 #include <cstring>
-#include <new>
 #include <numbers>
 #include <random>
 #include <vector>
 
 #include "algo/stripe.hpp"
-
-// Counting global allocator: proves extract_stripe() allocates nothing (the Eigen nomalloc idea). All forms that
-// Catch2 and the standard library use are replaced, so every delete matches a malloc. noinline keeps GCC from
-// pairing an inlined std::free with the operator new it sees at the call site (-Wmismatched-new-delete).
-namespace {
-std::atomic<long> g_allocations{0};
-
-void* counted_malloc(std::size_t size) noexcept {
-  g_allocations.fetch_add(1, std::memory_order_relaxed);
-  return std::malloc(size == 0 ? 1 : size);
-}
-}  // namespace
-
-[[gnu::noinline]] void* operator new(std::size_t size) {
-  if (void* p = counted_malloc(size)) {
-    return p;
-  }
-  throw std::bad_alloc();
-}
-[[gnu::noinline]] void* operator new[](std::size_t size) {
-  if (void* p = counted_malloc(size)) {
-    return p;
-  }
-  throw std::bad_alloc();
-}
-[[gnu::noinline]] void* operator new(std::size_t size, const std::nothrow_t& /*tag*/) noexcept {
-  return counted_malloc(size);
-}
-[[gnu::noinline]] void* operator new[](std::size_t size, const std::nothrow_t& /*tag*/) noexcept {
-  return counted_malloc(size);
-}
-[[gnu::noinline]] void operator delete(void* p) noexcept { std::free(p); }
-[[gnu::noinline]] void operator delete[](void* p) noexcept { std::free(p); }
-[[gnu::noinline]] void operator delete(void* p, std::size_t /*size*/) noexcept { std::free(p); }
-[[gnu::noinline]] void operator delete[](void* p, std::size_t /*size*/) noexcept { std::free(p); }
-[[gnu::noinline]] void operator delete(void* p, const std::nothrow_t& /*tag*/) noexcept { std::free(p); }
-[[gnu::noinline]] void operator delete[](void* p, const std::nothrow_t& /*tag*/) noexcept { std::free(p); }
+#include "tests/support/alloc_counter.hpp"
 
 namespace {
 
@@ -766,11 +727,15 @@ SCENARIO("extract_stripe validates its input and allocates nothing", "[stripe]")
   GIVEN("a profile reserved for 768 rows at start-up") {
     StripeProfile profile(768);
     THEN("a full frame is extracted without a single heap allocation") {
-      const long before = g_allocations.load();
-      const StripeResult result = run(img, params, profile);
-      const long after = g_allocations.load();
+      long allocations = 0;
+      StripeResult result{};
+      {
+        const cellsight::test::AllocationWindow window;  // proves extract_stripe() allocates nothing
+        result = run(img, params, profile);
+        allocations = window.count();
+      }
       REQUIRE(result == StripeResult::kOk);
-      CHECK(after == before);
+      CHECK(allocations == 0);
       CHECK(profile.rows() == 768);
       CHECK(profile.summary().valid_rows == 768);  // the ghost is settled by continuity in every row
     }

@@ -15,12 +15,7 @@
 
 #include "algo/svm.hpp"
 #include "algo/training.hpp"
-
-namespace cellsight::test {
-// Defined in test_features.cpp next to the replaced operator new.
-void begin_counting_allocations();
-long end_counting_allocations();
-}  // namespace cellsight::test
+#include "tests/support/alloc_counter.hpp"
 
 using namespace cellsight;
 using algo::FeatureMask;
@@ -241,10 +236,15 @@ SCENARIO("predict() does not allocate", "[svm]") {
     const algo::Dataset train = make_clusters(5, 20, 2);
     algo::SvmModel model = train_model(train, {algo::KernelType::kRbf, 4.0, 1.0, 3, 0.0});
     WHEN("it predicts 100 samples") {
-      test::begin_counting_allocations();
       double total = 0.0;
-      for (int i = 0; i < 100; ++i) total += model.predict(train.features[static_cast<std::size_t>(i)])[0].probability;
-      const long allocations = test::end_counting_allocations();
+      long allocations = 0;
+      {
+        const test::AllocationWindow window;
+        for (int i = 0; i < 100; ++i) {
+          total += model.predict(train.features[static_cast<std::size_t>(i)])[0].probability;
+        }
+        allocations = window.count();
+      }
       THEN("no allocation happened") {
         CHECK(total > 0.0);
         CHECK(allocations == 0);
