@@ -97,7 +97,6 @@ std::vector<ScanPoint> sample_part(const sim::PartSpec& spec, const sim::PartPos
   std::normal_distribution<double> noise(0.0, noise_m);
   const Eigen::Isometry3d to_carrier = part_to_carrier(spec, pose);
   constexpr double kStepU = 0.0022;
-  const double kStepV = step_v_m;
   std::vector<ScanPoint> out;
   for (const sim::Facet& f : sim::build_part(spec)) {
     double u0 = 1e9, u1 = -1e9, v0 = 1e9, v1 = -1e9;
@@ -107,13 +106,13 @@ std::vector<ScanPoint> sample_part(const sim::PartSpec& spec, const sim::PartPos
       v0 = std::min(v0, q.y());
       v1 = std::max(v1, q.y());
     }
-    const double pu = phase(rng) * kStepU, pv = phase(rng) * kStepV;
+    const double pu = phase(rng) * kStepU, pv = phase(rng) * step_v_m;
     const int nu = static_cast<int>(std::ceil((u1 - u0 - pu) / kStepU));
-    const int nv = static_cast<int>(std::ceil((v1 - v0 - pv) / kStepV));
+    const int nv = static_cast<int>(std::ceil((v1 - v0 - pv) / step_v_m));
     for (int iu = 0; iu < nu; ++iu) {
       const double u = u0 + pu + iu * kStepU;
       for (int iv = 0; iv < nv; ++iv) {
-        const double v = v0 + pv + iv * kStepV;
+        const double v = v0 + pv + iv * step_v_m;
         if (!f.contains({u, v})) continue;
         const Eigen::Vector3d p = to_carrier * (f.at({u, v}) + noise(rng) * f.normal);
         out.push_back({static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z()), 0, 0});
