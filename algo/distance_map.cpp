@@ -156,8 +156,12 @@ Status validate_dims(const GridDims& dims) {
     return make_error("distance map: grid resolution must be a positive number of metres, got " +
                       std::to_string(dims.resolution_m));
   }
+  // Each axis alone must keep its squared length below the bound before the three are summed: three squares of
+  // axes near INT_MAX would overflow std::int64_t (found by fuzz_template on a header declaring such a grid).
   const auto sq = [](int n) { return static_cast<std::int64_t>(n - 1) * (n - 1); };
-  if (sq(dims.nx) + sq(dims.ny) + sq(dims.nz) >= kMaxExactSquaredCells) {
+  const bool axis_too_long = sq(dims.nx) >= kMaxExactSquaredCells || sq(dims.ny) >= kMaxExactSquaredCells ||
+                             sq(dims.nz) >= kMaxExactSquaredCells;
+  if (axis_too_long || sq(dims.nx) + sq(dims.ny) + sq(dims.nz) >= kMaxExactSquaredCells) {
     return make_error("distance map: grid of " + std::to_string(dims.nx) + " x " + std::to_string(dims.ny) + " x " +
                       std::to_string(dims.nz) +
                       " cells is too large for an exact transform (squared diagonal must stay below 2^24 cells^2); "

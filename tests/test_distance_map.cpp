@@ -186,6 +186,11 @@ SCENARIO("Invalid input is refused with a message", "[distance_map][edt]") {
   WHEN("the grid's squared diagonal would not be exact in float") {
     CHECK_FALSE(cellsight::algo::validate_dims({3000, 3000, 1, kResolutionM}).ok());
   }
+  WHEN("every axis is near INT_MAX (a damaged template header; the squares' sum would overflow 64 bits)") {
+    constexpr int kHuge = std::numeric_limits<int>::max();
+    CHECK_FALSE(cellsight::algo::validate_dims({kHuge, kHuge, kHuge, kResolutionM}).ok());
+    CHECK_FALSE(cellsight::algo::validate_dims({kHuge, 1, 1, kResolutionM}).ok());
+  }
 }
 
 SCENARIO("Full thesis-size grid with a sparse plate: sampled cells equal brute force", "[distance_map][edt][full]") {
