@@ -438,6 +438,27 @@ TEST_CASE("refused: wrong magic number or format version", "[template_file]") {
   require_refused(path, g, "template format version 2, this build reads version 1");
 }
 
+TEST_CASE("refused: a header declaring about 2^31 cells on every axis, without overflow (fuzz_template finding)",
+          "[template_file]") {
+  // Found by tests/fuzz/fuzz_template in CI: the grid check summed the three squared axis lengths in 64 bits, which
+  // overflows for axes near INT_MAX (undefined behaviour; UBSan aborted). The corpus holds it as regress-huge-grid.
+  TempDir dir;
+  const std::string path = dir.file("t.dmap");
+  std::vector<char> huge = write_standard(path);
+  constexpr std::size_t kNxOffset = 24;  // nx, ny, nz: three int32 after the magic and four uint32
+  for (std::size_t axis = 0; axis < 3; ++axis) {
+    store_u32(huge, kNxOffset + 4 * axis, static_cast<std::uint32_t>(std::numeric_limits<std::int32_t>::max()));
+  }
+  store_u32(huge, kHeaderCrcOffset,
+            static_cast<std::uint32_t>(crc32(0, reinterpret_cast<const Bytef*>(huge.data()), kHeaderCrcOffset)));
+  write_bytes(path, huge);
+  const auto info = read_template_info(path);
+  REQUIRE_FALSE(info.ok());
+  CHECK_THAT(info.error().message, Contains(path));
+  CHECK_THAT(info.error().message, Contains("too large"));
+  require_refused(path, small_grid(), "too large");
+}
+
 TEST_CASE("refused: a template built for another grid, naming both grids", "[template_file]") {
   TempDir dir;
   const std::string path = dir.file("t.dmap");
