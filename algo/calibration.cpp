@@ -234,6 +234,11 @@ void subtract_dot_bias(const Intrinsics& k, const BoardSpec& board, const Eigen:
   }
 }
 
+// Index of the dot in row i, column j of the board (row-major), widened before the multiplication.
+std::size_t dot_index(const BoardSpec& board, int i, int j) {
+  return static_cast<std::size_t>(i) * static_cast<std::size_t>(board.cols) + static_cast<std::size_t>(j);
+}
+
 }  // namespace
 
 // --- BoardSpec ----------------------------------------------------------------------------------------------
@@ -328,12 +333,12 @@ Expected<std::vector<Eigen::Vector2d>> detect_board(const cv::Mat& image, const 
   // The pattern is mirror-symmetric about its middle row; a mirrored order would put the printed face away from
   // the camera. Seen from the front, "along a row" then "down the rows" turns clockwise in the image (y down).
   const Eigen::Vector2d along = dots[1] - dots[0];
-  const Eigen::Vector2d down = dots[static_cast<std::size_t>(2 * board.cols)] - dots[0];
+  const Eigen::Vector2d down = dots[dot_index(board, 2, 0)] - dots[0];
   if (along.x() * down.y() - along.y() * down.x() < 0.0) {
     std::vector<Eigen::Vector2d> flipped(dots.size());
     for (int i = 0; i < board.rows; ++i) {
       for (int j = 0; j < board.cols; ++j) {
-        flipped[static_cast<std::size_t>(i * board.cols + j)] = dots[static_cast<std::size_t>((board.rows - 1 - i) * board.cols + j)];
+        flipped[dot_index(board, i, j)] = dots[dot_index(board, board.rows - 1 - i, j)];
       }
     }
     dots.swap(flipped);
@@ -341,7 +346,7 @@ Expected<std::vector<Eigen::Vector2d>> detect_board(const cv::Mat& image, const 
   // Local board-to-image scale from the neighbours: along the row the next dot is (2 s, 0) away, in the next
   // (or previous) row the same column is (+-s, +-s) away.
   const double s = board.spacing_mm;
-  auto at = [&](int i, int j) { return dots[static_cast<std::size_t>(i * board.cols + j)]; };
+  auto at = [&](int i, int j) { return dots[dot_index(board, i, j)]; };
   std::vector<Eigen::Vector2d> refined(dots.size());
   for (int i = 0; i < board.rows; ++i) {
     for (int j = 0; j < board.cols; ++j) {
@@ -352,7 +357,7 @@ Expected<std::vector<Eigen::Vector2d>> detect_board(const cv::Mat& image, const 
       du.col(1) = Eigen::Vector2d(((in % 2) - (i % 2)) * s, (in - i) * s);
       dp.col(0) = at(i, jn) - at(i, j);
       dp.col(1) = at(in, j) - at(i, j);
-      refined[static_cast<std::size_t>(i * board.cols + j)] =
+      refined[dot_index(board, i, j)] =
           refine_dot(image, at(i, j), dp * du.inverse(), 0.5 * board.dot_diameter_mm);
     }
   }
@@ -379,7 +384,7 @@ Expected<CameraCalibrationResult> calibrate_intrinsics(const std::vector<std::ve
   std::vector<std::vector<cv::Point3f>> objects;
   std::vector<std::vector<cv::Point2f>> images;
   constexpr int kCoverageCols = 8, kCoverageRows = 6;
-  std::vector<bool> covered(kCoverageCols * kCoverageRows, false);
+  std::vector<bool> covered(std::size_t{kCoverageCols} * kCoverageRows, false);
   for (std::size_t v = 0; v < views.size(); ++v) {
     if (static_cast<int>(views[v].size()) != board.dot_count() || !all_finite(views[v])) {
       char buf[160];
@@ -390,7 +395,7 @@ Expected<CameraCalibrationResult> calibrate_intrinsics(const std::vector<std::ve
     for (const auto& d : views[v]) {
       const int cx = std::clamp(static_cast<int>(d.x() * kCoverageCols / width_px), 0, kCoverageCols - 1);
       const int cy = std::clamp(static_cast<int>(d.y() * kCoverageRows / height_px), 0, kCoverageRows - 1);
-      covered[static_cast<std::size_t>(cy * kCoverageCols + cx)] = true;
+      covered[static_cast<std::size_t>(cy) * kCoverageCols + static_cast<std::size_t>(cx)] = true;
     }
     objects.push_back(object);
     images.push_back(image_points(views[v]));
@@ -646,6 +651,7 @@ Expected<LaserPlaneResult> calibrate_laser_plane(const Intrinsics& intrinsics, c
     }
     fit = fit_plane(kept);
     std::vector<double> abs_residual;
+    abs_residual.reserve(kept.size());
     for (const auto& p : kept) abs_residual.push_back(std::abs(fit.normal.dot(p) - fit.offset));
     const double sigma = 1.4826 * median_of(abs_residual);
     const double threshold = std::max(kMinThresholdM, options.reject_sigmas * sigma);

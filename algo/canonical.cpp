@@ -102,9 +102,7 @@ double canonical_sheet_depth_m(const GridSpec& spec, const CanonicalParams& para
 }
 
 CanonicalScratch::CanonicalScratch(const GridSpec& spec)
-    : nx_(spec.nx),
-      ny_(spec.ny),
-      mask_(static_cast<std::size_t>(spec.nx) * static_cast<std::size_t>(spec.ny), 0),
+    : mask_(static_cast<std::size_t>(spec.nx) * static_cast<std::size_t>(spec.ny), 0),
       rows_(mask_.size(), 0),
       smooth_(mask_.size(), 0) {
   constexpr std::size_t kSampleCapacity = 1U << 16;

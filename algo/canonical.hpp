@@ -57,7 +57,6 @@ class CanonicalScratch {
  private:
   friend CanonicalStatus canonicalise(std::span<const ScanPoint>, const GridSpec&, const CanonicalParams&,
                                       CanonicalScratch&, std::span<ScanPoint>, CanonicalPose&);
-  int nx_ = 0, ny_ = 0;
   std::vector<std::uint8_t> mask_;  // x-y occupancy, nx x ny, row iy
   std::vector<std::uint8_t> rows_;    // 3 x 1 box sums of the mask
   std::vector<std::uint8_t> smooth_;  // 3 x 3 box sums of the mask (0 .. 9)

@@ -152,8 +152,11 @@ PerturbReport::Strip add_strip(std::vector<ScanPoint>& points, const Layout& l, 
   const double phase = rng.uniform() * l.point_spacing_y_m;
   for (const double x : l.profile_x) {
     if (x < x0 || x > x1) continue;
-    for (double y = y0 + phase; y <= y1; y += l.point_spacing_y_m) {
-      points.push_back(point_at_depth(support, x, y, depth_m));
+    // An integer count of points, each placed from the start: a float loop counter would gather rounding error.
+    const double first_y = y0 + phase;
+    const auto count = first_y <= y1 ? static_cast<long>(std::floor((y1 - first_y) / l.point_spacing_y_m)) + 1 : 0L;
+    for (long k = 0; k < count; ++k) {
+      points.push_back(point_at_depth(support, x, first_y + static_cast<double>(k) * l.point_spacing_y_m, depth_m));
       ++s.points;
     }
   }

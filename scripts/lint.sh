@@ -49,8 +49,8 @@ check_tidy() {
   local regex
   regex="^$(pwd)/($(IFS='|'; echo "${dirs[*]}"))/.*\\.cpp\$"
   # run-clang-tidy: one clang-tidy per translation unit, in parallel; exit status non-zero on any finding.
-  if ! run-clang-tidy -p "$BUILD" -j "$(nproc)" -quiet -warnings-as-errors='*' "$regex" >"$BUILD/clang-tidy.log" 2>&1
-  then
+  if ! run-clang-tidy -p "$BUILD" -j "$(nproc)" -quiet -extra-arg=-fno-color-diagnostics -warnings-as-errors='*' \
+    "$regex" >"$BUILD/clang-tidy.log" 2>&1; then
     grep -E -A4 '(warning|error):' "$BUILD/clang-tidy.log" | grep -v '^Suppressed' | head -n 120
     echo "lint: tidy: findings in ${dirs[*]} (whole output in $BUILD/clang-tidy.log)" >&2
     return 1
