@@ -673,15 +673,14 @@ Expected<std::vector<int>> stratified_folds(const Dataset& data, int folds, std:
   return fold;
 }
 
-Expected<TrainingResult> train_recogniser(const DatasetSplit& split, const TrainParams& params,
-                                          const ProgressCallback& progress, const std::atomic<bool>* stop) {
-  const Clock::time_point t0 = Clock::now();
-  if (Status s = validate_params(params); !s) return s.error();
+namespace {
+
+// The two halves of a split are valid and name the same classes.
+Status validate_split(const DatasetSplit& split) {
   if (Status s = validate_dataset(split.train); !s) return make_error("training split: " + s.error().message);
   if (!split.test.labels.empty()) {
     if (Status s = validate_dataset(split.test); !s) return make_error("test split: " + s.error().message);
   }
-  const int classes = static_cast<int>(split.train.classes.size());
   if (split.test.classes.size() != split.train.classes.size()) {
     return make_error("training: the test split has other classes than the training split");
   }
@@ -690,46 +689,63 @@ Expected<TrainingResult> train_recogniser(const DatasetSplit& split, const Train
       return make_error("training: the test split has other classes than the training split");
     }
   }
-  // The annealing's set: the taught scans and their first search_variants variants.
+  return {};
+}
+
+// The annealing's set: the taught scans and their first search_variants variants (all of them when negative).
+Dataset annealing_set(const Dataset& train, int search_variants) {
   Dataset search;
-  search.classes = split.train.classes;
-  for (std::size_t i = 0; i < split.train.size(); ++i) {
-    const int v = split.train.variant_of(i);
-    if (params.search_variants < 0 || v <= params.search_variants)
-      search.push(split.train.features[i], split.train.labels[i], split.train.group_of(i), v);
+  search.classes = train.classes;
+  for (std::size_t i = 0; i < train.size(); ++i) {
+    const int v = train.variant_of(i);
+    if (search_variants < 0 || v <= search_variants)
+      search.push(train.features[i], train.labels[i], train.group_of(i), v);
   }
-  silence_libsvm();
-  const Scaler scaler = Scaler::fit(split.train.features);
-  auto searched = make_context(search, scaler, params, stop);
-  if (!searched) return searched.error();
-  Context& ctx = *searched;
-  const std::vector<double> test_scaled = scale_all(scaler, split.test.features);
+  return search;
+}
 
-  const FeatureMask initial = params.annealing.initial_mask.any() ? params.annealing.initial_mask
-                                                                  : fisher_mask(ctx, params.annealing.initial_active);
-  const int stages = params.compare ? 3 : 1;
+// What the classifier stages of one training share.
+struct TrainingRun {
+  const DatasetSplit& split;
+  const TrainParams& params;
+  const Dataset& search;  // the annealing's set
+  const Context& ctx;     // the search set scaled, with its folds
+  const Scaler& scaler;
+  const std::vector<double>& test_scaled;
+  FeatureMask initial;  // where every annealing starts
+  int classes = 0;
+  int stages = 1;  // annealing runs in all (progress)
+  Clock::time_point t0;
+  const ProgressCallback& progress;
+  const std::atomic<bool>* stop;
+};
 
-  TrainingResult result;
+void report_samples(const TrainingRun& run, TrainingReport& report) {
+  const Dataset& train = run.split.train;
+  for (const ClassInfo& c : train.classes) report.class_names.push_back(c.name);
+  for (std::size_t i = 0; i < train.size(); ++i) {
+    if (train.variant_of(i) == 0) ++report.train_samples;
+  }
+  report.synthetic_samples = static_cast<int>(train.size()) - report.train_samples;
+  report.search_samples = run.ctx.n;
+  report.test_samples = static_cast<int>(run.split.test.size());
+  report.folds = run.params.folds;
+  report.threads = run.ctx.threads;
+}
+
+// SVM: annealing, then the probability model on the whole training split (thesis 2.6.1).
+Status train_svm(const TrainingRun& run, TrainingResult& result) {
+  const DatasetSplit& split = run.split;
+  const TrainParams& params = run.params;
   TrainingReport& report = result.report;
-  for (const ClassInfo& c : split.train.classes) report.class_names.push_back(c.name);
-  for (std::size_t i = 0; i < split.train.size(); ++i) {
-    if (split.train.variant_of(i) == 0) ++report.train_samples;
-  }
-  report.synthetic_samples = static_cast<int>(split.train.size()) - report.train_samples;
-  report.search_samples = ctx.n;
-  report.test_samples = static_cast<int>(split.test.size());
-  report.folds = params.folds;
-  report.threads = ctx.threads;
-
-  // ---- SVM: annealing, then the probability model on the whole training split (thesis 2.6.1).
   SvmEvaluator svm_eval(params);
-  AnnealingOutcome svm = anneal(svm_eval, ctx, params.annealing, params.annealing.iterations, initial,
-                                stream_seed(params.seed, 2), {Classifier::kSvm, 0, stages, t0}, progress);
+  AnnealingOutcome svm = anneal(svm_eval, run.ctx, params.annealing, params.annealing.iterations, run.initial,
+                                stream_seed(params.seed, 2), {Classifier::kSvm, 0, run.stages, run.t0}, run.progress);
   if (!svm.scored) return make_error("training stopped before the first feature set was scored: no model");
   // The chosen features' C and gamma again on every training sample (the final model learns from all of them):
   // the grid's best on the search set need not be the best on the larger one.
-  if (split.train.size() > search.size() && !stop_requested(stop)) {
-    auto full = make_context(split.train, scaler, params, stop);
+  if (split.train.size() > run.search.size() && !stop_requested(run.stop)) {
+    auto full = make_context(split.train, run.scaler, params, run.stop);
     if (!full) return full.error();
     std::vector<int> correct(static_cast<std::size_t>(svm_eval.grid_size()), 0);
     if (svm_eval.evaluate(*full, svm.mask, correct)) {
@@ -739,7 +755,7 @@ Expected<TrainingResult> train_recogniser(const DatasetSplit& split, const Train
     }
   }
   report.svm_hyper = svm_eval.hyper(svm.score.param);
-  auto model = SvmModel::train(split.train.features, split.train.labels, split.train.classes, svm.mask, scaler,
+  auto model = SvmModel::train(split.train.features, split.train.labels, split.train.classes, svm.mask, run.scaler,
                                report.svm_hyper, params.seed);
   if (!model) return model.error();
   result.model = std::move(*model);
@@ -748,60 +764,101 @@ Expected<TrainingResult> train_recogniser(const DatasetSplit& split, const Train
   report.svm.cv_accuracy = svm.score.accuracy;
   report.svm.mask = svm.mask;
   report.svm.features = mask_names(svm.mask);
-  score_test(split.test, classes, report.svm, [&](std::size_t i) {
+  score_test(split.test, run.classes, report.svm, [&](std::size_t i) {
     const auto probabilities = result.model.predict(split.test.features[i]);
     return probabilities.empty() ? -1 : probabilities.front().class_index;
   });
   score_calibration(split.test, result.model, report.svm);
   report.stopped = report.svm.stopped;
+  return {};
+}
 
-  // ---- comparison classifiers (thesis 4.2), each with its own annealing run.
-  if (params.compare && !report.stopped) {
-    KnnEvaluator knn_eval(params.knn_k);
-    const int knn_iterations = params.knn_iterations >= 0 ? params.knn_iterations : params.annealing.iterations;
-    AnnealingOutcome knn = anneal(knn_eval, ctx, params.annealing, knn_iterations, initial, stream_seed(params.seed, 3),
-                                  {Classifier::kKnn, 1, stages, t0}, progress);
-    if (knn.scored) {
-      const int k = knn_eval.k(knn.score.param);
-      const std::size_t d = knn.mask.count();
-      const std::vector<double> train_rows = gather(ctx.scaled, search.size(), knn.mask);
-      const std::vector<double> test_rows = gather(test_scaled, split.test.size(), knn.mask);
-      ClassifierReport r = std::move(knn.report);
-      r.parameters = knn_eval.describe(knn.score.param, static_cast<int>(d));
-      r.cv_accuracy = knn.score.accuracy;
-      r.mask = knn.mask;
-      r.features = mask_names(knn.mask);
-      score_test(split.test, classes, r, [&](std::size_t i) {
-        return knn_classify(train_rows, search.labels, static_cast<int>(d), classes, k,
-                            std::span<const double>(test_rows).subspan(i * d, d));
-      });
-      report.stopped = report.stopped || r.stopped;
-      report.knn = std::move(r);
-    }
-  }
-  if (params.compare && !report.stopped) {
-    MlpEvaluator mlp_eval(params.mlp_layouts, params.mlp, stream_seed(params.seed, 4));
-    AnnealingOutcome mlp = anneal(mlp_eval, ctx, params.annealing, params.mlp_iterations, initial,
-                                  stream_seed(params.seed, 5), {Classifier::kMlp, 2, stages, t0}, progress);
-    if (mlp.scored) {
-      const std::size_t d = mlp.mask.count();
-      const std::vector<double> train_rows = gather(ctx.scaled, search.size(), mlp.mask);
-      const std::vector<double> test_rows = gather(test_scaled, split.test.size(), mlp.mask);
-      Mlp net;
-      net.train(train_rows, search.labels, static_cast<int>(d), classes,
-                mlp_eval.params(mlp.score.param, stream_seed(params.seed, 6)));
-      ClassifierReport r = std::move(mlp.report);
-      r.parameters = mlp_eval.describe(mlp.score.param, static_cast<int>(d));
-      r.cv_accuracy = mlp.score.accuracy;
-      r.mask = mlp.mask;
-      r.features = mask_names(mlp.mask);
-      score_test(split.test, classes, r,
-                 [&](std::size_t i) { return net.predict(std::span<const double>(test_rows).subspan(i * d, d)); });
-      report.stopped = report.stopped || r.stopped;
-      report.mlp = std::move(r);
-    }
-  }
-  report.seconds = seconds_since(t0);
+// Comparison classifier (thesis 4.2): kNN with its own annealing run.
+void compare_knn(const TrainingRun& run, TrainingReport& report) {
+  const DatasetSplit& split = run.split;
+  const TrainParams& params = run.params;
+  KnnEvaluator knn_eval(params.knn_k);
+  const int knn_iterations = params.knn_iterations >= 0 ? params.knn_iterations : params.annealing.iterations;
+  AnnealingOutcome knn = anneal(knn_eval, run.ctx, params.annealing, knn_iterations, run.initial,
+                                stream_seed(params.seed, 3), {Classifier::kKnn, 1, run.stages, run.t0}, run.progress);
+  if (!knn.scored) return;
+  const int k = knn_eval.k(knn.score.param);
+  const std::size_t d = knn.mask.count();
+  const std::vector<double> train_rows = gather(run.ctx.scaled, run.search.size(), knn.mask);
+  const std::vector<double> test_rows = gather(run.test_scaled, split.test.size(), knn.mask);
+  ClassifierReport r = std::move(knn.report);
+  r.parameters = knn_eval.describe(knn.score.param, static_cast<int>(d));
+  r.cv_accuracy = knn.score.accuracy;
+  r.mask = knn.mask;
+  r.features = mask_names(knn.mask);
+  score_test(split.test, run.classes, r, [&](std::size_t i) {
+    return knn_classify(train_rows, run.search.labels, static_cast<int>(d), run.classes, k,
+                        std::span<const double>(test_rows).subspan(i * d, d));
+  });
+  report.stopped = report.stopped || r.stopped;
+  report.knn = std::move(r);
+}
+
+// Comparison classifier (thesis 4.2): the multilayer perceptron with its own annealing run.
+void compare_mlp(const TrainingRun& run, TrainingReport& report) {
+  const DatasetSplit& split = run.split;
+  const TrainParams& params = run.params;
+  MlpEvaluator mlp_eval(params.mlp_layouts, params.mlp, stream_seed(params.seed, 4));
+  AnnealingOutcome mlp = anneal(mlp_eval, run.ctx, params.annealing, params.mlp_iterations, run.initial,
+                                stream_seed(params.seed, 5), {Classifier::kMlp, 2, run.stages, run.t0}, run.progress);
+  if (!mlp.scored) return;
+  const std::size_t d = mlp.mask.count();
+  const std::vector<double> train_rows = gather(run.ctx.scaled, run.search.size(), mlp.mask);
+  const std::vector<double> test_rows = gather(run.test_scaled, split.test.size(), mlp.mask);
+  Mlp net;
+  net.train(train_rows, run.search.labels, static_cast<int>(d), run.classes,
+            mlp_eval.params(mlp.score.param, stream_seed(params.seed, 6)));
+  ClassifierReport r = std::move(mlp.report);
+  r.parameters = mlp_eval.describe(mlp.score.param, static_cast<int>(d));
+  r.cv_accuracy = mlp.score.accuracy;
+  r.mask = mlp.mask;
+  r.features = mask_names(mlp.mask);
+  score_test(split.test, run.classes, r,
+             [&](std::size_t i) { return net.predict(std::span<const double>(test_rows).subspan(i * d, d)); });
+  report.stopped = report.stopped || r.stopped;
+  report.mlp = std::move(r);
+}
+
+}  // namespace
+
+Expected<TrainingResult> train_recogniser(const DatasetSplit& split, const TrainParams& params,
+                                          const ProgressCallback& progress, const std::atomic<bool>* stop) {
+  const Clock::time_point t0 = Clock::now();
+  if (Status s = validate_params(params); !s) return s.error();
+  if (Status s = validate_split(split); !s) return s.error();
+  const Dataset search = annealing_set(split.train, params.search_variants);
+  silence_libsvm();
+  const Scaler scaler = Scaler::fit(split.train.features);
+  auto searched = make_context(search, scaler, params, stop);
+  if (!searched) return searched.error();
+  const Context& ctx = *searched;
+  const std::vector<double> test_scaled = scale_all(scaler, split.test.features);
+  const FeatureMask initial = params.annealing.initial_mask.any() ? params.annealing.initial_mask
+                                                                  : fisher_mask(ctx, params.annealing.initial_active);
+  const TrainingRun run{split,
+                        params,
+                        search,
+                        ctx,
+                        scaler,
+                        test_scaled,
+                        initial,
+                        static_cast<int>(split.train.classes.size()),
+                        params.compare ? 3 : 1,
+                        t0,
+                        progress,
+                        stop};
+
+  TrainingResult result;
+  report_samples(run, result.report);
+  if (Status s = train_svm(run, result); !s) return s.error();
+  if (params.compare && !result.report.stopped) compare_knn(run, result.report);
+  if (params.compare && !result.report.stopped) compare_mlp(run, result.report);
+  result.report.seconds = seconds_since(t0);
   return result;
 }
 
