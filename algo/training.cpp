@@ -893,9 +893,36 @@ int knn_classify(std::span<const double> rows, std::span<const int> labels, int 
 
 // ---- MLP ----------------------------------------------------------------------------------------------------------
 
+// train()'s working set, allocated once per training: activations per layer (index 0 = input), deltas, gradients and
+// Adam's moments.
+struct Mlp::TrainingBuffers {
+  std::vector<std::vector<double>> act, delta, gw, gb, mw, vw, mb, vb;
+
+  TrainingBuffers(const std::vector<Layer>& layers, int dims)
+      : act(layers.size() + 1),
+        delta(layers.size()),
+        gw(layers.size()),
+        gb(layers.size()),
+        mw(layers.size()),
+        vw(layers.size()),
+        mb(layers.size()),
+        vb(layers.size()) {
+    act[0].resize(static_cast<std::size_t>(dims));
+    for (std::size_t l = 0; l < layers.size(); ++l) {
+      act[l + 1].resize(static_cast<std::size_t>(layers[l].out));
+      delta[l].resize(static_cast<std::size_t>(layers[l].out));
+      gw[l].resize(layers[l].w.size());
+      gb[l].resize(layers[l].b.size());
+      mw[l].assign(layers[l].w.size(), 0.0);
+      vw[l].assign(layers[l].w.size(), 0.0);
+      mb[l].assign(layers[l].b.size(), 0.0);
+      vb[l].assign(layers[l].b.size(), 0.0);
+    }
+  }
+};
+
 void Mlp::train(std::span<const double> rows, std::span<const int> labels, int dims, int classes,
                 const MlpParams& params) {
-  constexpr double kBeta1 = 0.9, kBeta2 = 0.999, kAdamEps = 1e-8;
   layers_.clear();
   std::vector<int> sizes{dims};
   sizes.insert(sizes.end(), params.hidden.begin(), params.hidden.end());
@@ -915,20 +942,7 @@ void Mlp::train(std::span<const double> rows, std::span<const int> labels, int d
   }
   const std::size_t depth = layers_.size(), n = labels.size();
   if (n == 0) return;
-  // Activations per layer (index 0 = input), deltas, gradients and Adam moments, allocated once.
-  std::vector<std::vector<double>> act(depth + 1), delta(depth), gw(depth), gb(depth), mw(depth), vw(depth), mb(depth),
-      vb(depth);
-  act[0].resize(static_cast<std::size_t>(dims));
-  for (std::size_t l = 0; l < depth; ++l) {
-    act[l + 1].resize(static_cast<std::size_t>(layers_[l].out));
-    delta[l].resize(static_cast<std::size_t>(layers_[l].out));
-    gw[l].resize(layers_[l].w.size());
-    gb[l].resize(layers_[l].b.size());
-    mw[l].assign(layers_[l].w.size(), 0.0);
-    vw[l].assign(layers_[l].w.size(), 0.0);
-    mb[l].assign(layers_[l].b.size(), 0.0);
-    vb[l].assign(layers_[l].b.size(), 0.0);
-  }
+  TrainingBuffers buffers(layers_, dims);
   std::vector<std::size_t> order(n);
   std::iota(order.begin(), order.end(), 0);
   const auto d = static_cast<std::size_t>(dims);
@@ -938,66 +952,82 @@ void Mlp::train(std::span<const double> rows, std::span<const int> labels, int d
     for (std::size_t start = 0; start < n; start += static_cast<std::size_t>(params.batch)) {
       const std::size_t end = std::min(n, start + static_cast<std::size_t>(params.batch));
       for (std::size_t l = 0; l < depth; ++l) {
-        std::fill(gw[l].begin(), gw[l].end(), 0.0);
-        std::fill(gb[l].begin(), gb[l].end(), 0.0);
+        std::fill(buffers.gw[l].begin(), buffers.gw[l].end(), 0.0);
+        std::fill(buffers.gb[l].begin(), buffers.gb[l].end(), 0.0);
       }
       for (std::size_t s = start; s < end; ++s) {
         const std::size_t i = order[s];
-        std::copy_n(rows.begin() + static_cast<std::ptrdiff_t>(i * d), d, act[0].begin());
-        // Forward: eq. 2.18-2.21, tanh inside, softmax at the output (thesis 4.2.2).
-        for (std::size_t l = 0; l < depth; ++l) {
-          const Layer& L = layers_[l];
-          for (int o = 0; o < L.out; ++o) {
-            double z = L.b[static_cast<std::size_t>(o)];
-            const double* w = &L.w[static_cast<std::size_t>(o) * static_cast<std::size_t>(L.in)];
-            for (int q = 0; q < L.in; ++q) z += w[q] * act[l][static_cast<std::size_t>(q)];
-            act[l + 1][static_cast<std::size_t>(o)] = l + 1 < depth ? std::tanh(z) : z;
-          }
-        }
-        std::vector<double>& out = act[depth];
-        const double top = *std::max_element(out.begin(), out.end());
-        double sum = 0.0;
-        for (double& v : out) sum += (v = std::exp(v - top));
-        for (double& v : out) v /= sum;
-        // Backward: softmax + cross-entropy gives p - onehot at the output.
-        for (std::size_t o = 0; o < out.size(); ++o)
-          delta[depth - 1][o] = out[o] - (static_cast<int>(o) == labels[i] ? 1.0 : 0.0);
-        for (std::size_t l = depth; l-- > 0;) {
-          const Layer& L = layers_[l];
-          for (int o = 0; o < L.out; ++o) {
-            const double g = delta[l][static_cast<std::size_t>(o)];
-            gb[l][static_cast<std::size_t>(o)] += g;
-            double* gwo = &gw[l][static_cast<std::size_t>(o) * static_cast<std::size_t>(L.in)];
-            for (int q = 0; q < L.in; ++q) gwo[q] += g * act[l][static_cast<std::size_t>(q)];
-          }
-          if (l == 0) break;
-          for (int q = 0; q < L.in; ++q) {
-            double back = 0.0;
-            for (int o = 0; o < L.out; ++o)
-              back += L.w[static_cast<std::size_t>(o) * static_cast<std::size_t>(L.in) + static_cast<std::size_t>(q)] *
-                      delta[l][static_cast<std::size_t>(o)];
-            const double a = act[l][static_cast<std::size_t>(q)];
-            delta[l - 1][static_cast<std::size_t>(q)] = back * (1.0 - a * a);  // tanh' = 1 - tanh^2
-          }
-        }
+        std::copy_n(rows.begin() + static_cast<std::ptrdiff_t>(i * d), d, buffers.act[0].begin());
+        forward(buffers);
+        backward(buffers, labels[i]);
       }
       ++step;
-      const double scale = 1.0 / static_cast<double>(end - start);
-      const double c1 = 1.0 - std::pow(kBeta1, step), c2 = 1.0 - std::pow(kBeta2, step);
-      auto adam = [&](std::vector<double>& w, const std::vector<double>& g, std::vector<double>& m,
-                      std::vector<double>& v, double decay) {
-        for (std::size_t j = 0; j < w.size(); ++j) {
-          const double grad = g[j] * scale + decay * w[j];
-          m[j] = kBeta1 * m[j] + (1.0 - kBeta1) * grad;
-          v[j] = kBeta2 * v[j] + (1.0 - kBeta2) * grad * grad;
-          w[j] -= params.learning_rate * (m[j] / c1) / (std::sqrt(v[j] / c2) + kAdamEps);
-        }
-      };
-      for (std::size_t l = 0; l < depth; ++l) {
-        adam(layers_[l].w, gw[l], mw[l], vw[l], params.weight_decay);
-        adam(layers_[l].b, gb[l], mb[l], vb[l], 0.0);
-      }
+      adam_step(buffers, end - start, step, params);
     }
+  }
+}
+
+void Mlp::forward(TrainingBuffers& b) const {
+  const std::size_t depth = layers_.size();
+  // Eq. 2.18-2.21, tanh inside, softmax at the output (thesis 4.2.2).
+  for (std::size_t l = 0; l < depth; ++l) {
+    const Layer& L = layers_[l];
+    for (int o = 0; o < L.out; ++o) {
+      double z = L.b[static_cast<std::size_t>(o)];
+      const double* w = &L.w[static_cast<std::size_t>(o) * static_cast<std::size_t>(L.in)];
+      for (int q = 0; q < L.in; ++q) z += w[q] * b.act[l][static_cast<std::size_t>(q)];
+      b.act[l + 1][static_cast<std::size_t>(o)] = l + 1 < depth ? std::tanh(z) : z;
+    }
+  }
+  std::vector<double>& out = b.act[depth];
+  const double top = *std::max_element(out.begin(), out.end());
+  double sum = 0.0;
+  for (double& v : out) sum += (v = std::exp(v - top));
+  for (double& v : out) v /= sum;
+}
+
+void Mlp::backward(TrainingBuffers& b, int label) const {
+  const std::size_t depth = layers_.size();
+  // Softmax + cross-entropy gives p - onehot at the output.
+  const std::vector<double>& out = b.act[depth];
+  for (std::size_t o = 0; o < out.size(); ++o)
+    b.delta[depth - 1][o] = out[o] - (static_cast<int>(o) == label ? 1.0 : 0.0);
+  for (std::size_t l = depth; l-- > 0;) {
+    const Layer& L = layers_[l];
+    for (int o = 0; o < L.out; ++o) {
+      const double g = b.delta[l][static_cast<std::size_t>(o)];
+      b.gb[l][static_cast<std::size_t>(o)] += g;
+      double* gwo = &b.gw[l][static_cast<std::size_t>(o) * static_cast<std::size_t>(L.in)];
+      for (int q = 0; q < L.in; ++q) gwo[q] += g * b.act[l][static_cast<std::size_t>(q)];
+    }
+    if (l == 0) break;
+    for (int q = 0; q < L.in; ++q) {
+      double back = 0.0;
+      for (int o = 0; o < L.out; ++o)
+        back += L.w[static_cast<std::size_t>(o) * static_cast<std::size_t>(L.in) + static_cast<std::size_t>(q)] *
+                b.delta[l][static_cast<std::size_t>(o)];
+      const double a = b.act[l][static_cast<std::size_t>(q)];
+      b.delta[l - 1][static_cast<std::size_t>(q)] = back * (1.0 - a * a);  // tanh' = 1 - tanh^2
+    }
+  }
+}
+
+void Mlp::adam_step(TrainingBuffers& b, std::size_t batch_size, int step, const MlpParams& params) {
+  constexpr double kBeta1 = 0.9, kBeta2 = 0.999, kAdamEps = 1e-8;
+  const double scale = 1.0 / static_cast<double>(batch_size);
+  const double c1 = 1.0 - std::pow(kBeta1, step), c2 = 1.0 - std::pow(kBeta2, step);
+  auto adam = [&](std::vector<double>& w, const std::vector<double>& g, std::vector<double>& m, std::vector<double>& v,
+                  double decay) {
+    for (std::size_t j = 0; j < w.size(); ++j) {
+      const double grad = g[j] * scale + decay * w[j];
+      m[j] = kBeta1 * m[j] + (1.0 - kBeta1) * grad;
+      v[j] = kBeta2 * v[j] + (1.0 - kBeta2) * grad * grad;
+      w[j] -= params.learning_rate * (m[j] / c1) / (std::sqrt(v[j] / c2) + kAdamEps);
+    }
+  };
+  for (std::size_t l = 0; l < layers_.size(); ++l) {
+    adam(layers_[l].w, b.gw[l], b.mw[l], b.vw[l], params.weight_decay);
+    adam(layers_[l].b, b.gb[l], b.mb[l], b.vb[l], 0.0);
   }
 }
 
