@@ -395,6 +395,34 @@ Cascade::Cascade(const CascadeParams& params, const PerfectMatchParams& pm_param
 
 // --- decision ------------------------------------------------------------------------------------------------------
 
+// What decide()'s steps share: its inputs, the decision being filled and how far the search went.
+struct Cascade::DecideState {
+  Decision& d;
+  std::span<const ClassProbability> svm_best_first;
+  std::span<const TemplateModel> templates_by_class;
+  std::span<const ScanPoint> scan;
+  Clock::time_point deadline;
+  Clock::time_point budget_end;  // of the verification: verify_budget_ms after decide() began
+  std::size_t k = 0;             // candidates: the pm_candidates most probable classes
+  bool complete = true;          // every candidate the policy asked for was verified
+
+  // Class ci's template, when it has a distance map.
+  [[nodiscard]] const TemplateModel* template_of(int ci) const {
+    if (ci < 0 || static_cast<std::size_t>(ci) >= templates_by_class.size()) return nullptr;
+    const TemplateModel& t = templates_by_class[static_cast<std::size_t>(ci)];
+    return t.map.cells() != nullptr ? &t : nullptr;
+  }
+  [[nodiscard]] bool over_budget() const { return d.verified_count > 0 && Clock::now() >= budget_end; }
+};
+
+// The verified candidates ranked: among the passing ones the least evidence wins.
+struct Cascade::Ranking {
+  const Candidate* best = nullptr;          // the passing candidate with the least evidence against it
+  const Candidate* runner = nullptr;        // the passing one with the next least
+  const Candidate* top_verified = nullptr;  // the most probable verified candidate
+  bool clear = false;                       // best wins by a clear margin of evidence
+};
+
 Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
                          std::span<const TemplateModel> templates_by_class,
                          std::span<const ScanPoint> scan_without_carrier, Clock::time_point deadline) {
@@ -408,223 +436,210 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
   if (svm_best_first.empty()) return finish();
   d.probability = svm_best_first[0].probability;
 
-  const std::size_t k = std::min(candidates_.size(), svm_best_first.size());
-  for (std::size_t i = 0; i < k; ++i) {
+  const Clock::time_point budget_end = start + std::chrono::duration_cast<Clock::duration>(
+                                                   std::chrono::duration<double, std::milli>(params_.verify_budget_ms));
+  DecideState s{d,
+                svm_best_first,
+                templates_by_class,
+                scan_without_carrier,
+                deadline,
+                budget_end,
+                std::min(candidates_.size(), svm_best_first.size())};
+  for (std::size_t i = 0; i < s.k; ++i) {
     candidates_[i] = Candidate{};
     candidates_[i].class_index = svm_best_first[i].class_index;
     candidates_[i].probability = svm_best_first[i].probability;
   }
-  auto template_of = [&](int ci) -> const TemplateModel* {
-    if (ci < 0 || static_cast<std::size_t>(ci) >= templates_by_class.size()) return nullptr;
-    const TemplateModel& t = templates_by_class[static_cast<std::size_t>(ci)];
-    return t.map.cells() != nullptr ? &t : nullptr;
-  };
-  // The outcome list (rank order) as far as the search went; filled at the end.
-  auto report_candidates = [&](const Candidate* winner, bool ambiguous) {
-    const std::size_t n = std::min<std::size_t>(k, kMaxReportedCandidates);
-    d.candidate_count = static_cast<int>(n);
-    for (std::size_t i = 0; i < n; ++i) {
-      const Candidate& c = candidates_[i];
-      CandidateOutcome& o = d.candidates[i];
-      o = CandidateOutcome{};
-      o.class_index = c.class_index;
-      o.probability = c.probability;
-      o.verified = c.evaluated;
-      o.passed = c.passed;
-      o.ms = c.ms;
-      if (!c.evaluated) {
-        o.rejected_by = RejectReason::kNotVerified;
-        continue;
-      }
-      o.pm_error = c.report.pm.error;
-      o.missing_area_m2 = c.report.missing_area_m2;
-      o.extra_area_m2 = c.report.extra_area_m2;
-      o.evidence_m2 = c.report.evidence_m2;
-      o.coverage = c.report.coverage;
-      o.outliers = c.report.scan_outliers;
-      const TemplateModel* t = template_of(c.class_index);
-      if (t != nullptr) o.size_dev_m = t->thresholds.size_deviation(c.report.size_dx_m, c.report.size_dy_m);
-      if (t == nullptr) {
-        o.rejected_by = RejectReason::kNoTemplate;
-      } else if (!c.passed) {
-        o.rejected_by = first_failed_gate(c.report, t->thresholds, o.value, o.limit);
-      } else if (&c != winner && (ambiguous || winner != nullptr)) {
-        o.rejected_by = RejectReason::kAmbiguous;
-        o.value = c.report.evidence_m2;
-        o.limit = winner != nullptr ? winner->report.evidence_m2 : std::numeric_limits<double>::quiet_NaN();
-      }
-    }
-  };
-  auto accept = [&](const Candidate& c, DecisionSource source) {
-    const TemplateModel& t = templates_by_class[static_cast<std::size_t>(c.class_index)];
-    d.source = source;
-    d.class_index = c.class_index;
-    d.part_id = t.part_id;
-    d.probability = c.probability;
-    d.pm_error = c.report.pm.error;
-    d.pose_valid = true;
-    d.pose = params_.decision_pose_from_outline ? c.report.check_pose : c.report.pm.pose;
-    d.template_coverage = c.report.coverage;
-    d.scan_outliers = c.report.scan_outliers;
-    d.missing_area_m2 = c.report.missing_area_m2;
-    d.extra_area_m2 = c.report.extra_area_m2;
-  };
-  auto timeout = [&]() -> Decision {
-    report_candidates(nullptr, false);
-    d.source = DecisionSource::kTimeout;
-    d.class_index = -1;
-    d.part_id = 0;
-    d.pose_valid = false;
+  if (Clock::now() >= deadline) {
+    report_timeout(s);
     return finish();
-  };
-
-  if (Clock::now() >= deadline) return timeout();
+  }
   matcher_.set_scan(scan_without_carrier);
   outline_valid_ = false;  // taken from this scan when a check first needs it
 
   // Phase 1: verify in rank order until one passes. Phase 2: verify what could also pass: the passing class's
   // look-alikes (TemplateModel::confusable, learnt at training) and any candidate nearly as probable (stop_ratio);
   // a look-alike that passes brings its own. All within the candidate limit and the budget.
-  const Clock::time_point budget_end =
-      start + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double, std::milli>(params_.verify_budget_ms));
-  auto over_budget = [&]() { return d.verified_count > 0 && Clock::now() >= budget_end; };
-  bool complete = true;  // every candidate the policy asked for was verified
-  auto verify = [&](std::size_t j) -> bool {
-    if (!evaluate_candidate(templates_by_class, scan_without_carrier, deadline, candidates_[j])) return false;
-    ++d.verified_count;
-    d.pm_ms += candidates_[j].ms;
-    return true;
-  };
-  std::size_t first_pass = k;
-  for (std::size_t j = 0; j < k; ++j) {
-    if (over_budget()) {
-      complete = false;
+  std::size_t first_pass = s.k;
+  if (!verify_in_rank_order(s, first_pass) || (first_pass < s.k && !verify_look_alikes(s, first_pass))) {
+    report_timeout(s);
+    return finish();
+  }
+  const Ranking ranking = rank_verified(s);
+  if (ranking.best != nullptr && ranking.clear && s.complete) {
+    accept_winner(s, *ranking.best);
+  } else {
+    report_unknown(s, ranking);
+  }
+  return finish();
+}
+
+bool Cascade::verify(DecideState& s, std::size_t j) {
+  if (!evaluate_candidate(s.templates_by_class, s.scan, s.deadline, candidates_[j])) return false;
+  ++s.d.verified_count;
+  s.d.pm_ms += candidates_[j].ms;
+  return true;
+}
+
+bool Cascade::verify_in_rank_order(DecideState& s, std::size_t& first_pass) {
+  for (std::size_t j = 0; j < s.k; ++j) {
+    if (s.over_budget()) {
+      s.complete = false;
       break;
     }
-    if (!verify(j)) return timeout();
+    if (!verify(s, j)) return false;
     if (candidates_[j].passed) {
       first_pass = j;
       break;
     }
   }
-  if (first_pass < k) {
-    double best_p = candidates_[first_pass].probability;
-    bool grew = true;  // a newly passing look-alike brings its own look-alikes
-    while (grew && complete) {
-      grew = false;
-      for (std::size_t j = 0; j < k && complete; ++j) {
-        if (candidates_[j].evaluated) continue;
-        bool wanted = candidates_[j].probability >= params_.stop_ratio * best_p && params_.stop_ratio > 0.0;
-        for (std::size_t q = 0; q < k && !wanted; ++q) {
-          if (!candidates_[q].passed) continue;
-          if (candidates_[q].report.lost_area_m2 >= params_.verify_all_lost_m2) {
-            wanted = true;  // it may pass only because what tells it from a twin is lost
-            break;
-          }
-          const TemplateModel* t = template_of(candidates_[q].class_index);
-          if (t == nullptr) continue;
-          wanted = std::find(t->confusable.begin(), t->confusable.end(), candidates_[j].class_index) !=
-                   t->confusable.end();
-        }
-        if (!wanted) continue;
-        if (over_budget()) {
-          complete = false;
-          break;
-        }
-        if (!verify(j)) return timeout();
-        if (candidates_[j].passed) {
-          best_p = std::max(best_p, candidates_[j].probability);
-          grew = true;
-        }
+  return true;
+}
+
+bool Cascade::verify_look_alikes(DecideState& s, std::size_t first_pass) {
+  double best_p = candidates_[first_pass].probability;
+  bool grew = true;  // a newly passing look-alike brings its own look-alikes
+  while (grew && s.complete) {
+    grew = false;
+    for (std::size_t j = 0; j < s.k && s.complete; ++j) {
+      if (candidates_[j].evaluated) continue;
+      if (!could_also_pass(s, j, best_p)) continue;
+      if (s.over_budget()) {
+        s.complete = false;
+        break;
+      }
+      if (!verify(s, j)) return false;
+      if (candidates_[j].passed) {
+        best_p = std::max(best_p, candidates_[j].probability);
+        grew = true;
       }
     }
   }
-  const bool settled = complete;
+  return true;
+}
 
+bool Cascade::could_also_pass(const DecideState& s, std::size_t j, double best_p) const {
+  bool wanted = candidates_[j].probability >= params_.stop_ratio * best_p && params_.stop_ratio > 0.0;
+  for (std::size_t q = 0; q < s.k && !wanted; ++q) {
+    if (!candidates_[q].passed) continue;
+    if (candidates_[q].report.lost_area_m2 >= params_.verify_all_lost_m2) {
+      wanted = true;  // it may pass only because what tells it from a twin is lost
+      break;
+    }
+    const TemplateModel* t = s.template_of(candidates_[q].class_index);
+    if (t == nullptr) continue;
+    wanted = std::find(t->confusable.begin(), t->confusable.end(), candidates_[j].class_index) != t->confusable.end();
+  }
+  return wanted;
+}
+
+bool Cascade::clear_margin(double best_evidence_m2, double runner_evidence_m2) const {
+  const double b = best_evidence_m2;
+  const double r = runner_evidence_m2;
+  return b <= params_.margin_ratio * r && r - b >= params_.margin_floor_m2;
+}
+
+Cascade::Ranking Cascade::rank_verified(const DecideState& s) const {
   // Among the passing candidates the least evidence wins, with a clear margin over the runner-up.
-  const Candidate* best = nullptr;
-  const Candidate* runner = nullptr;
-  const Candidate* top_verified = nullptr;
-  for (std::size_t j = 0; j < k; ++j) {
+  Ranking rk;
+  for (std::size_t j = 0; j < s.k; ++j) {
     const Candidate& c = candidates_[j];
     if (!c.evaluated) continue;
-    if (top_verified == nullptr) top_verified = &c;
+    if (rk.top_verified == nullptr) rk.top_verified = &c;
     if (!c.passed) continue;
-    if (best == nullptr || c.report.evidence_m2 < best->report.evidence_m2) {
-      runner = best;
-      best = &c;
-    } else if (runner == nullptr || c.report.evidence_m2 < runner->report.evidence_m2) {
-      runner = &c;
+    if (rk.best == nullptr || c.report.evidence_m2 < rk.best->report.evidence_m2) {
+      rk.runner = rk.best;
+      rk.best = &c;
+    } else if (rk.runner == nullptr || c.report.evidence_m2 < rk.runner->report.evidence_m2) {
+      rk.runner = &c;
     }
   }
-  bool clear = best != nullptr;
-  if (best != nullptr && runner != nullptr) {
-    const double b = best->report.evidence_m2;
-    const double r = runner->report.evidence_m2;
-    clear = b <= params_.margin_ratio * r && r - b >= params_.margin_floor_m2;
+  rk.clear = rk.best != nullptr;
+  if (rk.best != nullptr && rk.runner != nullptr) {
+    rk.clear = clear_margin(rk.best->report.evidence_m2, rk.runner->report.evidence_m2);
   }
+  if (rk.best != nullptr && rk.clear) rk.clear = clear_of_near_misses(s, *rk.best);
+  return rk;
+}
+
+bool Cascade::clear_of_near_misses(const DecideState& s, const Candidate& best) const {
   // A look-alike of the winner that failed only narrowly (every figure within near_fail_factor of its limit) counts
   // as a runner-up that passed: the winner needs the same clear margin of evidence over it. Between twins a hair
   // decides, and a hair is noise; but a winner with next to no evidence against it beside a look-alike with a
   // hole's worth (a near twin's scan, a glare band that left the true part narrowly failing would not) is decided.
-  if (best != nullptr && clear) {
-    const TemplateModel* bt = template_of(best->class_index);
-    const double b = best->report.evidence_m2;
-    for (std::size_t j = 0; j < k && clear && bt != nullptr; ++j) {
-      const Candidate& c = candidates_[j];
-      if (!c.evaluated || c.passed || &c == best) continue;
-      if (std::find(bt->confusable.begin(), bt->confusable.end(), c.class_index) == bt->confusable.end()) continue;
-      const TemplateModel* ct = template_of(c.class_index);
-      if (ct == nullptr || !near_pass(c.report, ct->thresholds, params_.near_fail_factor)) continue;
-      // ... unless it fails its outer size clearly: a deviation's limit is the own maximum plus size_floor_m, not a
-      // multiple, and a part 5 mm taller deviates by 5 mm +-0.3 on every pass, so within near_fail_factor of a
-      // 3.5 mm limit it is not narrow. The evidence (areas) cannot give the margin there: a size twin's are a
-      // winner's (catalogue 8601's rnd02 / rnd06 came out ambiguous on all 20 passes).
-      const double size_slack_m = (params_.near_fail_factor - 1.0) * params_.size_floor_m;
-      if (ct->thresholds.size_deviation(c.report.size_dx_m, c.report.size_dy_m) >
-          ct->thresholds.max_size_dev_m + size_slack_m) {
-        continue;
-      }
-      const double r = c.report.evidence_m2;
-      if (!(b <= params_.margin_ratio * r && r - b >= params_.margin_floor_m2)) clear = false;
+  const TemplateModel* bt = s.template_of(best.class_index);
+  if (bt == nullptr) return true;
+  const double b = best.report.evidence_m2;
+  for (std::size_t j = 0; j < s.k; ++j) {
+    const Candidate& c = candidates_[j];
+    if (!c.evaluated || c.passed || &c == &best) continue;
+    if (std::find(bt->confusable.begin(), bt->confusable.end(), c.class_index) == bt->confusable.end()) continue;
+    const TemplateModel* ct = s.template_of(c.class_index);
+    if (ct == nullptr || !near_pass(c.report, ct->thresholds, params_.near_fail_factor)) continue;
+    // ... unless it fails its outer size clearly: a deviation's limit is the own maximum plus size_floor_m, not a
+    // multiple, and a part 5 mm taller deviates by 5 mm +-0.3 on every pass, so within near_fail_factor of a
+    // 3.5 mm limit it is not narrow. The evidence (areas) cannot give the margin there: a size twin's are a
+    // winner's (catalogue 8601's rnd02 / rnd06 came out ambiguous on all 20 passes).
+    const double size_slack_m = (params_.near_fail_factor - 1.0) * params_.size_floor_m;
+    if (ct->thresholds.size_deviation(c.report.size_dx_m, c.report.size_dy_m) >
+        ct->thresholds.max_size_dev_m + size_slack_m) {
+      continue;
     }
+    if (!clear_margin(b, c.report.evidence_m2)) return false;
   }
-  if (best != nullptr && clear && settled) {
-    const double p1 = svm_best_first[0].probability;
-    const double p2 = svm_best_first.size() > 1 ? svm_best_first[1].probability : 0.0;
-    const bool svm_sure = p1 >= params_.accept_p1 && p2 <= params_.accept_p2_max &&
-                          best->class_index == svm_best_first[0].class_index;
-    accept(*best, svm_sure ? DecisionSource::kSvm : DecisionSource::kPm);
-    const Candidate* second = nullptr;
-    for (std::size_t j = 0; j < k && second == nullptr; ++j) {
-      if (candidates_[j].evaluated && &candidates_[j] != best) second = &candidates_[j];
-    }
-    // No other candidate verified: the SVM's runner-up (for the log).
-    if (second == nullptr) {
-      for (const ClassProbability& c : svm_best_first) {
-        if (c.class_index != best->class_index) {
-          d.second_class_index = c.class_index;
-          break;
-        }
-      }
-    } else {
-      d.second_class_index = second->class_index;
-    }
-    report_candidates(best, false);
-    return finish();
+  return true;
+}
+
+void Cascade::accept_winner(DecideState& s, const Candidate& best) {
+  Decision& d = s.d;
+  const double p1 = s.svm_best_first[0].probability;
+  const double p2 = s.svm_best_first.size() > 1 ? s.svm_best_first[1].probability : 0.0;
+  const bool svm_sure =
+      p1 >= params_.accept_p1 && p2 <= params_.accept_p2_max && best.class_index == s.svm_best_first[0].class_index;
+  const TemplateModel& t = s.templates_by_class[static_cast<std::size_t>(best.class_index)];
+  d.source = svm_sure ? DecisionSource::kSvm : DecisionSource::kPm;
+  d.class_index = best.class_index;
+  d.part_id = t.part_id;
+  d.probability = best.probability;
+  d.pm_error = best.report.pm.error;
+  d.pose_valid = true;
+  d.pose = params_.decision_pose_from_outline ? best.report.check_pose : best.report.pm.pose;
+  d.template_coverage = best.report.coverage;
+  d.scan_outliers = best.report.scan_outliers;
+  d.missing_area_m2 = best.report.missing_area_m2;
+  d.extra_area_m2 = best.report.extra_area_m2;
+  const Candidate* second = nullptr;
+  for (std::size_t j = 0; j < s.k && second == nullptr; ++j) {
+    if (candidates_[j].evaluated && &candidates_[j] != &best) second = &candidates_[j];
   }
+  // No other candidate verified: the SVM's runner-up (for the log).
+  if (second == nullptr) {
+    for (const ClassProbability& c : s.svm_best_first) {
+      if (c.class_index != best.class_index) {
+        d.second_class_index = c.class_index;
+        break;
+      }
+    }
+  } else {
+    d.second_class_index = second->class_index;
+  }
+  report_candidates(s, &best, false);
+}
+
+void Cascade::report_unknown(DecideState& s, const Ranking& rk) {
   // Unknown: the figures of the most probable verified candidate (or the ambiguous winner) stay for the log. A clear
   // winner that is unknown only because the search was cut short (budget) is reported as passed, not as ambiguous:
   // the reason is the candidates left unverified.
-  report_candidates(nullptr, best != nullptr && !clear);
-  const Candidate* shown = best != nullptr ? best : top_verified;
-  if (best != nullptr) {
-    d.unknown_reason = clear ? RejectReason::kNotVerified : RejectReason::kAmbiguous;
-  } else if (top_verified != nullptr) {
+  Decision& d = s.d;
+  report_candidates(s, nullptr, rk.best != nullptr && !rk.clear);
+  const Candidate* shown = rk.best != nullptr ? rk.best : rk.top_verified;
+  if (rk.best != nullptr) {
+    d.unknown_reason = rk.clear ? RejectReason::kNotVerified : RejectReason::kAmbiguous;
+  } else if (rk.top_verified != nullptr) {
     double v = 0.0, l = 0.0;
-    const TemplateModel* t = template_of(top_verified->class_index);
+    const TemplateModel* t = s.template_of(rk.top_verified->class_index);
     d.unknown_reason =
-        t == nullptr ? RejectReason::kNoTemplate : first_failed_gate(top_verified->report, t->thresholds, v, l);
+        t == nullptr ? RejectReason::kNoTemplate : first_failed_gate(rk.top_verified->report, t->thresholds, v, l);
   }
   if (shown != nullptr) {
     d.pm_error = shown->report.pm.error;
@@ -634,7 +649,51 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
     d.extra_area_m2 = shown->report.extra_area_m2;
     d.second_class_index = shown->class_index;
   }
-  return finish();
+}
+
+void Cascade::report_timeout(DecideState& s) {
+  report_candidates(s, nullptr, false);
+  s.d.source = DecisionSource::kTimeout;
+  s.d.class_index = -1;
+  s.d.part_id = 0;
+  s.d.pose_valid = false;
+}
+
+void Cascade::report_candidates(DecideState& s, const Candidate* winner, bool ambiguous) const {
+  // The outcome list (rank order) as far as the search went.
+  const std::size_t n = std::min<std::size_t>(s.k, kMaxReportedCandidates);
+  s.d.candidate_count = static_cast<int>(n);
+  for (std::size_t i = 0; i < n; ++i) {
+    const Candidate& c = candidates_[i];
+    CandidateOutcome& o = s.d.candidates[i];
+    o = CandidateOutcome{};
+    o.class_index = c.class_index;
+    o.probability = c.probability;
+    o.verified = c.evaluated;
+    o.passed = c.passed;
+    o.ms = c.ms;
+    if (!c.evaluated) {
+      o.rejected_by = RejectReason::kNotVerified;
+      continue;
+    }
+    o.pm_error = c.report.pm.error;
+    o.missing_area_m2 = c.report.missing_area_m2;
+    o.extra_area_m2 = c.report.extra_area_m2;
+    o.evidence_m2 = c.report.evidence_m2;
+    o.coverage = c.report.coverage;
+    o.outliers = c.report.scan_outliers;
+    const TemplateModel* t = s.template_of(c.class_index);
+    if (t != nullptr) o.size_dev_m = t->thresholds.size_deviation(c.report.size_dx_m, c.report.size_dy_m);
+    if (t == nullptr) {
+      o.rejected_by = RejectReason::kNoTemplate;
+    } else if (!c.passed) {
+      o.rejected_by = first_failed_gate(c.report, t->thresholds, o.value, o.limit);
+    } else if (&c != winner && (ambiguous || winner != nullptr)) {
+      o.rejected_by = RejectReason::kAmbiguous;
+      o.value = c.report.evidence_m2;
+      o.limit = winner != nullptr ? winner->report.evidence_m2 : std::numeric_limits<double>::quiet_NaN();
+    }
+  }
 }
 
 bool Cascade::evaluate_candidate(std::span<const TemplateModel> templates, std::span<const ScanPoint> scan,
@@ -1479,6 +1538,16 @@ void Cascade::measure_size(const Roi& roi, MatchReport& r) {
   measure(false, r.size_dx_m);
 }
 
+// A 4-connected group of missing and sparse template cells (mark_lost_data), its cells in blob_cells_.
+struct Cascade::CellGroup {
+  std::size_t count = 0;           // cells (in blob_cells_)
+  std::size_t with_points = 0;     // seen cells in it: glare's residue
+  std::size_t template_count = 0;  // template cells in it
+  CellMoments moments;
+  int boundary = 0;  // cell sides on the group's edge
+  int contact = 0;   // of them, those on the template's outside or the box's edge
+};
+
 void Cascade::mark_lost_data(const Roi& roi) {
   // Glare or a dark patch leaves a band where most, not all, points are lost: the window-based "seen" test turns it
   // into many small enclosed missing pieces, each shaped like a hole. What tells them from a hole the scan really has
@@ -1486,11 +1555,36 @@ void Cascade::mark_lost_data(const Roi& roi) {
   // the template cells that are missing or sparse are grouped (4-connected), and a group in which a noticeable share
   // of the cells still holds scan material is lost data: its missing cells get kLost. A real hole's group is the
   // hole and the empty cells at its rim, with no point inside.
+  double typical = 0.0;
+  if (!row_window_counts(roi, typical)) return;
+  column_window_counts(roi, typical);
+  mark_template_outside(roi);
+  const int wi = width_;
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    for (int x = roi.x0; x < roi.x1; ++x) {
+      const auto seed = static_cast<std::size_t>(y * wi + x);
+      if ((flags_[seed] & kMissing) == 0 || !joins_group(seed, typical)) continue;
+      const CellGroup group = grow_group(roi, seed, typical);
+      if (is_lost_data(group)) mark_group_lost(group);
+    }
+  }
+  mark_laser_shadow(roi);
+}
+
+bool Cascade::scan_occupies(std::size_t i) const {
+  return s_lo_[i] <= s_hi_[i] && (flags_[i] & kExtra) == 0;
+}
+
+bool Cascade::sparse_window(std::size_t i, double typical) const {
+  return static_cast<double>(w_lo_[i]) < kSparseShare * typical * static_cast<double>(w_hi_[i]);
+}
+
+bool Cascade::row_window_counts(const Roi& roi, double& typical) {
   // Window counts (box sums over the check window) reuse the range buffers, free once both directions are flagged:
-  // tmp_lo_ / w_lo_ count the scan-occupied template cells, tmp_hi_ / w_hi_ the template cells.
+  // tmp_lo_ / w_lo_ count the scan-occupied template cells, tmp_hi_ / w_hi_ the template cells. This is the row
+  // pass; it also gives the share of the template cells the scan occupies (typical). False: no template cell.
   const int r = window_cells_;
   const auto w = static_cast<std::size_t>(width_);
-  auto occupied = [&](std::size_t i) { return s_lo_[i] <= s_hi_[i] && (flags_[i] & kExtra) == 0; };
   double template_cells = 0.0, occupied_cells = 0.0;
   for (int y = roi.y0; y < roi.y1; ++y) {
     const std::size_t row = static_cast<std::size_t>(y) * w;
@@ -1502,7 +1596,7 @@ void Cascade::mark_lost_data(const Roi& roi) {
         const std::size_t j = row + static_cast<std::size_t>(xx);
         if (t_lo_[j] <= t_hi_[j]) {
           tpl += 1.0F;
-          if (occupied(j)) occ += 1.0F;
+          if (scan_occupies(j)) occ += 1.0F;
         }
       }
       tmp_lo_[row + static_cast<std::size_t>(x)] = occ;
@@ -1510,15 +1604,18 @@ void Cascade::mark_lost_data(const Roi& roi) {
       const std::size_t i = row + static_cast<std::size_t>(x);
       if (t_lo_[i] <= t_hi_[i]) {
         template_cells += 1.0;
-        if (occupied(i)) occupied_cells += 1.0;
+        if (scan_occupies(i)) occupied_cells += 1.0;
       }
     }
   }
-  if (template_cells <= 0.0) return;
-  const double typical = occupied_cells / template_cells;
-  auto sparse = [&](std::size_t i) {
-    return static_cast<double>(w_lo_[i]) < kSparseShare * typical * static_cast<double>(w_hi_[i]);
-  };
+  if (template_cells <= 0.0) return false;
+  typical = occupied_cells / template_cells;
+  return true;
+}
+
+void Cascade::column_window_counts(const Roi& roi, double typical) {
+  const int r = window_cells_;
+  const auto w = static_cast<std::size_t>(width_);
   for (int y = roi.y0; y < roi.y1; ++y) {
     const std::size_t row = static_cast<std::size_t>(y) * w;
     for (int x = roi.x0; x < roi.x1; ++x) {
@@ -1534,120 +1631,128 @@ void Cascade::mark_lost_data(const Roi& roi) {
       w_lo_[i] = occ;
       w_hi_[i] = tpl;
       // A scan point in a sparse window is what a glare band leaves (measure_size: a line's end there is no edge).
-      if (t_lo_[i] <= t_hi_[i] && occupied(i) && sparse(i)) flags_[i] |= kResidue;
+      if (t_lo_[i] <= t_hi_[i] && scan_occupies(i) && sparse_window(i, typical)) flags_[i] |= kResidue;
     }
   }
+}
+
+void Cascade::mark_template_outside(const Roi& roi) {
   // The template's outside (mask_b_, free here): what the box's edge reaches through cells outside its closed mask.
   // The rest of those cells are its holes, which a group passes through: a glare band crossing a hole is one band,
   // not a long piece and a short one the hole cut off (which alone would look like a notch at the edge).
   const int wi = width_;
-  {
-    std::size_t top = 0;
-    for (int y = roi.y0; y < roi.y1; ++y) {
-      for (int x = roi.x0; x < roi.x1; ++x) {
-        const auto i = static_cast<std::size_t>(y * wi + x);
-        mask_b_[i] = 0;
-        const bool edge = x == roi.x0 || y == roi.y0 || x + 1 == roi.x1 || y + 1 == roi.y1;
-        if (edge && mask_a_[i] == 0) stack_[top++] = static_cast<std::int32_t>(i);
-      }
-    }
-    for (std::size_t k = 0; k < top; ++k) mask_b_[static_cast<std::size_t>(stack_[k])] = 1;
-    while (top > 0) {
-      const std::int32_t c = stack_[--top];
-      const int cx = c % wi, cy = c / wi;
-      const std::int32_t neighbours[4] = {c - 1, c + 1, c - wi, c + wi};
-      const bool inside[4] = {cx > roi.x0, cx + 1 < roi.x1, cy > roi.y0, cy + 1 < roi.y1};
-      for (int k = 0; k < 4; ++k) {
-        const auto n = static_cast<std::size_t>(neighbours[k]);
-        if (inside[k] && mask_a_[n] == 0 && mask_b_[n] == 0) {
-          mask_b_[n] = 1;
-          stack_[top++] = neighbours[k];
-        }
-      }
-    }
-  }
-  auto template_hole = [&](std::size_t i) { return mask_a_[i] == 0 && mask_b_[i] == 0; };
-  // A missing cell the scan does cover, at another depth (a rib the template lacks), is contradiction, not loss:
-  // it neither joins a group nor becomes lost data.
-  auto in_group = [&](std::size_t i) {
-    if ((flags_[i] & kGrouped) != 0) return false;
-    if (template_hole(i)) return true;
-    if (!(t_lo_[i] <= t_hi_[i])) return false;
-    if ((flags_[i] & kMissing) != 0) return !(s_lo_[i] <= s_hi_[i]);
-    return sparse(i);
-  };
+  std::size_t top = 0;
   for (int y = roi.y0; y < roi.y1; ++y) {
     for (int x = roi.x0; x < roi.x1; ++x) {
-      const auto seed = static_cast<std::size_t>(y * wi + x);
-      if ((flags_[seed] & kMissing) == 0 || !in_group(seed)) continue;
-      flags_[seed] |= kGrouped;
-      std::size_t top = 0, count = 0, with_points = 0, template_count = 0;
-      CellMoments moments;
-      int boundary = 0, contact = 0;
-      stack_[top++] = static_cast<std::int32_t>(seed);
-      while (top > 0) {
-        const std::int32_t c = stack_[--top];
-        blob_cells_[count++] = c;
-        const auto ci = static_cast<std::size_t>(c);
-        if (t_lo_[ci] <= t_hi_[ci]) ++template_count;
-        if ((flags_[ci] & kMissing) == 0 && occupied(ci)) ++with_points;  // a seen cell, sparse: glare's residue
-        const int cx = c % wi;
-        const int cy = c / wi;
-        moments.add(cx, cy);
-        const std::int32_t neighbours[4] = {c - 1, c + 1, c - wi, c + wi};
-        const bool inside[4] = {cx > roi.x0, cx + 1 < roi.x1, cy > roi.y0, cy + 1 < roi.y1};
-        for (int k = 0; k < 4; ++k) {
-          const auto n = static_cast<std::size_t>(neighbours[k]);
-          if (inside[k] && (flags_[n] & kGrouped) != 0) continue;  // in this group already
-          if (inside[k] && in_group(n)) {
-            flags_[n] |= kGrouped;
-            stack_[top++] = neighbours[k];
-            continue;
-          }
-          if (inside[k] && !(t_lo_[n] <= t_hi_[n]) && mask_a_[n] != 0) continue;  // a sampling gap (blob_evidence)
-          ++boundary;
-          if (!inside[k] || mask_b_[n] != 0) ++contact;
-        }
-      }
-      if (template_count < static_cast<std::size_t>(kMinLostGroupCells)) continue;
-      // Porous (points survive inside), or a band across the part that the residue cut into enclosed pieces: both
-      // are lost data.
-      const bool porous = with_points >= kMinLostPoints &&
-                          static_cast<double>(with_points) >= kMinPorosity * static_cast<double>(template_count);
-      const bool band = contact > 0 && moments.elongation() >= params_.band_elongation &&
-                        static_cast<double>(contact) <= params_.band_contact_max * static_cast<double>(boundary) &&
-                        moments.minor_width() * resolution_m_ <= params_.band_max_width_m;
-      const bool lost = porous || band;
-      if (!lost) continue;
-      // A band's loss has straight edges: what sticks out of it (a hole the band crosses, wider than the band) is
-      // not lost, it is a hole seen beside the band. The band's half width is twice the median distance of its cells
-      // from the axis (uniform across a band), which the few cells of such a bulge do not move; plus the window's
-      // fringe.
-      double half_width = std::numeric_limits<double>::infinity();
-      const Eigen::Vector2d normal = moments.minor_axis();
-      const Eigen::Vector2d centre = moments.mean();
-      auto across = [&](std::int32_t c) {
-        return std::abs((static_cast<double>(c % wi) - centre.x()) * normal.x() +
-                        (static_cast<double>(c / wi) - centre.y()) * normal.y());
-      };
-      if (moments.elongation() >= params_.band_elongation) {
-        for (std::size_t j = 0; j < count; ++j) tmp_lo_[j] = static_cast<float>(across(blob_cells_[j]));
-        const auto mid = tmp_lo_.begin() + static_cast<std::ptrdiff_t>(count / 2);
-        std::nth_element(tmp_lo_.begin(), mid, tmp_lo_.begin() + static_cast<std::ptrdiff_t>(count));
-        half_width = 2.0 * static_cast<double>(*mid) + kBandFringeCells;
-      }
-      for (std::size_t j = 0; j < count; ++j) {
-        std::uint8_t& f = flags_[static_cast<std::size_t>(blob_cells_[j])];
-        if ((f & kMissing) != 0 && across(blob_cells_[j]) <= half_width) f |= kLost;
+      const auto i = static_cast<std::size_t>(y * wi + x);
+      mask_b_[i] = 0;
+      const bool edge = x == roi.x0 || y == roi.y0 || x + 1 == roi.x1 || y + 1 == roi.y1;
+      if (edge && mask_a_[i] == 0) stack_[top++] = static_cast<std::int32_t>(i);
+    }
+  }
+  for (std::size_t k = 0; k < top; ++k) mask_b_[static_cast<std::size_t>(stack_[k])] = 1;
+  while (top > 0) {
+    const std::int32_t c = stack_[--top];
+    const int cx = c % wi, cy = c / wi;
+    const std::int32_t neighbours[4] = {c - 1, c + 1, c - wi, c + wi};
+    const bool inside[4] = {cx > roi.x0, cx + 1 < roi.x1, cy > roi.y0, cy + 1 < roi.y1};
+    for (int k = 0; k < 4; ++k) {
+      const auto n = static_cast<std::size_t>(neighbours[k]);
+      if (inside[k] && mask_a_[n] == 0 && mask_b_[n] == 0) {
+        mask_b_[n] = 1;
+        stack_[top++] = neighbours[k];
       }
     }
   }
+}
+
+bool Cascade::joins_group(std::size_t i, double typical) const {
+  // A missing cell the scan does cover, at another depth (a rib the template lacks), is contradiction, not loss:
+  // it neither joins a group nor becomes lost data. A hole of the template (neither its mask nor its outside) does.
+  if ((flags_[i] & kGrouped) != 0) return false;
+  if (mask_a_[i] == 0 && mask_b_[i] == 0) return true;
+  if (!(t_lo_[i] <= t_hi_[i])) return false;
+  if ((flags_[i] & kMissing) != 0) return !(s_lo_[i] <= s_hi_[i]);
+  return sparse_window(i, typical);
+}
+
+Cascade::CellGroup Cascade::grow_group(const Roi& roi, std::size_t seed, double typical) {
+  const int wi = width_;
+  CellGroup g;
+  flags_[seed] |= kGrouped;
+  std::size_t top = 0;
+  stack_[top++] = static_cast<std::int32_t>(seed);
+  while (top > 0) {
+    const std::int32_t c = stack_[--top];
+    blob_cells_[g.count++] = c;
+    const auto ci = static_cast<std::size_t>(c);
+    if (t_lo_[ci] <= t_hi_[ci]) ++g.template_count;
+    if ((flags_[ci] & kMissing) == 0 && scan_occupies(ci)) ++g.with_points;  // a seen cell, sparse: glare's residue
+    const int cx = c % wi;
+    const int cy = c / wi;
+    g.moments.add(cx, cy);
+    const std::int32_t neighbours[4] = {c - 1, c + 1, c - wi, c + wi};
+    const bool inside[4] = {cx > roi.x0, cx + 1 < roi.x1, cy > roi.y0, cy + 1 < roi.y1};
+    for (int k = 0; k < 4; ++k) {
+      const auto n = static_cast<std::size_t>(neighbours[k]);
+      if (inside[k] && (flags_[n] & kGrouped) != 0) continue;  // in this group already
+      if (inside[k] && joins_group(n, typical)) {
+        flags_[n] |= kGrouped;
+        stack_[top++] = neighbours[k];
+        continue;
+      }
+      if (inside[k] && !(t_lo_[n] <= t_hi_[n]) && mask_a_[n] != 0) continue;  // a sampling gap (blob_evidence)
+      ++g.boundary;
+      if (!inside[k] || mask_b_[n] != 0) ++g.contact;
+    }
+  }
+  return g;
+}
+
+bool Cascade::is_lost_data(const CellGroup& g) const {
+  if (g.template_count < static_cast<std::size_t>(kMinLostGroupCells)) return false;
+  // Porous (points survive inside), or a band across the part that the residue cut into enclosed pieces: both are
+  // lost data.
+  const bool porous = g.with_points >= kMinLostPoints &&
+                      static_cast<double>(g.with_points) >= kMinPorosity * static_cast<double>(g.template_count);
+  const bool band = g.contact > 0 && g.moments.elongation() >= params_.band_elongation &&
+                    static_cast<double>(g.contact) <= params_.band_contact_max * static_cast<double>(g.boundary) &&
+                    g.moments.minor_width() * resolution_m_ <= params_.band_max_width_m;
+  return porous || band;
+}
+
+void Cascade::mark_group_lost(const CellGroup& g) {
+  // A band's loss has straight edges: what sticks out of it (a hole the band crosses, wider than the band) is not
+  // lost, it is a hole seen beside the band. The band's half width is twice the median distance of its cells from
+  // the axis (uniform across a band), which the few cells of such a bulge do not move; plus the window's fringe.
+  const int wi = width_;
+  double half_width = std::numeric_limits<double>::infinity();
+  const Eigen::Vector2d normal = g.moments.minor_axis();
+  const Eigen::Vector2d centre = g.moments.mean();
+  auto across = [&](std::int32_t c) {
+    return std::abs((static_cast<double>(c % wi) - centre.x()) * normal.x() +
+                    (static_cast<double>(c / wi) - centre.y()) * normal.y());
+  };
+  if (g.moments.elongation() >= params_.band_elongation) {
+    for (std::size_t j = 0; j < g.count; ++j) tmp_lo_[j] = static_cast<float>(across(blob_cells_[j]));
+    const auto mid = tmp_lo_.begin() + static_cast<std::ptrdiff_t>(g.count / 2);
+    std::nth_element(tmp_lo_.begin(), mid, tmp_lo_.begin() + static_cast<std::ptrdiff_t>(g.count));
+    half_width = 2.0 * static_cast<double>(*mid) + kBandFringeCells;
+  }
+  for (std::size_t j = 0; j < g.count; ++j) {
+    std::uint8_t& f = flags_[static_cast<std::size_t>(blob_cells_[j])];
+    if ((f & kMissing) != 0 && across(blob_cells_[j]) <= half_width) f |= kLost;
+  }
+}
+
+void Cascade::mark_laser_shadow(const Roi& roi) {
   // Laser shadow: beside a relief wall (a rib, a flange) the line is hidden from the camera, or the camera from the
   // line, over a strip whose width depends on the part's pose, so the taught scans and this one see the foot of the
   // wall differently. A missing cell the scan has no point in, within the window of a depth step of the template
   // (kStep: kShadowStepM between its lowest and highest surface there), is lost data, not a hole. A hole the scan
   // has beside a wall loses only its cells within the window; a rib the template lacks is covered by the scan.
   constexpr std::uint8_t kShadowed = kMissing | kStep;
+  const int wi = width_;
   for (int y = roi.y0; y < roi.y1; ++y) {
     for (int x = roi.x0; x < roi.x1; ++x) {
       const auto i = static_cast<std::size_t>(y * wi + x);

@@ -293,6 +293,21 @@ class Cascade {
     double weak_cells = 0.0;     // area the shape rules weighed down (lost data, thin bands)
   };
 
+  // decide()'s steps (cascade.cpp): verification in rank order, then of what could also pass (false when the deadline
+  // passed), the verified candidates ranked by evidence, and the decision filled in (accepted, unknown, timeout).
+  struct DecideState;
+  struct Ranking;
+  [[nodiscard]] bool verify(DecideState& s, std::size_t j);
+  [[nodiscard]] bool verify_in_rank_order(DecideState& s, std::size_t& first_pass);
+  [[nodiscard]] bool verify_look_alikes(DecideState& s, std::size_t first_pass);
+  [[nodiscard]] bool could_also_pass(const DecideState& s, std::size_t j, double best_p) const;
+  [[nodiscard]] bool clear_margin(double best_evidence_m2, double runner_evidence_m2) const;
+  [[nodiscard]] Ranking rank_verified(const DecideState& s) const;
+  [[nodiscard]] bool clear_of_near_misses(const DecideState& s, const Candidate& best) const;
+  void accept_winner(DecideState& s, const Candidate& best);
+  void report_unknown(DecideState& s, const Ranking& ranking);
+  void report_timeout(DecideState& s);
+  void report_candidates(DecideState& s, const Candidate* winner, bool ambiguous) const;
   // Perfect Match + check of the scan set in matcher_; false when the deadline passed before it could start.
   bool evaluate_candidate(std::span<const TemplateModel> templates, std::span<const ScanPoint> scan,
                           std::chrono::steady_clock::time_point deadline, Candidate& out);
@@ -321,6 +336,19 @@ class Cascade {
   void measure_size(const Roi& roi, MatchReport& r);
   // Marks the missing cells that lie in a region of lost data (kLost): see the definition.
   void mark_lost_data(const Roi& roi);
+  // mark_lost_data()'s steps: window counts along rows (false: no template cell) and columns (with glare's residue),
+  // the template's outside, the groups of missing and sparse cells, and the laser shadow beside relief walls.
+  struct CellGroup;
+  [[nodiscard]] bool scan_occupies(std::size_t i) const;
+  [[nodiscard]] bool sparse_window(std::size_t i, double typical) const;
+  [[nodiscard]] bool row_window_counts(const Roi& roi, double& typical);
+  void column_window_counts(const Roi& roi, double typical);
+  void mark_template_outside(const Roi& roi);
+  [[nodiscard]] bool joins_group(std::size_t i, double typical) const;
+  [[nodiscard]] CellGroup grow_group(const Roi& roi, std::size_t seed, double typical);
+  [[nodiscard]] bool is_lost_data(const CellGroup& group) const;
+  void mark_group_lost(const CellGroup& group);
+  void mark_laser_shadow(const Roi& roi);
   // The largest of the template's holes (cells) that the scan's material covers, densely or porously (after
   // mark_lost_data, before blob_evidence): see the definition.
   [[nodiscard]] double covered_hole_cells(const Roi& roi);

@@ -166,27 +166,34 @@ FeatureExtractor::FeatureExtractor(int rows, int cols, const FeatureParams& para
       profile_m_(static_cast<std::size_t>(std::max(rows, cols))),
       analyser_(std::max(rows, cols)) {}
 
-FeatureStatus FeatureExtractor::compute(const cv::Mat& image, FeatureVector& out) {
-  out.fill(0.0F);
-  if (image.type() != CV_8UC1 || image.rows != rows_ || image.cols != cols_ || rows_ <= 0) {
-    return FeatureStatus::kWrongImage;
-  }
-  std::fill(row_left_.begin(), row_left_.end(), cols_);
-  std::fill(row_right_.begin(), row_right_.end(), -1);
-  std::fill(col_top_.begin(), col_top_.end(), rows_);
-  std::fill(col_bottom_.begin(), col_bottom_.end(), -1);
+namespace {
 
-  // One pass over the image. Grey moments (the depth value is the density f(x, y) of eq. 2.2, x = column,
-  // y = row as in cv::moments) accumulate per row in exact integers, then in double; the binary moments give
-  // the occupied-pixel covariance for the eccentricity; the histogram feeds eq. 2.12-2.13.
+// What one pass over the depth image gathers: the raw grey moments m_pq (eq. 2.2, the depth value is the density
+// f(x, y), x = column, y = row as in cv::moments) and the occupied pixels' binary moments (their covariance gives the
+// eccentricity).
+struct ImageMoments {
+  double m00, m10, m01, m20, m11, m02, m30, m21, m12, m03;
+  double b0, bx, by, bxx, bxy, byy;
+};
+
+// The one pass. It also fills the histogram of the object's depth values (eq. 2.12-2.13) and records per row the
+// first and last occupied column and per column the first and last occupied row (thesis 6.4.1.2's limits). The
+// moments accumulate per row in exact integers, then in double.
+ImageMoments accumulate_moments(const cv::Mat& image, std::array<std::uint32_t, 256>& histogram,
+                                std::vector<int>& row_left, std::vector<int>& row_right, std::vector<int>& col_top,
+                                std::vector<int>& col_bottom) {
+  const int rows = image.rows, cols = image.cols;
+  std::fill(row_left.begin(), row_left.end(), cols);
+  std::fill(row_right.begin(), row_right.end(), -1);
+  std::fill(col_top.begin(), col_top.end(), rows);
+  std::fill(col_bottom.begin(), col_bottom.end(), -1);
   double m00 = 0, m10 = 0, m01 = 0, m20 = 0, m11 = 0, m02 = 0, m30 = 0, m21 = 0, m12 = 0, m03 = 0;
   double b0 = 0, bx = 0, by = 0, bxx = 0, bxy = 0, byy = 0;
-  std::array<std::uint32_t, 256> histogram{};
-  for (int y = 0; y < rows_; ++y) {
+  for (int y = 0; y < rows; ++y) {
     const std::uint8_t* p = image.ptr<std::uint8_t>(y);
     std::int64_t s0 = 0, s1 = 0, s2 = 0, s3 = 0, c0 = 0, c1 = 0, c2 = 0;
-    int left = cols_, right = -1;
-    for (int x = 0; x < cols_; ++x) {
+    int left = cols, right = -1;
+    for (int x = 0; x < cols; ++x) {
       const std::int64_t v = p[x];
       if (v == 0) continue;
       const std::int64_t xv = x * v, xx = static_cast<std::int64_t>(x) * x;
@@ -201,12 +208,12 @@ FeatureStatus FeatureExtractor::compute(const cv::Mat& image, FeatureVector& out
       left = std::min(left, x);
       right = x;
       auto xi = static_cast<std::size_t>(x);
-      col_top_[xi] = std::min(col_top_[xi], y);
-      col_bottom_[xi] = y;
+      col_top[xi] = std::min(col_top[xi], y);
+      col_bottom[xi] = y;
     }
     if (c0 == 0) continue;
-    row_left_[static_cast<std::size_t>(y)] = left;
-    row_right_[static_cast<std::size_t>(y)] = right;
+    row_left[static_cast<std::size_t>(y)] = left;
+    row_right[static_cast<std::size_t>(y)] = right;
     const double yd = y, yy = yd * yd;
     m00 += s0;
     m10 += s1;
@@ -225,7 +232,57 @@ FeatureStatus FeatureExtractor::compute(const cv::Mat& image, FeatureVector& out
     bxy += c1 * yd;
     byy += c0 * yy;
   }
-  if (b0 == 0) {
+  return {m00, m10, m01, m20, m11, m02, m30, m21, m12, m03, b0, bx, by, bxx, bxy, byy};
+}
+
+// Eq. 2.3-2.4 central moments from the raw ones (the same expansion cv::moments uses), eq. 2.7 normalisation.
+NormalisedMoments normalised_moments(const ImageMoments& m) {
+  const double cx = m.m10 / m.m00, cy = m.m01 / m.m00;
+  const double mu20 = m.m20 - m.m10 * cx, mu11 = m.m11 - m.m10 * cy, mu02 = m.m02 - m.m01 * cy;
+  const double mu30 = m.m30 - cx * (3.0 * mu20 + cx * m.m10);
+  const double mu21 = m.m21 - cx * (2.0 * mu11 + cx * m.m01) - cy * mu20;
+  const double mu12 = m.m12 - cy * (2.0 * mu11 + cy * m.m10) - cx * mu02;
+  const double mu03 = m.m03 - cy * (3.0 * mu02 + cy * m.m01);
+  const double n2 = 1.0 / (m.m00 * m.m00), n3 = n2 / std::sqrt(m.m00);  // m00^-(p+q)/2-1 for p+q = 2 and 3
+  return {mu20 * n2, mu11 * n2, mu02 * n2, mu30 * n3, mu21 * n3, mu12 * n3, mu03 * n3};
+}
+
+// Eccentricity (2.2.1, after eq. 2.6): sqrt(1 - l2/l1) of the covariance J of the occupied pixels (eq. 2.5 with
+// f = 1 on the object), so it describes the silhouette, not the depth shading.
+float silhouette_eccentricity(const ImageMoments& m) {
+  const double b0 = m.b0;
+  const double vx = m.bxx / b0 - (m.bx / b0) * (m.bx / b0);
+  const double vy = m.byy / b0 - (m.by / b0) * (m.by / b0);
+  const double cxy = m.bxy / b0 - (m.bx / b0) * (m.by / b0);
+  const double mid = 0.5 * (vx + vy), radius = std::sqrt(0.25 * (vx - vy) * (vx - vy) + cxy * cxy);
+  const double l1 = mid + radius, l2 = std::max(0.0, mid - radius);
+  return l1 > 0.0 ? static_cast<float>(std::sqrt(std::max(0.0, 1.0 - l2 / l1))) : 0.0F;
+}
+
+// Eq. 2.12-2.13 on the normalised histogram of the object's depth values (the empty background is left out: it
+// would only repeat the area).
+void write_histogram_features(const std::array<std::uint32_t, 256>& histogram, double b0, FeatureVector& out) {
+  double energy = 0.0, entropy = 0.0;
+  for (std::size_t v = 1; v < histogram.size(); ++v) {
+    if (histogram[v] == 0) continue;
+    const double h = histogram[v] / b0;
+    energy += h * h;
+    entropy -= h * std::log2(h);
+  }
+  out[kHistEnergyIndex] = static_cast<float>(energy);
+  out[kHistEntropyIndex] = static_cast<float>(entropy);
+}
+
+}  // namespace
+
+FeatureStatus FeatureExtractor::compute(const cv::Mat& image, FeatureVector& out) {
+  out.fill(0.0F);
+  if (image.type() != CV_8UC1 || image.rows != rows_ || image.cols != cols_ || rows_ <= 0) {
+    return FeatureStatus::kWrongImage;
+  }
+  std::array<std::uint32_t, 256> histogram{};
+  const ImageMoments m = accumulate_moments(image, histogram, row_left_, row_right_, col_top_, col_bottom_);
+  if (m.b0 == 0) {
     bounds_ = {};
     return FeatureStatus::kEmptyImage;
   }
@@ -237,41 +294,13 @@ FeatureStatus FeatureExtractor::compute(const cv::Mat& image, FeatureVector& out
 
   compute_cuts(image, out);
 
-  // Eq. 2.3-2.4 central moments from the raw ones (the same expansion cv::moments uses), eq. 2.7 normalisation.
-  const double cx = m10 / m00, cy = m01 / m00;
-  const double mu20 = m20 - m10 * cx, mu11 = m11 - m10 * cy, mu02 = m02 - m01 * cy;
-  const double mu30 = m30 - cx * (3.0 * mu20 + cx * m10);
-  const double mu21 = m21 - cx * (2.0 * mu11 + cx * m01) - cy * mu20;
-  const double mu12 = m12 - cy * (2.0 * mu11 + cy * m10) - cx * mu02;
-  const double mu03 = m03 - cy * (3.0 * mu02 + cy * m01);
-  const double n2 = 1.0 / (m00 * m00), n3 = n2 / std::sqrt(m00);  // m00^-(p+q)/2-1 for p+q = 2 and 3
-  const NormalisedMoments eta{mu20 * n2, mu11 * n2, mu02 * n2, mu30 * n3, mu21 * n3, mu12 * n3, mu03 * n3};
-  const std::array<double, 8> hu = hu_invariants(eta);
+  const std::array<double, 8> hu = hu_invariants(normalised_moments(m));
   for (int i = 0; i < 8; ++i)
     out[static_cast<std::size_t>(kHuIndex + i)] = static_cast<float>(hu[static_cast<std::size_t>(i)]);
 
-  out[kAreaIndex] = static_cast<float>(b0 * params_.cell_m * params_.cell_m);
-
-  // Eccentricity (2.2.1, after eq. 2.6): sqrt(1 - l2/l1) of the covariance J of the occupied pixels (eq. 2.5 with
-  // f = 1 on the object), so it describes the silhouette, not the depth shading.
-  const double vx = bxx / b0 - (bx / b0) * (bx / b0);
-  const double vy = byy / b0 - (by / b0) * (by / b0);
-  const double cxy = bxy / b0 - (bx / b0) * (by / b0);
-  const double mid = 0.5 * (vx + vy), radius = std::sqrt(0.25 * (vx - vy) * (vx - vy) + cxy * cxy);
-  const double l1 = mid + radius, l2 = std::max(0.0, mid - radius);
-  out[kEccentricityIndex] = l1 > 0.0 ? static_cast<float>(std::sqrt(std::max(0.0, 1.0 - l2 / l1))) : 0.0F;
-
-  // Eq. 2.12-2.13 on the normalised histogram of the object's depth values (the empty background is left out:
-  // it would only repeat the area).
-  double energy = 0.0, entropy = 0.0;
-  for (std::size_t v = 1; v < histogram.size(); ++v) {
-    if (histogram[v] == 0) continue;
-    const double h = histogram[v] / b0;
-    energy += h * h;
-    entropy -= h * std::log2(h);
-  }
-  out[kHistEnergyIndex] = static_cast<float>(energy);
-  out[kHistEntropyIndex] = static_cast<float>(entropy);
+  out[kAreaIndex] = static_cast<float>(m.b0 * params_.cell_m * params_.cell_m);
+  out[kEccentricityIndex] = silhouette_eccentricity(m);
+  write_histogram_features(histogram, m.b0, out);
   return FeatureStatus::kOk;
 }
 

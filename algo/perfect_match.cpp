@@ -131,11 +131,10 @@ PerfectMatcher::PerfectMatcher(const PerfectMatchParams& params) : params_(param
   bin_informative_.resize(bins);
 }
 
-void PerfectMatcher::set_scan(std::span<const ScanPoint> points) {
-  used_ = 0;
-  coarse_used_ = 0;
-  scan_centroid_m_ = Eigen::Vector2d::Zero();
+namespace {
 
+// The finite points of a scan: how many, their x-y sums and their x-y bounds.
+struct ScanFootprint {
   std::size_t finite = 0;
   double sx = 0.0;
   double sy = 0.0;
@@ -143,42 +142,82 @@ void PerfectMatcher::set_scan(std::span<const ScanPoint> points) {
   double max_x = 0.0;
   double min_y = 0.0;
   double max_y = 0.0;
+};
+
+ScanFootprint measure_footprint(std::span<const ScanPoint> points) {
+  ScanFootprint f;
   for (const ScanPoint& p : points) {
     if (!finite_point(p)) continue;
-    if (finite == 0) {
-      min_x = max_x = p.x;
-      min_y = max_y = p.y;
+    if (f.finite == 0) {
+      f.min_x = f.max_x = p.x;
+      f.min_y = f.max_y = p.y;
     }
-    min_x = std::min(min_x, static_cast<double>(p.x));
-    max_x = std::max(max_x, static_cast<double>(p.x));
-    min_y = std::min(min_y, static_cast<double>(p.y));
-    max_y = std::max(max_y, static_cast<double>(p.y));
-    sx += p.x;
-    sy += p.y;
-    ++finite;
+    f.min_x = std::min(f.min_x, static_cast<double>(p.x));
+    f.max_x = std::max(f.max_x, static_cast<double>(p.x));
+    f.min_y = std::min(f.min_y, static_cast<double>(p.y));
+    f.max_y = std::max(f.max_y, static_cast<double>(p.y));
+    f.sx += p.x;
+    f.sy += p.y;
+    ++f.finite;
   }
-  if (finite == 0) return;
-  scan_centroid_m_ = {sx / static_cast<double>(finite), sy / static_cast<double>(finite)};
+  return f;
+}
 
-  // x-y bins over the footprint with one empty bin of margin all round, so every occupied bin has 8 neighbours.
-  double bin_m = params_.feature_bin_m;
-  const auto capacity = static_cast<double>(params_.max_feature_bins);
-  while ((std::floor((max_x - min_x) / bin_m) + 3.0) * (std::floor((max_y - min_y) / bin_m) + 3.0) > capacity) {
-    bin_m *= 1.25;
+}  // namespace
+
+// x-y bins over the footprint with one empty bin of margin all round, so every occupied bin has 8 neighbours.
+struct PerfectMatcher::BinGrid {
+  double min_x = 0.0;
+  double min_y = 0.0;
+  double inv_bin = 0.0;
+  int nbx = 0;
+  int nby = 0;
+
+  // Bins of feature_bin_m, made coarser until the footprint fits in max_feature_bins.
+  static BinGrid over(const ScanFootprint& f, const PerfectMatchParams& params) {
+    double bin_m = params.feature_bin_m;
+    const auto capacity = static_cast<double>(params.max_feature_bins);
+    while ((std::floor((f.max_x - f.min_x) / bin_m) + 3.0) * (std::floor((f.max_y - f.min_y) / bin_m) + 3.0) >
+           capacity) {
+      bin_m *= 1.25;
+    }
+    BinGrid g;
+    g.min_x = f.min_x;
+    g.min_y = f.min_y;
+    g.nbx = static_cast<int>(std::floor((f.max_x - f.min_x) / bin_m)) + 3;
+    g.nby = static_cast<int>(std::floor((f.max_y - f.min_y) / bin_m)) + 3;
+    g.inv_bin = 1.0 / bin_m;
+    return g;
   }
-  const int nbx = static_cast<int>(std::floor((max_x - min_x) / bin_m)) + 3;
-  const int nby = static_cast<int>(std::floor((max_y - min_y) / bin_m)) + 3;
-  const double inv_bin = 1.0 / bin_m;
-  const auto bin_of = [&](const ScanPoint& p) {
+  [[nodiscard]] std::size_t bins() const { return static_cast<std::size_t>(nbx) * static_cast<std::size_t>(nby); }
+  [[nodiscard]] std::size_t bin_of(const ScanPoint& p) const {
     const int bx = std::min(static_cast<int>((p.x - min_x) * inv_bin), nbx - 3) + 1;
     const int by = std::min(static_cast<int>((p.y - min_y) * inv_bin), nby - 3) + 1;
     return static_cast<std::size_t>(by) * static_cast<std::size_t>(nbx) + static_cast<std::size_t>(bx);
-  };
-  const std::size_t bins = static_cast<std::size_t>(nbx) * static_cast<std::size_t>(nby);
-  std::fill_n(bin_count_.begin(), bins, 0U);
+  }
+};
+
+void PerfectMatcher::set_scan(std::span<const ScanPoint> points) {
+  used_ = 0;
+  coarse_used_ = 0;
+  scan_centroid_m_ = Eigen::Vector2d::Zero();
+
+  const ScanFootprint footprint = measure_footprint(points);
+  if (footprint.finite == 0) return;
+  scan_centroid_m_ = {footprint.sx / static_cast<double>(footprint.finite),
+                      footprint.sy / static_cast<double>(footprint.finite)};
+  const BinGrid grid = BinGrid::over(footprint, params_);
+  bin_depths(points, grid);
+  mark_informative_bins(grid);
+  pick_spread(points, grid, footprint.finite);
+  order_coarse_first();
+}
+
+void PerfectMatcher::bin_depths(std::span<const ScanPoint> points, const BinGrid& grid) {
+  std::fill_n(bin_count_.begin(), grid.bins(), 0U);
   for (const ScanPoint& p : points) {
     if (!finite_point(p)) continue;
-    const std::size_t b = bin_of(p);
+    const std::size_t b = grid.bin_of(p);
     BinDepth& z = bin_depth_[b];
     if (bin_count_[b] == 0) z = {p.z, p.z, p.z, p.z};
     if (p.z < z.low) {
@@ -195,7 +234,11 @@ void PerfectMatcher::set_scan(std::span<const ScanPoint> points) {
     }
     ++bin_count_[b];
   }
-  std::fill_n(bin_informative_.begin(), bins, std::uint8_t{0});
+}
+
+void PerfectMatcher::mark_informative_bins(const BinGrid& grid) {
+  const int nbx = grid.nbx, nby = grid.nby;
+  std::fill_n(bin_informative_.begin(), grid.bins(), std::uint8_t{0});
   for (int by = 1; by + 1 < nby; ++by) {
     for (int bx = 1; bx + 1 < nbx; ++bx) {
       const std::size_t b = static_cast<std::size_t>(by) * static_cast<std::size_t>(nbx) + static_cast<std::size_t>(bx);
@@ -218,10 +261,12 @@ void PerfectMatcher::set_scan(std::span<const ScanPoint> points) {
       bin_informative_[b] = edge || relief ? 1 : 0;
     }
   }
+}
 
+void PerfectMatcher::pick_spread(std::span<const ScanPoint> points, const BinGrid& grid, std::size_t finite) {
   std::size_t informative = 0;
   for (const ScanPoint& p : points) {
-    if (finite_point(p)) informative += bin_informative_[bin_of(p)];
+    if (finite_point(p)) informative += bin_informative_[grid.bin_of(p)];
   }
   const std::size_t others = finite - informative;
   used_ = std::min(finite, picked_.size());
@@ -240,7 +285,7 @@ void PerfectMatcher::set_scan(std::span<const ScanPoint> points) {
   Stride classes[2] = {{others, pick_others, pick_informative}, {informative, pick_informative, 0}};
   for (const ScanPoint& p : points) {
     if (!finite_point(p)) continue;
-    Stride& c = classes[bin_informative_[bin_of(p)]];
+    Stride& c = classes[bin_informative_[grid.bin_of(p)]];
     if (c.picked < c.picks && c.rank == c.next) {
       picked_[c.first + c.picked] = Eigen::Vector3f(p.x, p.y, p.z);
       ++c.picked;
@@ -248,7 +293,9 @@ void PerfectMatcher::set_scan(std::span<const ScanPoint> points) {
     }
     ++c.rank;
   }
+}
 
+void PerfectMatcher::order_coarse_first() {
   // Every stride-th pick goes to the front, so the coarse level is a prefix that is itself spread like the whole.
   std::size_t stride = 1;
   if (params_.coarse_points > 0 && params_.coarse_iterations > 0) {

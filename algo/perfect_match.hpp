@@ -169,6 +169,12 @@ class PerfectMatcher {
   };
   std::vector<BinDepth> bin_depth_;
   std::vector<std::uint8_t> bin_informative_;
+  // set_scan()'s steps: bin the points' depths, mark the informative bins, pick the subset, put the coarse level first.
+  struct BinGrid;
+  void bin_depths(std::span<const ScanPoint> points, const BinGrid& grid);
+  void mark_informative_bins(const BinGrid& grid);
+  void pick_spread(std::span<const ScanPoint> points, const BinGrid& grid, std::size_t finite);
+  void order_coarse_first();
 
   std::vector<Eigen::Vector3f> points_;
   std::size_t used_ = 0;

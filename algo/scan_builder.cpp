@@ -90,12 +90,86 @@ void ScanBuilder::emit_run(int first, int last, double travel_m, FrameOutcome& o
   }
 }
 
+namespace {
+
+constexpr double kMinColumnPeakShare = 0.15;  // as the row extractor's min_relative_strength
+constexpr int kColumnWindowRows = 8;
+constexpr float kColumnContinuityPx = 1.5F;
+constexpr int kColumnMarginPx = 48;  // around a row's stripe centre, where its slanted piece can run
+
+// The sub-pixel row of the line's crossing of column c within rows top..bottom of a band (first..last the band's
+// candidate rows): a narrow peak well above the column's own background, its vertical centre of gravity. NaN when
+// the column holds none.
+float column_crossing_row(const std::uint8_t* pixels, int stride, int c, int top, int bottom, int first, int last,
+                          double min_peak, int max_extent_rows) {
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  int best = top;
+  for (int r = top; r <= bottom; ++r) {
+    if (pixels[static_cast<std::size_t>(r) * stride + c] > pixels[static_cast<std::size_t>(best) * stride + c])
+      best = r;
+  }
+  if (best < first - 2 || best > last + 2) return nan;  // the peak belongs to rows the row pass measured
+  const double local_bg = std::min(pixels[static_cast<std::size_t>(top) * stride + c],
+                                   pixels[static_cast<std::size_t>(bottom) * stride + c]);
+  const double peak = pixels[static_cast<std::size_t>(best) * stride + c];
+  if (peak - local_bg < min_peak) return nan;
+  const double half = local_bg + 0.5 * (peak - local_bg);
+  int lo = best, hi = best;
+  while (lo > top && pixels[static_cast<std::size_t>(lo - 1) * stride + c] >= half) --lo;
+  while (hi < bottom && pixels[static_cast<std::size_t>(hi + 1) * stride + c] >= half) ++hi;
+  if (lo == top || hi == bottom || hi - lo + 1 > max_extent_rows) return nan;  // a blob, or cut off
+  double sum = 0.0, weighted = 0.0;
+  for (int r = std::max(top, lo - 2); r <= std::min(bottom, hi + 2); ++r) {
+    const double value = std::max(0.0, pixels[static_cast<std::size_t>(r) * stride + c] - local_bg);
+    sum += value;
+    weighted += value * r;
+  }
+  return sum > 0.0 ? static_cast<float>(weighted / sum) : nan;
+}
+
+}  // namespace
+
 void ScanBuilder::column_pass(const std::uint8_t* pixels, int width, int height, int stride, double travel_m,
                               FrameOutcome& out) {
   if (width != static_cast<int>(column_v_.size()) || height != static_cast<int>(candidate_.size())) return;
-  // Rows the row pass could not measure well: a stripe wider than a row profile should be, rows that only held
-  // short broken runs (a line slanting more than ~60 deg from vertical changes column by > 2 px per row), and
-  // bright rows with no accepted stripe (a line along the row, rejected as too wide).
+  const double min_peak = column_min_peak();
+  select_column_rows(pixels, width, stride, min_peak);
+
+  // Each band: candidate rows +-window. In every column of a band, a narrow peak well above the column's own
+  // background is a crossing of the line; its vertical centre of gravity is the sub-pixel row.
+  int v = 0;
+  while (v < height) {
+    if (candidate_[static_cast<std::size_t>(v)] == 0) {
+      ++v;
+      continue;
+    }
+    int band_last = v;
+    while (band_last + 1 < height &&
+           (candidate_[static_cast<std::size_t>(band_last + 1)] != 0 ||
+            (band_last + 1 < height - 1 && candidate_[static_cast<std::size_t>(band_last + 2)] != 0))) {
+      ++band_last;
+    }
+    const int top = std::max(0, v - kColumnWindowRows), bottom = std::min(height - 1, band_last + kColumnWindowRows);
+    int c_lo = width, c_hi = -1;
+    for (int r = v; r <= band_last; ++r) {
+      if (candidate_[static_cast<std::size_t>(r)] == 0) continue;
+      c_lo = std::min<int>(c_lo, row_lo_[static_cast<std::size_t>(r)]);
+      c_hi = std::max<int>(c_hi, row_hi_[static_cast<std::size_t>(r)]);
+    }
+    const float nan = std::numeric_limits<float>::quiet_NaN();
+    for (int c = std::max(0, c_lo); c <= std::min(width - 1, c_hi + 1); ++c)
+      column_v_[static_cast<std::size_t>(c)] = nan;
+    for (int c = c_lo; c <= c_hi; ++c) {
+      column_v_[static_cast<std::size_t>(c)] =
+          column_crossing_row(pixels, stride, c, top, bottom, v, band_last, min_peak, params_.max_column_extent_rows);
+    }
+    emit_column_runs(c_lo, c_hi, width, travel_m, out);
+    v = band_last + 1;
+  }
+  std::fill(candidate_.begin(), candidate_.end(), 0);
+}
+
+double ScanBuilder::column_min_peak() const {
   double peak_sum = 0.0;
   int peak_rows = 0;
   for (int v = 0; v < profile_.rows(); ++v) {
@@ -106,12 +180,14 @@ void ScanBuilder::column_pass(const std::uint8_t* pixels, int width, int height,
     }
   }
   const double typical_peak = peak_rows > 0 ? peak_sum / peak_rows : 0.0;
-  constexpr double kMinColumnPeakShare = 0.15;  // as the row extractor's min_relative_strength
-  constexpr int kColumnWindowRows = 8;
-  constexpr float kColumnContinuityPx = 1.5F;
-  constexpr int kColumnMarginPx = 48;  // around a row's stripe centre, where its slanted piece can run
-  const double min_peak = std::max<double>(params_.stripe.threshold_dn, kMinColumnPeakShare * typical_peak);
-  // Columns to re-read per row (candidate_ rows set by emit_run keep their range from the row centre).
+  return std::max<double>(params_.stripe.threshold_dn, kMinColumnPeakShare * typical_peak);
+}
+
+void ScanBuilder::select_column_rows(const std::uint8_t* pixels, int width, int stride, double min_peak) {
+  // Rows the row pass could not measure well: a stripe wider than a row profile should be, rows that only held
+  // short broken runs (a line slanting more than ~60 deg from vertical changes column by > 2 px per row), and
+  // bright rows with no accepted stripe (a line along the row, rejected as too wide). The rows emit_run marked in
+  // candidate_ keep their range from the row centre.
   for (int v = 0; v < profile_.rows(); ++v) {
     const StripeRow& row = profile_.row(v);
     const bool usable = row.status == StripeStatus::kValid || row.status == StripeStatus::kSaturated;
@@ -135,77 +211,32 @@ void ScanBuilder::column_pass(const std::uint8_t* pixels, int width, int height,
     row_hi_[static_cast<std::size_t>(v)] = static_cast<std::int16_t>(std::clamp(hi, -1, width - 1));
     candidate_[static_cast<std::size_t>(v)] = hi >= lo ? 1 : 0;
   }
+}
+
+void ScanBuilder::emit_column_runs(int c_lo, int c_hi, int width, double travel_m, FrameOutcome& out) {
+  // Runs of columns whose rows continue smoothly become points; isolated columns (glints) do not.
   const auto frame_index = static_cast<std::uint16_t>(std::min(stats_.frames - 1, 65535));
   const float nan = std::numeric_limits<float>::quiet_NaN();
-
-  // Each band: candidate rows +-window. In every column of a band, a narrow peak well above the column's own
-  // background is a crossing of the line; its vertical centre of gravity is the sub-pixel row.
-  int v = 0;
-  while (v < height) {
-    if (candidate_[static_cast<std::size_t>(v)] == 0) {
-      ++v;
-      continue;
-    }
-    int band_last = v;
-    while (band_last + 1 < height && (candidate_[static_cast<std::size_t>(band_last + 1)] != 0 ||
-                                      (band_last + 1 < height - 1 && candidate_[static_cast<std::size_t>(band_last + 2)] != 0))) {
-      ++band_last;
-    }
-    const int top = std::max(0, v - kColumnWindowRows), bottom = std::min(height - 1, band_last + kColumnWindowRows);
-    int c_lo = width, c_hi = -1;
-    for (int r = v; r <= band_last; ++r) {
-      if (candidate_[static_cast<std::size_t>(r)] == 0) continue;
-      c_lo = std::min<int>(c_lo, row_lo_[static_cast<std::size_t>(r)]);
-      c_hi = std::max<int>(c_hi, row_hi_[static_cast<std::size_t>(r)]);
-    }
-    for (int c = std::max(0, c_lo); c <= std::min(width - 1, c_hi + 1); ++c) column_v_[static_cast<std::size_t>(c)] = nan;
-    for (int c = c_lo; c <= c_hi; ++c) {
-      int best = top;
-      for (int r = top; r <= bottom; ++r) {
-        if (pixels[static_cast<std::size_t>(r) * stride + c] > pixels[static_cast<std::size_t>(best) * stride + c]) best = r;
-      }
-      if (best < v - 2 || best > band_last + 2) continue;  // the peak belongs to rows the row pass measured
-      const double local_bg = std::min(pixels[static_cast<std::size_t>(top) * stride + c],
-                                       pixels[static_cast<std::size_t>(bottom) * stride + c]);
-      const double peak = pixels[static_cast<std::size_t>(best) * stride + c];
-      if (peak - local_bg < min_peak) continue;
-      const double half = local_bg + 0.5 * (peak - local_bg);
-      int lo = best, hi = best;
-      while (lo > top && pixels[static_cast<std::size_t>(lo - 1) * stride + c] >= half) --lo;
-      while (hi < bottom && pixels[static_cast<std::size_t>(hi + 1) * stride + c] >= half) ++hi;
-      if (lo == top || hi == bottom || hi - lo + 1 > params_.max_column_extent_rows) continue;  // a blob, or cut off
-      double sum = 0.0, weighted = 0.0;
-      for (int r = std::max(top, lo - 2); r <= std::min(bottom, hi + 2); ++r) {
-        const double value = std::max(0.0, pixels[static_cast<std::size_t>(r) * stride + c] - local_bg);
-        sum += value;
-        weighted += value * r;
-      }
-      if (sum > 0.0) column_v_[static_cast<std::size_t>(c)] = static_cast<float>(weighted / sum);
-    }
-    // Runs of columns whose rows continue smoothly become points; isolated columns (glints) do not.
-    int run_start = -1;
-    for (int c = std::max(0, c_lo); c <= std::min(width, c_hi + 1); ++c) {
-      const float here = c < width ? column_v_[static_cast<std::size_t>(c)] : nan;
-      const bool continues = run_start >= 0 && !std::isnan(here) &&
-                             std::abs(here - column_v_[static_cast<std::size_t>(c - 1)]) <= kColumnContinuityPx;
-      if (continues) continue;
-      if (run_start >= 0 && c - run_start >= params_.min_column_run) {
-        for (int k = run_start; k < c; ++k) {
-          const float vk = column_v_[static_cast<std::size_t>(k)];
-          Eigen::Vector3f p = triangulator_.cell_point(static_cast<float>(k), vk);
-          p.x() -= static_cast<float>(travel_m - params_.carrier_start_offset_m);
-          if (!std::isfinite(p.x())) continue;
-          if (scan_.push({p.x(), p.y(), p.z(), frame_index, static_cast<std::uint16_t>(std::lround(vk))})) {
-            ++out.points_added;
-            ++stats_.column_points;
-          }
+  int run_start = -1;
+  for (int c = std::max(0, c_lo); c <= std::min(width, c_hi + 1); ++c) {
+    const float here = c < width ? column_v_[static_cast<std::size_t>(c)] : nan;
+    const bool continues = run_start >= 0 && !std::isnan(here) &&
+                           std::abs(here - column_v_[static_cast<std::size_t>(c - 1)]) <= kColumnContinuityPx;
+    if (continues) continue;
+    if (run_start >= 0 && c - run_start >= params_.min_column_run) {
+      for (int k = run_start; k < c; ++k) {
+        const float vk = column_v_[static_cast<std::size_t>(k)];
+        Eigen::Vector3f p = triangulator_.cell_point(static_cast<float>(k), vk);
+        p.x() -= static_cast<float>(travel_m - params_.carrier_start_offset_m);
+        if (!std::isfinite(p.x())) continue;
+        if (scan_.push({p.x(), p.y(), p.z(), frame_index, static_cast<std::uint16_t>(std::lround(vk))})) {
+          ++out.points_added;
+          ++stats_.column_points;
         }
       }
-      run_start = std::isnan(here) ? -1 : c;
     }
-    v = band_last + 1;
+    run_start = std::isnan(here) ? -1 : c;
   }
-  std::fill(candidate_.begin(), candidate_.end(), 0);
 }
 
 }  // namespace cellsight::algo

@@ -74,6 +74,11 @@ class ScanBuilder {
  private:
   void emit_run(int first, int last, double travel_m, FrameOutcome& out);
   void column_pass(const std::uint8_t* pixels, int width, int height, int stride, double travel_m, FrameOutcome& out);
+  // column_pass()'s steps: the least peak a column's crossing needs, the rows (and their columns) to re-read, and the
+  // runs of smoothly continuing columns of a band turned into points.
+  [[nodiscard]] double column_min_peak() const;
+  void select_column_rows(const std::uint8_t* pixels, int width, int stride, double min_peak);
+  void emit_column_runs(int c_lo, int c_hi, int width, double travel_m, FrameOutcome& out);
 
   ScanBuilderParams params_;
   Triangulator triangulator_;

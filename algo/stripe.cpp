@@ -467,9 +467,22 @@ class StripeExtractor {
     }
     chunk_thresholds(n);
     scan_row(p, n);
+    collect_candidates(p, n);
+    bool rejected_too_wide = false;
+    const int usable = keep_usable_candidates(p, n, rejected_too_wide);
+    if (usable == 0) {
+      set_no_stripe(row, row_max);
+      if (rejected_too_wide) {
+        ++too_wide_rows_;  // evidence of gross over-exposure for the exposure controller
+      }
+      return;
+    }
+    choose_candidate(p, n, row_index, usable, row);
+  }
 
-    // Runs -> candidate windows at the local level background + threshold, merging runs that the lower local
-    // level joins (a stripe split by noise near the threshold).
+  // Runs -> candidate windows at the local level background + threshold, merging runs that the lower local level
+  // joins (a stripe split by noise near the threshold).
+  void collect_candidates(const std::uint8_t* p, int n) {
     candidate_count_ = 0;
     for (int i = 0; i < scan_.run_count; ++i) {
       const Run& run = scan_.runs[std::size_t(i)];
@@ -511,11 +524,13 @@ class StripeExtractor {
       c.peak_x = peak_x;
       c.background_dn = bg;
     }
+  }
 
-    // Measure; keep the usable ones in place.
+  // Measures the candidates and keeps the usable ones in place; returns how many. rejected_too_wide: the brightest
+  // rejected one was too wide.
+  int keep_usable_candidates(const std::uint8_t* p, int n, bool& rejected_too_wide) {
     int usable = 0;
     int brightest_rejected_peak = -1;
-    bool rejected_too_wide = false;
     for (int i = 0; i < candidate_count_; ++i) {
       Candidate c = candidates_[std::size_t(i)];
       if (!measure(p, n, c)) {
@@ -531,38 +546,16 @@ class StripeExtractor {
       candidates_[std::size_t(usable++)] = c;
     }
     candidate_count_ = usable;
-    if (usable == 0) {
-      set_no_stripe(row, row_max);
-      if (rejected_too_wide) {
-        ++too_wide_rows_;  // evidence of gross over-exposure for the exposure controller
-      }
-      return;
-    }
+    return usable;
+  }
 
-    // Strongest candidate (tie: the wider one), then its comparable competitors.
-    int best = 0;
-    for (int i = 1; i < usable; ++i) {
-      const Candidate& c = candidates_[std::size_t(i)];
-      const Candidate& b = candidates_[std::size_t(best)];
-      if (strength(c) > strength(b) || (strength(c) == strength(b) && c.width_px > b.width_px)) {
-        best = i;
-      }
-    }
+  // The row's stripe among the usable candidates: the strongest unless a comparable competitor makes it a double
+  // peak, which continuity with the rows above decides or which stays ambiguous.
+  void choose_candidate(const std::uint8_t* p, int n, int row_index, int usable, StripeRow& row) {
+    const int best = strongest_candidate(usable);
     const Candidate& b = candidates_[std::size_t(best)];
-    int competitor_count = 0;
-    int second = -1;
-    for (int i = 0; i < usable; ++i) {
-      const Candidate& c = candidates_[std::size_t(i)];
-      if (i == best || strength(c) < params_.double_peak_ratio * strength(b) ||
-          std::fabs(c.mid_px - b.mid_px) <= params_.double_peak_gap_px) {
-        continue;
-      }
-      ++competitor_count;
-      if (second < 0 || strength(c) > strength(candidates_[std::size_t(second)])) {
-        second = i;
-      }
-    }
-    if (competitor_count == 0) {
+    const int second = strongest_competitor(usable, best);
+    if (second < 0) {
       fill_row(row, p, n, b);
       // More runs than kMaxRuns: some were never looked at, so the choice may be wrong.
       row.status = scan_.overflow ? StripeStatus::kAmbiguous : saturation_status(b.peak);
@@ -571,24 +564,8 @@ class StripeExtractor {
     // A double peak: choose by continuity with the nearest decided row above (forward pass), comparing every
     // comparable candidate by its rough centre.
     if (forward_reference(row_index)) {
-      int nearest = -1;
-      float d1 = std::numeric_limits<float>::infinity(), d2 = d1;
-      for (int i = 0; i < usable; ++i) {
-        const Candidate& c = candidates_[std::size_t(i)];
-        if (i != best && (strength(c) < params_.double_peak_ratio * strength(b) ||
-                          std::fabs(c.mid_px - b.mid_px) <= params_.double_peak_gap_px)) {
-          continue;
-        }
-        const float d = std::fabs(c.mid_px - ref_centre_);
-        if (d < d1) {
-          d2 = d1;
-          d1 = d;
-          nearest = i;
-        } else if (d < d2) {
-          d2 = d;
-        }
-      }
-      if (d1 <= params_.continuity_tolerance_px && d2 - d1 >= params_.continuity_margin_px) {
+      const int nearest = clearly_nearest_to_reference(usable, best);
+      if (nearest >= 0) {
         const Candidate& chosen = candidates_[std::size_t(nearest)];
         fill_row(row, p, n, chosen);
         row.status = scan_.overflow ? StripeStatus::kAmbiguous : saturation_status(chosen.peak);
@@ -602,6 +579,67 @@ class StripeExtractor {
     row.alt_centre_px = extract_centre(p, n, alt);
     row.alt_width_px = alt.width_px;
     row.alt_peak = std::uint8_t(std::clamp(alt.peak, 0, 255));
+  }
+
+  // Strongest candidate (tie: the wider one).
+  int strongest_candidate(int usable) const {
+    int best = 0;
+    for (int i = 1; i < usable; ++i) {
+      const Candidate& c = candidates_[std::size_t(i)];
+      const Candidate& b = candidates_[std::size_t(best)];
+      if (strength(c) > strength(b) || (strength(c) == strength(b) && c.width_px > b.width_px)) {
+        best = i;
+      }
+    }
+    return best;
+  }
+
+  // A candidate nearly as strong as the best and apart from it: a double peak.
+  bool competes(const Candidate& c, const Candidate& b) const {
+    return !(strength(c) < params_.double_peak_ratio * strength(b) ||
+             std::fabs(c.mid_px - b.mid_px) <= params_.double_peak_gap_px);
+  }
+
+  // The strongest of the best's competitors; -1 when it has none.
+  int strongest_competitor(int usable, int best) const {
+    const Candidate& b = candidates_[std::size_t(best)];
+    int second = -1;
+    for (int i = 0; i < usable; ++i) {
+      const Candidate& c = candidates_[std::size_t(i)];
+      if (i == best || !competes(c, b)) {
+        continue;
+      }
+      if (second < 0 || strength(c) > strength(candidates_[std::size_t(second)])) {
+        second = i;
+      }
+    }
+    return second;
+  }
+
+  // Among the best and its competitors, the one whose rough centre is within the continuity tolerance of the
+  // reference row's centre and clearly nearer than any other; -1 when none is.
+  int clearly_nearest_to_reference(int usable, int best) const {
+    const Candidate& b = candidates_[std::size_t(best)];
+    int nearest = -1;
+    float d1 = std::numeric_limits<float>::infinity(), d2 = d1;
+    for (int i = 0; i < usable; ++i) {
+      const Candidate& c = candidates_[std::size_t(i)];
+      if (i != best && !competes(c, b)) {
+        continue;
+      }
+      const float d = std::fabs(c.mid_px - ref_centre_);
+      if (d < d1) {
+        d2 = d1;
+        d1 = d;
+        nearest = i;
+      } else if (d < d2) {
+        d2 = d;
+      }
+    }
+    if (d1 <= params_.continuity_tolerance_px && d2 - d1 >= params_.continuity_margin_px) {
+      return nearest;
+    }
+    return -1;
   }
 
   static float strength(const Candidate& c) { return float(c.peak) - c.background_dn; }

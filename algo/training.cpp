@@ -673,15 +673,14 @@ Expected<std::vector<int>> stratified_folds(const Dataset& data, int folds, std:
   return fold;
 }
 
-Expected<TrainingResult> train_recogniser(const DatasetSplit& split, const TrainParams& params,
-                                          const ProgressCallback& progress, const std::atomic<bool>* stop) {
-  const Clock::time_point t0 = Clock::now();
-  if (Status s = validate_params(params); !s) return s.error();
+namespace {
+
+// The two halves of a split are valid and name the same classes.
+Status validate_split(const DatasetSplit& split) {
   if (Status s = validate_dataset(split.train); !s) return make_error("training split: " + s.error().message);
   if (!split.test.labels.empty()) {
     if (Status s = validate_dataset(split.test); !s) return make_error("test split: " + s.error().message);
   }
-  const int classes = static_cast<int>(split.train.classes.size());
   if (split.test.classes.size() != split.train.classes.size()) {
     return make_error("training: the test split has other classes than the training split");
   }
@@ -690,46 +689,63 @@ Expected<TrainingResult> train_recogniser(const DatasetSplit& split, const Train
       return make_error("training: the test split has other classes than the training split");
     }
   }
-  // The annealing's set: the taught scans and their first search_variants variants.
+  return {};
+}
+
+// The annealing's set: the taught scans and their first search_variants variants (all of them when negative).
+Dataset annealing_set(const Dataset& train, int search_variants) {
   Dataset search;
-  search.classes = split.train.classes;
-  for (std::size_t i = 0; i < split.train.size(); ++i) {
-    const int v = split.train.variant_of(i);
-    if (params.search_variants < 0 || v <= params.search_variants)
-      search.push(split.train.features[i], split.train.labels[i], split.train.group_of(i), v);
+  search.classes = train.classes;
+  for (std::size_t i = 0; i < train.size(); ++i) {
+    const int v = train.variant_of(i);
+    if (search_variants < 0 || v <= search_variants)
+      search.push(train.features[i], train.labels[i], train.group_of(i), v);
   }
-  silence_libsvm();
-  const Scaler scaler = Scaler::fit(split.train.features);
-  auto searched = make_context(search, scaler, params, stop);
-  if (!searched) return searched.error();
-  Context& ctx = *searched;
-  const std::vector<double> test_scaled = scale_all(scaler, split.test.features);
+  return search;
+}
 
-  const FeatureMask initial = params.annealing.initial_mask.any() ? params.annealing.initial_mask
-                                                                  : fisher_mask(ctx, params.annealing.initial_active);
-  const int stages = params.compare ? 3 : 1;
+// What the classifier stages of one training share.
+struct TrainingRun {
+  const DatasetSplit& split;
+  const TrainParams& params;
+  const Dataset& search;  // the annealing's set
+  const Context& ctx;     // the search set scaled, with its folds
+  const Scaler& scaler;
+  const std::vector<double>& test_scaled;
+  FeatureMask initial;  // where every annealing starts
+  int classes = 0;
+  int stages = 1;  // annealing runs in all (progress)
+  Clock::time_point t0;
+  const ProgressCallback& progress;
+  const std::atomic<bool>* stop;
+};
 
-  TrainingResult result;
+void report_samples(const TrainingRun& run, TrainingReport& report) {
+  const Dataset& train = run.split.train;
+  for (const ClassInfo& c : train.classes) report.class_names.push_back(c.name);
+  for (std::size_t i = 0; i < train.size(); ++i) {
+    if (train.variant_of(i) == 0) ++report.train_samples;
+  }
+  report.synthetic_samples = static_cast<int>(train.size()) - report.train_samples;
+  report.search_samples = run.ctx.n;
+  report.test_samples = static_cast<int>(run.split.test.size());
+  report.folds = run.params.folds;
+  report.threads = run.ctx.threads;
+}
+
+// SVM: annealing, then the probability model on the whole training split (thesis 2.6.1).
+Status train_svm(const TrainingRun& run, TrainingResult& result) {
+  const DatasetSplit& split = run.split;
+  const TrainParams& params = run.params;
   TrainingReport& report = result.report;
-  for (const ClassInfo& c : split.train.classes) report.class_names.push_back(c.name);
-  for (std::size_t i = 0; i < split.train.size(); ++i) {
-    if (split.train.variant_of(i) == 0) ++report.train_samples;
-  }
-  report.synthetic_samples = static_cast<int>(split.train.size()) - report.train_samples;
-  report.search_samples = ctx.n;
-  report.test_samples = static_cast<int>(split.test.size());
-  report.folds = params.folds;
-  report.threads = ctx.threads;
-
-  // ---- SVM: annealing, then the probability model on the whole training split (thesis 2.6.1).
   SvmEvaluator svm_eval(params);
-  AnnealingOutcome svm = anneal(svm_eval, ctx, params.annealing, params.annealing.iterations, initial,
-                                stream_seed(params.seed, 2), {Classifier::kSvm, 0, stages, t0}, progress);
+  AnnealingOutcome svm = anneal(svm_eval, run.ctx, params.annealing, params.annealing.iterations, run.initial,
+                                stream_seed(params.seed, 2), {Classifier::kSvm, 0, run.stages, run.t0}, run.progress);
   if (!svm.scored) return make_error("training stopped before the first feature set was scored: no model");
   // The chosen features' C and gamma again on every training sample (the final model learns from all of them):
   // the grid's best on the search set need not be the best on the larger one.
-  if (split.train.size() > search.size() && !stop_requested(stop)) {
-    auto full = make_context(split.train, scaler, params, stop);
+  if (split.train.size() > run.search.size() && !stop_requested(run.stop)) {
+    auto full = make_context(split.train, run.scaler, params, run.stop);
     if (!full) return full.error();
     std::vector<int> correct(static_cast<std::size_t>(svm_eval.grid_size()), 0);
     if (svm_eval.evaluate(*full, svm.mask, correct)) {
@@ -739,7 +755,7 @@ Expected<TrainingResult> train_recogniser(const DatasetSplit& split, const Train
     }
   }
   report.svm_hyper = svm_eval.hyper(svm.score.param);
-  auto model = SvmModel::train(split.train.features, split.train.labels, split.train.classes, svm.mask, scaler,
+  auto model = SvmModel::train(split.train.features, split.train.labels, split.train.classes, svm.mask, run.scaler,
                                report.svm_hyper, params.seed);
   if (!model) return model.error();
   result.model = std::move(*model);
@@ -748,60 +764,101 @@ Expected<TrainingResult> train_recogniser(const DatasetSplit& split, const Train
   report.svm.cv_accuracy = svm.score.accuracy;
   report.svm.mask = svm.mask;
   report.svm.features = mask_names(svm.mask);
-  score_test(split.test, classes, report.svm, [&](std::size_t i) {
+  score_test(split.test, run.classes, report.svm, [&](std::size_t i) {
     const auto probabilities = result.model.predict(split.test.features[i]);
     return probabilities.empty() ? -1 : probabilities.front().class_index;
   });
   score_calibration(split.test, result.model, report.svm);
   report.stopped = report.svm.stopped;
+  return {};
+}
 
-  // ---- comparison classifiers (thesis 4.2), each with its own annealing run.
-  if (params.compare && !report.stopped) {
-    KnnEvaluator knn_eval(params.knn_k);
-    const int knn_iterations = params.knn_iterations >= 0 ? params.knn_iterations : params.annealing.iterations;
-    AnnealingOutcome knn = anneal(knn_eval, ctx, params.annealing, knn_iterations, initial, stream_seed(params.seed, 3),
-                                  {Classifier::kKnn, 1, stages, t0}, progress);
-    if (knn.scored) {
-      const int k = knn_eval.k(knn.score.param);
-      const std::size_t d = knn.mask.count();
-      const std::vector<double> train_rows = gather(ctx.scaled, search.size(), knn.mask);
-      const std::vector<double> test_rows = gather(test_scaled, split.test.size(), knn.mask);
-      ClassifierReport r = std::move(knn.report);
-      r.parameters = knn_eval.describe(knn.score.param, static_cast<int>(d));
-      r.cv_accuracy = knn.score.accuracy;
-      r.mask = knn.mask;
-      r.features = mask_names(knn.mask);
-      score_test(split.test, classes, r, [&](std::size_t i) {
-        return knn_classify(train_rows, search.labels, static_cast<int>(d), classes, k,
-                            std::span<const double>(test_rows).subspan(i * d, d));
-      });
-      report.stopped = report.stopped || r.stopped;
-      report.knn = std::move(r);
-    }
-  }
-  if (params.compare && !report.stopped) {
-    MlpEvaluator mlp_eval(params.mlp_layouts, params.mlp, stream_seed(params.seed, 4));
-    AnnealingOutcome mlp = anneal(mlp_eval, ctx, params.annealing, params.mlp_iterations, initial,
-                                  stream_seed(params.seed, 5), {Classifier::kMlp, 2, stages, t0}, progress);
-    if (mlp.scored) {
-      const std::size_t d = mlp.mask.count();
-      const std::vector<double> train_rows = gather(ctx.scaled, search.size(), mlp.mask);
-      const std::vector<double> test_rows = gather(test_scaled, split.test.size(), mlp.mask);
-      Mlp net;
-      net.train(train_rows, search.labels, static_cast<int>(d), classes,
-                mlp_eval.params(mlp.score.param, stream_seed(params.seed, 6)));
-      ClassifierReport r = std::move(mlp.report);
-      r.parameters = mlp_eval.describe(mlp.score.param, static_cast<int>(d));
-      r.cv_accuracy = mlp.score.accuracy;
-      r.mask = mlp.mask;
-      r.features = mask_names(mlp.mask);
-      score_test(split.test, classes, r,
-                 [&](std::size_t i) { return net.predict(std::span<const double>(test_rows).subspan(i * d, d)); });
-      report.stopped = report.stopped || r.stopped;
-      report.mlp = std::move(r);
-    }
-  }
-  report.seconds = seconds_since(t0);
+// Comparison classifier (thesis 4.2): kNN with its own annealing run.
+void compare_knn(const TrainingRun& run, TrainingReport& report) {
+  const DatasetSplit& split = run.split;
+  const TrainParams& params = run.params;
+  KnnEvaluator knn_eval(params.knn_k);
+  const int knn_iterations = params.knn_iterations >= 0 ? params.knn_iterations : params.annealing.iterations;
+  AnnealingOutcome knn = anneal(knn_eval, run.ctx, params.annealing, knn_iterations, run.initial,
+                                stream_seed(params.seed, 3), {Classifier::kKnn, 1, run.stages, run.t0}, run.progress);
+  if (!knn.scored) return;
+  const int k = knn_eval.k(knn.score.param);
+  const std::size_t d = knn.mask.count();
+  const std::vector<double> train_rows = gather(run.ctx.scaled, run.search.size(), knn.mask);
+  const std::vector<double> test_rows = gather(run.test_scaled, split.test.size(), knn.mask);
+  ClassifierReport r = std::move(knn.report);
+  r.parameters = knn_eval.describe(knn.score.param, static_cast<int>(d));
+  r.cv_accuracy = knn.score.accuracy;
+  r.mask = knn.mask;
+  r.features = mask_names(knn.mask);
+  score_test(split.test, run.classes, r, [&](std::size_t i) {
+    return knn_classify(train_rows, run.search.labels, static_cast<int>(d), run.classes, k,
+                        std::span<const double>(test_rows).subspan(i * d, d));
+  });
+  report.stopped = report.stopped || r.stopped;
+  report.knn = std::move(r);
+}
+
+// Comparison classifier (thesis 4.2): the multilayer perceptron with its own annealing run.
+void compare_mlp(const TrainingRun& run, TrainingReport& report) {
+  const DatasetSplit& split = run.split;
+  const TrainParams& params = run.params;
+  MlpEvaluator mlp_eval(params.mlp_layouts, params.mlp, stream_seed(params.seed, 4));
+  AnnealingOutcome mlp = anneal(mlp_eval, run.ctx, params.annealing, params.mlp_iterations, run.initial,
+                                stream_seed(params.seed, 5), {Classifier::kMlp, 2, run.stages, run.t0}, run.progress);
+  if (!mlp.scored) return;
+  const std::size_t d = mlp.mask.count();
+  const std::vector<double> train_rows = gather(run.ctx.scaled, run.search.size(), mlp.mask);
+  const std::vector<double> test_rows = gather(run.test_scaled, split.test.size(), mlp.mask);
+  Mlp net;
+  net.train(train_rows, run.search.labels, static_cast<int>(d), run.classes,
+            mlp_eval.params(mlp.score.param, stream_seed(params.seed, 6)));
+  ClassifierReport r = std::move(mlp.report);
+  r.parameters = mlp_eval.describe(mlp.score.param, static_cast<int>(d));
+  r.cv_accuracy = mlp.score.accuracy;
+  r.mask = mlp.mask;
+  r.features = mask_names(mlp.mask);
+  score_test(split.test, run.classes, r,
+             [&](std::size_t i) { return net.predict(std::span<const double>(test_rows).subspan(i * d, d)); });
+  report.stopped = report.stopped || r.stopped;
+  report.mlp = std::move(r);
+}
+
+}  // namespace
+
+Expected<TrainingResult> train_recogniser(const DatasetSplit& split, const TrainParams& params,
+                                          const ProgressCallback& progress, const std::atomic<bool>* stop) {
+  const Clock::time_point t0 = Clock::now();
+  if (Status s = validate_params(params); !s) return s.error();
+  if (Status s = validate_split(split); !s) return s.error();
+  const Dataset search = annealing_set(split.train, params.search_variants);
+  silence_libsvm();
+  const Scaler scaler = Scaler::fit(split.train.features);
+  auto searched = make_context(search, scaler, params, stop);
+  if (!searched) return searched.error();
+  const Context& ctx = *searched;
+  const std::vector<double> test_scaled = scale_all(scaler, split.test.features);
+  const FeatureMask initial = params.annealing.initial_mask.any() ? params.annealing.initial_mask
+                                                                  : fisher_mask(ctx, params.annealing.initial_active);
+  const TrainingRun run{split,
+                        params,
+                        search,
+                        ctx,
+                        scaler,
+                        test_scaled,
+                        initial,
+                        static_cast<int>(split.train.classes.size()),
+                        params.compare ? 3 : 1,
+                        t0,
+                        progress,
+                        stop};
+
+  TrainingResult result;
+  report_samples(run, result.report);
+  if (Status s = train_svm(run, result); !s) return s.error();
+  if (params.compare && !result.report.stopped) compare_knn(run, result.report);
+  if (params.compare && !result.report.stopped) compare_mlp(run, result.report);
+  result.report.seconds = seconds_since(t0);
   return result;
 }
 
@@ -836,9 +893,36 @@ int knn_classify(std::span<const double> rows, std::span<const int> labels, int 
 
 // ---- MLP ----------------------------------------------------------------------------------------------------------
 
+// train()'s working set, allocated once per training: activations per layer (index 0 = input), deltas, gradients and
+// Adam's moments.
+struct Mlp::TrainingBuffers {
+  std::vector<std::vector<double>> act, delta, gw, gb, mw, vw, mb, vb;
+
+  TrainingBuffers(const std::vector<Layer>& layers, int dims)
+      : act(layers.size() + 1),
+        delta(layers.size()),
+        gw(layers.size()),
+        gb(layers.size()),
+        mw(layers.size()),
+        vw(layers.size()),
+        mb(layers.size()),
+        vb(layers.size()) {
+    act[0].resize(static_cast<std::size_t>(dims));
+    for (std::size_t l = 0; l < layers.size(); ++l) {
+      act[l + 1].resize(static_cast<std::size_t>(layers[l].out));
+      delta[l].resize(static_cast<std::size_t>(layers[l].out));
+      gw[l].resize(layers[l].w.size());
+      gb[l].resize(layers[l].b.size());
+      mw[l].assign(layers[l].w.size(), 0.0);
+      vw[l].assign(layers[l].w.size(), 0.0);
+      mb[l].assign(layers[l].b.size(), 0.0);
+      vb[l].assign(layers[l].b.size(), 0.0);
+    }
+  }
+};
+
 void Mlp::train(std::span<const double> rows, std::span<const int> labels, int dims, int classes,
                 const MlpParams& params) {
-  constexpr double kBeta1 = 0.9, kBeta2 = 0.999, kAdamEps = 1e-8;
   layers_.clear();
   std::vector<int> sizes{dims};
   sizes.insert(sizes.end(), params.hidden.begin(), params.hidden.end());
@@ -858,20 +942,7 @@ void Mlp::train(std::span<const double> rows, std::span<const int> labels, int d
   }
   const std::size_t depth = layers_.size(), n = labels.size();
   if (n == 0) return;
-  // Activations per layer (index 0 = input), deltas, gradients and Adam moments, allocated once.
-  std::vector<std::vector<double>> act(depth + 1), delta(depth), gw(depth), gb(depth), mw(depth), vw(depth), mb(depth),
-      vb(depth);
-  act[0].resize(static_cast<std::size_t>(dims));
-  for (std::size_t l = 0; l < depth; ++l) {
-    act[l + 1].resize(static_cast<std::size_t>(layers_[l].out));
-    delta[l].resize(static_cast<std::size_t>(layers_[l].out));
-    gw[l].resize(layers_[l].w.size());
-    gb[l].resize(layers_[l].b.size());
-    mw[l].assign(layers_[l].w.size(), 0.0);
-    vw[l].assign(layers_[l].w.size(), 0.0);
-    mb[l].assign(layers_[l].b.size(), 0.0);
-    vb[l].assign(layers_[l].b.size(), 0.0);
-  }
+  TrainingBuffers buffers(layers_, dims);
   std::vector<std::size_t> order(n);
   std::iota(order.begin(), order.end(), 0);
   const auto d = static_cast<std::size_t>(dims);
@@ -881,66 +952,82 @@ void Mlp::train(std::span<const double> rows, std::span<const int> labels, int d
     for (std::size_t start = 0; start < n; start += static_cast<std::size_t>(params.batch)) {
       const std::size_t end = std::min(n, start + static_cast<std::size_t>(params.batch));
       for (std::size_t l = 0; l < depth; ++l) {
-        std::fill(gw[l].begin(), gw[l].end(), 0.0);
-        std::fill(gb[l].begin(), gb[l].end(), 0.0);
+        std::fill(buffers.gw[l].begin(), buffers.gw[l].end(), 0.0);
+        std::fill(buffers.gb[l].begin(), buffers.gb[l].end(), 0.0);
       }
       for (std::size_t s = start; s < end; ++s) {
         const std::size_t i = order[s];
-        std::copy_n(rows.begin() + static_cast<std::ptrdiff_t>(i * d), d, act[0].begin());
-        // Forward: eq. 2.18-2.21, tanh inside, softmax at the output (thesis 4.2.2).
-        for (std::size_t l = 0; l < depth; ++l) {
-          const Layer& L = layers_[l];
-          for (int o = 0; o < L.out; ++o) {
-            double z = L.b[static_cast<std::size_t>(o)];
-            const double* w = &L.w[static_cast<std::size_t>(o) * static_cast<std::size_t>(L.in)];
-            for (int q = 0; q < L.in; ++q) z += w[q] * act[l][static_cast<std::size_t>(q)];
-            act[l + 1][static_cast<std::size_t>(o)] = l + 1 < depth ? std::tanh(z) : z;
-          }
-        }
-        std::vector<double>& out = act[depth];
-        const double top = *std::max_element(out.begin(), out.end());
-        double sum = 0.0;
-        for (double& v : out) sum += (v = std::exp(v - top));
-        for (double& v : out) v /= sum;
-        // Backward: softmax + cross-entropy gives p - onehot at the output.
-        for (std::size_t o = 0; o < out.size(); ++o)
-          delta[depth - 1][o] = out[o] - (static_cast<int>(o) == labels[i] ? 1.0 : 0.0);
-        for (std::size_t l = depth; l-- > 0;) {
-          const Layer& L = layers_[l];
-          for (int o = 0; o < L.out; ++o) {
-            const double g = delta[l][static_cast<std::size_t>(o)];
-            gb[l][static_cast<std::size_t>(o)] += g;
-            double* gwo = &gw[l][static_cast<std::size_t>(o) * static_cast<std::size_t>(L.in)];
-            for (int q = 0; q < L.in; ++q) gwo[q] += g * act[l][static_cast<std::size_t>(q)];
-          }
-          if (l == 0) break;
-          for (int q = 0; q < L.in; ++q) {
-            double back = 0.0;
-            for (int o = 0; o < L.out; ++o)
-              back += L.w[static_cast<std::size_t>(o) * static_cast<std::size_t>(L.in) + static_cast<std::size_t>(q)] *
-                      delta[l][static_cast<std::size_t>(o)];
-            const double a = act[l][static_cast<std::size_t>(q)];
-            delta[l - 1][static_cast<std::size_t>(q)] = back * (1.0 - a * a);  // tanh' = 1 - tanh^2
-          }
-        }
+        std::copy_n(rows.begin() + static_cast<std::ptrdiff_t>(i * d), d, buffers.act[0].begin());
+        forward(buffers);
+        backward(buffers, labels[i]);
       }
       ++step;
-      const double scale = 1.0 / static_cast<double>(end - start);
-      const double c1 = 1.0 - std::pow(kBeta1, step), c2 = 1.0 - std::pow(kBeta2, step);
-      auto adam = [&](std::vector<double>& w, const std::vector<double>& g, std::vector<double>& m,
-                      std::vector<double>& v, double decay) {
-        for (std::size_t j = 0; j < w.size(); ++j) {
-          const double grad = g[j] * scale + decay * w[j];
-          m[j] = kBeta1 * m[j] + (1.0 - kBeta1) * grad;
-          v[j] = kBeta2 * v[j] + (1.0 - kBeta2) * grad * grad;
-          w[j] -= params.learning_rate * (m[j] / c1) / (std::sqrt(v[j] / c2) + kAdamEps);
-        }
-      };
-      for (std::size_t l = 0; l < depth; ++l) {
-        adam(layers_[l].w, gw[l], mw[l], vw[l], params.weight_decay);
-        adam(layers_[l].b, gb[l], mb[l], vb[l], 0.0);
-      }
+      adam_step(buffers, end - start, step, params);
     }
+  }
+}
+
+void Mlp::forward(TrainingBuffers& b) const {
+  const std::size_t depth = layers_.size();
+  // Eq. 2.18-2.21, tanh inside, softmax at the output (thesis 4.2.2).
+  for (std::size_t l = 0; l < depth; ++l) {
+    const Layer& L = layers_[l];
+    for (int o = 0; o < L.out; ++o) {
+      double z = L.b[static_cast<std::size_t>(o)];
+      const double* w = &L.w[static_cast<std::size_t>(o) * static_cast<std::size_t>(L.in)];
+      for (int q = 0; q < L.in; ++q) z += w[q] * b.act[l][static_cast<std::size_t>(q)];
+      b.act[l + 1][static_cast<std::size_t>(o)] = l + 1 < depth ? std::tanh(z) : z;
+    }
+  }
+  std::vector<double>& out = b.act[depth];
+  const double top = *std::max_element(out.begin(), out.end());
+  double sum = 0.0;
+  for (double& v : out) sum += (v = std::exp(v - top));
+  for (double& v : out) v /= sum;
+}
+
+void Mlp::backward(TrainingBuffers& b, int label) const {
+  const std::size_t depth = layers_.size();
+  // Softmax + cross-entropy gives p - onehot at the output.
+  const std::vector<double>& out = b.act[depth];
+  for (std::size_t o = 0; o < out.size(); ++o)
+    b.delta[depth - 1][o] = out[o] - (static_cast<int>(o) == label ? 1.0 : 0.0);
+  for (std::size_t l = depth; l-- > 0;) {
+    const Layer& L = layers_[l];
+    for (int o = 0; o < L.out; ++o) {
+      const double g = b.delta[l][static_cast<std::size_t>(o)];
+      b.gb[l][static_cast<std::size_t>(o)] += g;
+      double* gwo = &b.gw[l][static_cast<std::size_t>(o) * static_cast<std::size_t>(L.in)];
+      for (int q = 0; q < L.in; ++q) gwo[q] += g * b.act[l][static_cast<std::size_t>(q)];
+    }
+    if (l == 0) break;
+    for (int q = 0; q < L.in; ++q) {
+      double back = 0.0;
+      for (int o = 0; o < L.out; ++o)
+        back += L.w[static_cast<std::size_t>(o) * static_cast<std::size_t>(L.in) + static_cast<std::size_t>(q)] *
+                b.delta[l][static_cast<std::size_t>(o)];
+      const double a = b.act[l][static_cast<std::size_t>(q)];
+      b.delta[l - 1][static_cast<std::size_t>(q)] = back * (1.0 - a * a);  // tanh' = 1 - tanh^2
+    }
+  }
+}
+
+void Mlp::adam_step(TrainingBuffers& b, std::size_t batch_size, int step, const MlpParams& params) {
+  constexpr double kBeta1 = 0.9, kBeta2 = 0.999, kAdamEps = 1e-8;
+  const double scale = 1.0 / static_cast<double>(batch_size);
+  const double c1 = 1.0 - std::pow(kBeta1, step), c2 = 1.0 - std::pow(kBeta2, step);
+  auto adam = [&](std::vector<double>& w, const std::vector<double>& g, std::vector<double>& m, std::vector<double>& v,
+                  double decay) {
+    for (std::size_t j = 0; j < w.size(); ++j) {
+      const double grad = g[j] * scale + decay * w[j];
+      m[j] = kBeta1 * m[j] + (1.0 - kBeta1) * grad;
+      v[j] = kBeta2 * v[j] + (1.0 - kBeta2) * grad * grad;
+      w[j] -= params.learning_rate * (m[j] / c1) / (std::sqrt(v[j] / c2) + kAdamEps);
+    }
+  };
+  for (std::size_t l = 0; l < layers_.size(); ++l) {
+    adam(layers_[l].w, b.gw[l], b.mw[l], b.vw[l], params.weight_decay);
+    adam(layers_[l].b, b.gb[l], b.mb[l], b.vb[l], 0.0);
   }
 }
 

@@ -199,6 +199,13 @@ class Mlp {
     int in = 0, out = 0;
     std::vector<double> w, b;  // w: out x in
   };
+  // train()'s steps on one sample (forward pass and softmax, back-propagation into the batch's gradients) and on
+  // one batch (the Adam update).
+  struct TrainingBuffers;
+  void forward(TrainingBuffers& b) const;
+  void backward(TrainingBuffers& b, int label) const;
+  void adam_step(TrainingBuffers& b, std::size_t batch_size, int step, const MlpParams& params);
+
   std::vector<Layer> layers_;
 };
 

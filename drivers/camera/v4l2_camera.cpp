@@ -79,6 +79,16 @@ std::int64_t nearest_control_value(std::int64_t exposure_us, std::int64_t min, s
   return min + k * step;
 }
 
+// When the frame was exposed: the driver's timestamp when it is on CLOCK_MONOTONIC, else the time of dequeueing.
+std::int64_t frame_timestamp_ns(const v4l2_buffer& buffer) {
+  std::int64_t timestamp_ns = monotonic_now_ns();
+  if ((buffer.flags & V4L2_BUF_FLAG_TIMESTAMP_MASK) == V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC) {
+    timestamp_ns = static_cast<std::int64_t>(buffer.timestamp.tv_sec) * kNsPerSecond +
+                   static_cast<std::int64_t>(buffer.timestamp.tv_usec) * kNsPerUs;
+  }
+  return timestamp_ns;
+}
+
 }  // namespace
 
 std::int32_t V4L2Camera::units_to_us(std::int32_t units) {
@@ -460,6 +470,37 @@ DeviceStatus V4L2Camera::grab(Frame& out, int timeout_ms) {
     ++stats_.io_errors;
     return DeviceStatus::kIoError;
   }
+  short revents = 0;
+  if (const DeviceStatus status = wait_for_frame(timeout_ms, revents); status != DeviceStatus::kOk) return status;
+  v4l2_buffer buffer{};
+  if (const DeviceStatus status = dequeue(revents, buffer); status != DeviceStatus::kOk) return status;
+  const std::uint32_t index = buffer.index;
+  // Counted before the error check: a corrupt frame is an I/O error, not a drop.
+  count_dropped_frames(buffer.sequence);
+
+  if ((buffer.flags & V4L2_BUF_FLAG_ERROR) != 0 || buffer.bytesused < image_bytes_) {
+    // Corrupt or truncated frame (the recommended way for drivers to report a recoverable error).
+    ++stats_.io_errors;
+    if (requeue(index) == DeviceStatus::kDeviceLost) return DeviceStatus::kDeviceLost;
+    return DeviceStatus::kIoError;
+  }
+
+  const std::int64_t timestamp_ns = frame_timestamp_ns(buffer);
+  int stride_bytes = static_cast<int>(bytes_per_line_);
+  const std::uint8_t* pixels = mono_pixels(index, stride_bytes);
+  out.data = pixels;
+  out.width_px = config_.width_px;
+  out.height_px = config_.height_px;
+  out.stride_bytes = stride_bytes;
+  out.sequence = next_sequence_++;
+  out.timestamp_ns = timestamp_ns;
+  out.exposure_us = exposure_at(timestamp_ns);
+  out.buffer_index = static_cast<std::int32_t>(index);
+  ++stats_.frames;
+  return DeviceStatus::kOk;
+}
+
+DeviceStatus V4L2Camera::wait_for_frame(int timeout_ms, short& revents) {
   pollfd descriptor{};
   descriptor.fd = fd_;
   descriptor.events = POLLIN;
@@ -474,37 +515,28 @@ DeviceStatus V4L2Camera::grab(Frame& out, int timeout_ms) {
   }
   // An unregistered video node answers POLLERR | POLLHUP (v4l2_poll); vb2 alone never sets POLLHUP on capture.
   if ((descriptor.revents & (POLLHUP | POLLNVAL)) != 0) return lose_device();
+  revents = descriptor.revents;
+  return DeviceStatus::kOk;
+}
 
-  v4l2_buffer buffer{};
+DeviceStatus V4L2Camera::dequeue(short revents, v4l2_buffer& buffer) {
   buffer.type = kCaptureType;
   buffer.memory = V4L2_MEMORY_MMAP;
   buffer.index = kNoIndex;
   int result = sys_.ioctl(fd_, VIDIOC_DQBUF, &buffer);
   if (result == -ENODEV) return lose_device();
-  if (result == -EAGAIN && (descriptor.revents & POLLERR) == 0) {
+  if (result == -EAGAIN && (revents & POLLERR) == 0) {
     ++stats_.timeouts;  // woken without a frame
     return DeviceStatus::kTimeout;
   }
   if (result == -EIO) {
-    // Some drivers dequeue an empty buffer with EIO (signal loss). Hand it back so the pool does not drain; when
-    // the kernel still owned it, QBUF fails harmlessly and it stays queued.
     ++stats_.io_errors;
-    if (buffer.index < buffers_.size() && buffers_[buffer.index].queued) {
-      buffers_[buffer.index].queued = false;
-      --queued_count_;
-      if (requeue(buffer.index) == DeviceStatus::kDeviceLost) return DeviceStatus::kDeviceLost;
-      if (!buffers_[buffer.index].queued) {
-        buffers_[buffer.index].queued = true;
-        ++queued_count_;
-      }
-    }
-    return DeviceStatus::kIoError;
+    return hand_back_empty(buffer.index);
   }
   if (result < 0) {
     ++stats_.io_errors;
     return DeviceStatus::kIoError;
   }
-
   const std::uint32_t index = buffer.index;
   if (index >= buffers_.size() || !buffers_[index].queued) {
     ++stats_.io_errors;  // the kernel handed out a buffer we never queued: nothing safe to do with it
@@ -512,53 +544,47 @@ DeviceStatus V4L2Camera::grab(Frame& out, int timeout_ms) {
   }
   buffers_[index].queued = false;
   --queued_count_;
-  // Counted before the error check: a corrupt frame is an I/O error, not a drop.
+  return DeviceStatus::kOk;
+}
+
+DeviceStatus V4L2Camera::hand_back_empty(std::uint32_t index) {
+  // Some drivers dequeue an empty buffer with EIO (signal loss). Hand it back so the pool does not drain; when the
+  // kernel still owned it, QBUF fails harmlessly and it stays queued.
+  if (index < buffers_.size() && buffers_[index].queued) {
+    buffers_[index].queued = false;
+    --queued_count_;
+    if (requeue(index) == DeviceStatus::kDeviceLost) return DeviceStatus::kDeviceLost;
+    if (!buffers_[index].queued) {
+      buffers_[index].queued = true;
+      ++queued_count_;
+    }
+  }
+  return DeviceStatus::kIoError;
+}
+
+void V4L2Camera::count_dropped_frames(std::uint32_t kernel_sequence) {
   if (have_sequence_) {
-    std::uint32_t gap = buffer.sequence - last_kernel_sequence_ - 1u;  // unsigned: wraps like the kernel counter
+    std::uint32_t gap = kernel_sequence - last_kernel_sequence_ - 1u;  // unsigned: wraps like the kernel counter
     if (gap != 0 && gap < kMaxSequenceGap) stats_.dropped_frames += gap;
   }
   have_sequence_ = true;
-  last_kernel_sequence_ = buffer.sequence;
+  last_kernel_sequence_ = kernel_sequence;
+}
 
-  if ((buffer.flags & V4L2_BUF_FLAG_ERROR) != 0 || buffer.bytesused < image_bytes_) {
-    // Corrupt or truncated frame (the recommended way for drivers to report a recoverable error).
-    ++stats_.io_errors;
-    if (requeue(index) == DeviceStatus::kDeviceLost) return DeviceStatus::kDeviceLost;
-    return DeviceStatus::kIoError;
-  }
-
-  std::int64_t timestamp_ns = monotonic_now_ns();
-  if ((buffer.flags & V4L2_BUF_FLAG_TIMESTAMP_MASK) == V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC) {
-    timestamp_ns = static_cast<std::int64_t>(buffer.timestamp.tv_sec) * kNsPerSecond +
-                   static_cast<std::int64_t>(buffer.timestamp.tv_usec) * kNsPerUs;
-  }
-
+const std::uint8_t* V4L2Camera::mono_pixels(std::uint32_t index, int& stride_bytes) {
   const auto* pixels = static_cast<const std::uint8_t*>(buffers_[index].mapping);
-  int stride_bytes = static_cast<int>(bytes_per_line_);
-  if (yuyv_) {
-    // YUYV packs Y0 U Y1 V: the luma of pixel x sits at byte 2x of its line.
-    const auto width = static_cast<std::size_t>(config_.width_px);
-    const auto height = static_cast<std::size_t>(config_.height_px);
-    std::uint8_t* mono = mono_.data() + index * width * height;
-    for (std::size_t y = 0; y < height; ++y) {
-      const std::uint8_t* line = pixels + y * bytes_per_line_;
-      std::uint8_t* row = mono + y * width;
-      for (std::size_t x = 0; x < width; ++x) row[x] = line[2 * x];
-    }
-    pixels = mono;
-    stride_bytes = config_.width_px;
+  if (!yuyv_) return pixels;
+  // YUYV packs Y0 U Y1 V: the luma of pixel x sits at byte 2x of its line.
+  const auto width = static_cast<std::size_t>(config_.width_px);
+  const auto height = static_cast<std::size_t>(config_.height_px);
+  std::uint8_t* mono = mono_.data() + index * width * height;
+  for (std::size_t y = 0; y < height; ++y) {
+    const std::uint8_t* line = pixels + y * bytes_per_line_;
+    std::uint8_t* row = mono + y * width;
+    for (std::size_t x = 0; x < width; ++x) row[x] = line[2 * x];
   }
-
-  out.data = pixels;
-  out.width_px = config_.width_px;
-  out.height_px = config_.height_px;
-  out.stride_bytes = stride_bytes;
-  out.sequence = next_sequence_++;
-  out.timestamp_ns = timestamp_ns;
-  out.exposure_us = exposure_at(timestamp_ns);
-  out.buffer_index = static_cast<std::int32_t>(index);
-  ++stats_.frames;
-  return DeviceStatus::kOk;
+  stride_bytes = config_.width_px;
+  return mono;
 }
 
 void V4L2Camera::release(const Frame& frame) {

@@ -10,6 +10,8 @@
 #include "drivers/camera.hpp"
 #include "drivers/sys_seam.hpp"
 
+struct v4l2_buffer;  // <linux/videodev2.h>, included by the implementation only
+
 namespace cellsight::drivers {
 
 // Start-up settings (config/cellsight.yaml: section `camera`, the size from `rig.camera`).
@@ -93,6 +95,13 @@ class V4L2Camera final : public Camera {
   void teardown();
 
   [[nodiscard]] DeviceStatus requeue(std::uint32_t index);
+  // grab()'s steps: wait until the device is readable, take a filled buffer from the kernel (an empty one that came
+  // with EIO goes back), count the frames the kernel dropped before it, convert to mono when the format is YUYV.
+  [[nodiscard]] DeviceStatus wait_for_frame(int timeout_ms, short& revents);
+  [[nodiscard]] DeviceStatus dequeue(short revents, v4l2_buffer& buffer);
+  [[nodiscard]] DeviceStatus hand_back_empty(std::uint32_t index);
+  void count_dropped_frames(std::uint32_t kernel_sequence);
+  [[nodiscard]] const std::uint8_t* mono_pixels(std::uint32_t index, int& stride_bytes);
   [[nodiscard]] DeviceStatus lose_device();
   void record_exposure(std::int32_t exposure_us, std::int64_t since_ns);
   [[nodiscard]] std::int32_t exposure_at(std::int64_t timestamp_ns) const;

@@ -48,6 +48,16 @@ Surface surface_at(const algo::BoardSpec& board, const Eigen::Vector2d& lo, cons
   return board.distance_to_nearest_dot_m(uv) < dot_radius_m ? kDot : kPlate;
 }
 
+// The calibration lamp's irradiance at board point p (cell frame) whose printed face looks along front_cell.
+double lamp_irradiance(const BoardLook& look, const Eigen::Vector3d& lamp_pos, const Eigen::Vector3d& front_cell,
+                       const Eigen::Vector3d& p) {
+  const Eigen::Vector3d to_lamp = lamp_pos - p;
+  const double dist = to_lamp.norm();
+  const double cos_i = std::max(0.0, front_cell.dot(to_lamp) / dist);
+  return look.lamp_dn * (look.lamp_diffuse_share +
+                         (1.0 - look.lamp_diffuse_share) * cos_i * std::pow(look.lamp_reference_m / dist, 2));
+}
+
 // Board rotation whose printed face (-z) looks along `front` (a unit vector toward the viewers), rows downward.
 Eigen::Matrix3d facing(const Eigen::Vector3d& front) {
   const Eigen::Vector3d x = Eigen::Vector3d::UnitY().cross(front).normalized();
@@ -153,128 +163,160 @@ bool BoardRenderer::fully_visible(const algo::BoardSpec& board, const Eigen::Iso
   return true;
 }
 
+// One view of the board for shade(): its plane in camera coordinates, the image box the plate can cover, the
+// plate's and the dots' extent.
+struct BoardRenderer::View {
+  Eigen::Vector3d n_cam;  // the board's normal, camera frame
+  Eigen::Matrix3d h;      // normalised image point (x, y, 1) -> board (u, v, 1), up to scale
+  int x0 = 0, x1 = 0, y0 = 0, y1 = 0;
+  Eigen::Vector2d lo, hi;  // the plate, board frame
+  double dot_r = 0.0;
+
+  // False when the plate is out of sight: printed face away from the camera, or outside the image.
+  [[nodiscard]] bool set(const algo::BoardSpec& board, const Eigen::Isometry3d& to_cam, const algo::Intrinsics& k,
+                         int width, int height) {
+    const Eigen::Matrix3d& r = to_cam.linear();
+    const Eigen::Vector3d& t = to_cam.translation();
+    n_cam = r.col(2);
+    const double plane_d = n_cam.dot(t);  // board plane in camera coordinates: n . p = plane_d
+    if (plane_d <= 0.0) return false;     // printed face away from the camera: nothing of it is seen
+    // Normalised image point (x, y, 1) ~ [r1 r2 t] (u, v, 1): a homography, inverted once per view.
+    Eigen::Matrix3d m;
+    m.col(0) = r.col(0);
+    m.col(1) = r.col(1);
+    m.col(2) = t;
+    h = m.inverse();
+    lo = board.plate_min_m();
+    hi = board.plate_max_m();
+    dot_r = 0.5 * board.dot_diameter_mm * 1e-3;
+    return bound_plate(board, to_cam, k, width, height);
+  }
+
+  // Image region of the plate (bounded through the distortion by sampling its outline). False when it is empty.
+  [[nodiscard]] bool bound_plate(const algo::BoardSpec& board, const Eigen::Isometry3d& to_cam,
+                                 const algo::Intrinsics& k, int width, int height) {
+    double x_lo = width, x_hi = -1.0, y_lo = height, y_hi = -1.0;
+    bool whole_image = false;
+    for (const Eigen::Vector2d& uv : plate_outline(board)) {
+      const Eigen::Vector3d p = to_cam * Eigen::Vector3d(uv.x(), uv.y(), 0.0);
+      if (p.z() <= 0.0) {
+        whole_image = true;
+        break;
+      }
+      const Eigen::Vector2d px = algo::project(k, p);
+      x_lo = std::min(x_lo, px.x());
+      x_hi = std::max(x_hi, px.x());
+      y_lo = std::min(y_lo, px.y());
+      y_hi = std::max(y_hi, px.y());
+    }
+    x0 = 0;
+    x1 = width - 1;
+    y0 = 0;
+    y1 = height - 1;
+    if (whole_image) return true;
+    x0 = std::max(0, static_cast<int>(std::floor(x_lo - kBboxMarginPx)));
+    x1 = std::min(width - 1, static_cast<int>(std::ceil(x_hi + kBboxMarginPx)));
+    y0 = std::max(0, static_cast<int>(std::floor(y_lo - kBboxMarginPx)));
+    y1 = std::min(height - 1, static_cast<int>(std::ceil(y_hi + kBboxMarginPx)));
+    return x0 <= x1 && y0 <= y1;
+  }
+
+  // Where the ray of a normalised image point meets the board (u, v); false when it never does.
+  bool to_board(const Eigen::Vector2d& ray, Eigen::Vector2d& uv) const {
+    if (n_cam.dot(Eigen::Vector3d(ray.x(), ray.y(), 1.0)) <= 0.0) return false;  // the ray never meets the plane
+    const Eigen::Vector3d q = h * Eigen::Vector3d(ray.x(), ray.y(), 1.0);
+    uv = q.head<2>() / q.z();
+    return true;
+  }
+};
+
 void BoardRenderer::shade(const algo::BoardSpec& board, const Eigen::Isometry3d& board_to_cell, bool lamp,
                           double exposure_us) {
   const double backdrop = lamp ? look_.backdrop_dn : 0.0;
   light_.create(height_, width_, CV_32F);
   light_.setTo(backdrop);
-  const Eigen::Isometry3d to_cam = cell_to_camera(rig_) * board_to_cell;
-  const Eigen::Matrix3d& r = to_cam.linear();
-  const Eigen::Vector3d& t = to_cam.translation();
-  const Eigen::Vector3d n_cam = r.col(2);
-  const double plane_d = n_cam.dot(t);  // board plane in camera coordinates: n . p = plane_d
-  if (plane_d <= 0.0) return;           // printed face away from the camera: nothing of it is seen
+  View view;
+  if (!view.set(board, cell_to_camera(rig_) * board_to_cell, rig_.params.camera.intrinsics, width_, height_)) return;
+  map_corners_to_board(view);
 
-  // Normalised image point (x, y, 1) ~ [r1 r2 t] (u, v, 1): a homography, inverted once per view.
-  Eigen::Matrix3d m;
-  m.col(0) = r.col(0);
-  m.col(1) = r.col(1);
-  m.col(2) = t;
-  const Eigen::Matrix3d h = m.inverse();
-  auto to_board = [&](const Eigen::Vector2d& ray, Eigen::Vector2d& uv) {
-    if (n_cam.dot(Eigen::Vector3d(ray.x(), ray.y(), 1.0)) <= 0.0) return false;  // the ray never meets the plane
-    const Eigen::Vector3d q = h * Eigen::Vector3d(ray.x(), ray.y(), 1.0);
-    uv = q.head<2>() / q.z();
-    return true;
-  };
-
-  // Image region of the plate (bounded through the distortion by sampling its outline).
-  const auto& k = rig_.params.camera.intrinsics;
-  double x_lo = width_, x_hi = -1.0, y_lo = height_, y_hi = -1.0;
-  bool whole_image = false;
-  for (const Eigen::Vector2d& uv : plate_outline(board)) {
-    const Eigen::Vector3d p = to_cam * Eigen::Vector3d(uv.x(), uv.y(), 0.0);
-    if (p.z() <= 0.0) {
-      whole_image = true;
-      break;
-    }
-    const Eigen::Vector2d px = algo::project(k, p);
-    x_lo = std::min(x_lo, px.x());
-    x_hi = std::max(x_hi, px.x());
-    y_lo = std::min(y_lo, px.y());
-    y_hi = std::max(y_hi, px.y());
-  }
-  int x0 = 0, x1 = width_ - 1, y0 = 0, y1 = height_ - 1;
-  if (!whole_image) {
-    x0 = std::max(0, static_cast<int>(std::floor(x_lo - kBboxMarginPx)));
-    x1 = std::min(width_ - 1, static_cast<int>(std::ceil(x_hi + kBboxMarginPx)));
-    y0 = std::max(0, static_cast<int>(std::floor(y_lo - kBboxMarginPx)));
-    y1 = std::min(height_ - 1, static_cast<int>(std::ceil(y_hi + kBboxMarginPx)));
-    if (x0 > x1 || y0 > y1) return;
-  }
-  const int stride = width_ + 1;
-  for (int j = y0; j <= y1 + 1; ++j) {
-    for (int i = x0; i <= x1 + 1; ++i) {
-      const auto idx = static_cast<std::size_t>(j) * stride + i;
-      corner_valid_[idx] = to_board(corner_rays_[idx], corner_uv_[idx]) ? 1 : 0;
-    }
-  }
-
-  const Eigen::Vector2d lo = board.plate_min_m(), hi = board.plate_max_m();
-  const double dot_r = 0.5 * board.dot_diameter_mm * 1e-3;
   const Eigen::Vector3d front_cell = -board_to_cell.linear().col(2);
   const Eigen::Vector3d lamp_pos = rig_.camera_centre_world + look_.lamp_offset_m;
   const double cabin_scale = exposure_us / rig_.params.sensor.reference_exposure_us;
-  const double cabin_irradiance = rig_.params.sensor.ambient_light_dn * cabin_scale *
-                                  (kCabinAmbientFloor + (1.0 - kCabinAmbientFloor) * std::max(0.0, front_cell.dot(kCabinLightDir)));
-
-  for (int y = y0; y <= y1; ++y) {
+  const double cabin_irradiance =
+      rig_.params.sensor.ambient_light_dn * cabin_scale *
+      (kCabinAmbientFloor + (1.0 - kCabinAmbientFloor) * std::max(0.0, front_cell.dot(kCabinLightDir)));
+  const int stride = width_ + 1;
+  for (int y = view.y0; y <= view.y1; ++y) {
     auto* out = light_.ptr<float>(y);
-    for (int x = x0; x <= x1; ++x) {
+    for (int x = view.x0; x <= view.x1; ++x) {
       const std::size_t c00 = static_cast<std::size_t>(y) * stride + x, c10 = c00 + 1, c01 = c00 + stride, c11 = c01 + 1;
       if (!(corner_valid_[c00] && corner_valid_[c10] && corner_valid_[c01] && corner_valid_[c11])) continue;
       const Eigen::Vector2d centre = 0.25 * (corner_uv_[c00] + corner_uv_[c10] + corner_uv_[c01] + corner_uv_[c11]);
-      double radius = 0.0;
-      for (std::size_t c : {c00, c10, c01, c11}) radius = std::max(radius, (corner_uv_[c] - centre).norm());
-      radius *= 1.01;  // the pixel's footprint is (very nearly) the quad of its corners, inside this circle
-
-      // Share of the pixel on backdrop, plate and dot: exact when no edge is near, else 4 x 4 samples.
-      double share[3] = {0.0, 0.0, 0.0};
-      const double inside = std::min({centre.x() - lo.x(), hi.x() - centre.x(), centre.y() - lo.y(), hi.y() - centre.y()});
-      bool pure = false;
-      if (inside >= radius) {
-        const double d = board.distance_to_nearest_dot_m(centre);
-        if (d >= dot_r + radius) {
-          share[kPlate] = 1.0;
-          pure = true;
-        } else if (d <= dot_r - radius) {
-          share[kDot] = 1.0;
-          pure = true;
-        }
-      } else if (inside < -radius) {
-        share[kBackdrop] = 1.0;
-        pure = true;
-      }
-      if (!pure) {
-        const Eigen::Vector2d& r00 = corner_rays_[c00];
-        const Eigen::Vector2d& r10 = corner_rays_[c10];
-        const Eigen::Vector2d& r01 = corner_rays_[c01];
-        const Eigen::Vector2d& r11 = corner_rays_[c11];
-        constexpr double kWeight = 1.0 / (kSuper * kSuper);
-        for (int sy = 0; sy < kSuper; ++sy) {
-          const double b = (sy + 0.5) / kSuper;
-          for (int sx = 0; sx < kSuper; ++sx) {
-            const double a = (sx + 0.5) / kSuper;
-            const Eigen::Vector2d ray = (1 - a) * (1 - b) * r00 + a * (1 - b) * r10 + (1 - a) * b * r01 + a * b * r11;
-            Eigen::Vector2d uv;
-            const Surface s = to_board(ray, uv) ? surface_at(board, lo, hi, dot_r, uv) : kBackdrop;
-            share[s] += kWeight;
-          }
-        }
-      }
+      const std::array<double, 3> share = pixel_shares(board, view, c00, centre);
       double irradiance = cabin_irradiance;
       if (lamp) {
         const Eigen::Vector3d p = board_to_cell * Eigen::Vector3d(centre.x(), centre.y(), 0.0);
-        const Eigen::Vector3d to_lamp = lamp_pos - p;
-        const double dist = to_lamp.norm();
-        const double cos_i = std::max(0.0, front_cell.dot(to_lamp) / dist);
-        irradiance = look_.lamp_dn * (look_.lamp_diffuse_share + (1.0 - look_.lamp_diffuse_share) * cos_i *
-                                                                     std::pow(look_.lamp_reference_m / dist, 2));
+        irradiance = lamp_irradiance(look_, lamp_pos, front_cell, p);
       }
-      out[x] = static_cast<float>(share[kBackdrop] * backdrop +
-                                  irradiance * (share[kPlate] * look_.plate_reflectance + share[kDot] * look_.dot_reflectance));
+      out[x] = static_cast<float>(share[kBackdrop] * backdrop + irradiance * (share[kPlate] * look_.plate_reflectance +
+                                                                              share[kDot] * look_.dot_reflectance));
     }
   }
+}
+
+void BoardRenderer::map_corners_to_board(const View& view) {
+  const int stride = width_ + 1;
+  for (int j = view.y0; j <= view.y1 + 1; ++j) {
+    for (int i = view.x0; i <= view.x1 + 1; ++i) {
+      const auto idx = static_cast<std::size_t>(j) * stride + i;
+      corner_valid_[idx] = view.to_board(corner_rays_[idx], corner_uv_[idx]) ? 1 : 0;
+    }
+  }
+}
+
+std::array<double, 3> BoardRenderer::pixel_shares(const algo::BoardSpec& board, const View& view, std::size_t c00,
+                                                  const Eigen::Vector2d& centre) const {
+  const std::size_t stride = static_cast<std::size_t>(width_) + 1;
+  const std::size_t c10 = c00 + 1, c01 = c00 + stride, c11 = c01 + 1;
+  double radius = 0.0;
+  for (std::size_t c : {c00, c10, c01, c11}) radius = std::max(radius, (corner_uv_[c] - centre).norm());
+  radius *= 1.01;  // the pixel's footprint is (very nearly) the quad of its corners, inside this circle
+
+  // Exact when no edge is near, else 4 x 4 samples.
+  std::array<double, 3> share = {0.0, 0.0, 0.0};
+  const Eigen::Vector2d& lo = view.lo;
+  const Eigen::Vector2d& hi = view.hi;
+  const double inside = std::min({centre.x() - lo.x(), hi.x() - centre.x(), centre.y() - lo.y(), hi.y() - centre.y()});
+  if (inside >= radius) {
+    const double d = board.distance_to_nearest_dot_m(centre);
+    if (d >= view.dot_r + radius) {
+      share[kPlate] = 1.0;
+      return share;
+    }
+    if (d <= view.dot_r - radius) {
+      share[kDot] = 1.0;
+      return share;
+    }
+  } else if (inside < -radius) {
+    share[kBackdrop] = 1.0;
+    return share;
+  }
+  const Eigen::Vector2d& r00 = corner_rays_[c00];
+  const Eigen::Vector2d& r10 = corner_rays_[c10];
+  const Eigen::Vector2d& r01 = corner_rays_[c01];
+  const Eigen::Vector2d& r11 = corner_rays_[c11];
+  constexpr double kWeight = 1.0 / (kSuper * kSuper);
+  for (int sy = 0; sy < kSuper; ++sy) {
+    const double b = (sy + 0.5) / kSuper;
+    for (int sx = 0; sx < kSuper; ++sx) {
+      const double a = (sx + 0.5) / kSuper;
+      const Eigen::Vector2d ray = (1 - a) * (1 - b) * r00 + a * (1 - b) * r10 + (1 - a) * b * r01 + a * b * r11;
+      Eigen::Vector2d uv;
+      const Surface s = view.to_board(ray, uv) ? surface_at(board, lo, hi, view.dot_r, uv) : kBackdrop;
+      share[s] += kWeight;
+    }
+  }
+  return share;
 }
 
 void BoardRenderer::add_noise_and_quantise(const cv::Mat& background, std::uint64_t seed, cv::Mat& image) {

@@ -3,6 +3,8 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
+#include <array>
+#include <cstddef>
 #include <cstdint>
 #include <opencv2/core.hpp>
 #include <vector>
@@ -48,6 +50,12 @@ class BoardRenderer {
  private:
   // Light reflected by the board (and backdrop) per pixel in DN, before blur and noise.
   void shade(const algo::BoardSpec& board, const Eigen::Isometry3d& board_to_cell, bool lamp, double exposure_us);
+  // shade()'s steps (board.cpp): one view's pixel corners on the board, and a pixel's shares of backdrop, plate and
+  // dot (exact away from edges, else 4 x 4 samples).
+  struct View;
+  void map_corners_to_board(const View& view);
+  [[nodiscard]] std::array<double, 3> pixel_shares(const algo::BoardSpec& board, const View& view, std::size_t c00,
+                                                   const Eigen::Vector2d& centre) const;
   void add_noise_and_quantise(const cv::Mat& background, std::uint64_t seed, cv::Mat& image);
 
   Rig rig_;
