@@ -8,10 +8,10 @@
 #include <ctime>
 #include <filesystem>
 
-#include "app/atomic_file.hpp"
-#include "app/local_time.hpp"
 #include "app/yaml_reader.hpp"
+#include "base/atomic_file.hpp"
 #include "base/file_read.hpp"
+#include "base/local_time.hpp"
 
 namespace cellsight::app {
 namespace {

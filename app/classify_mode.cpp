@@ -1,21 +1,20 @@
 // `cellsight classify` (one decision per scan) and `cellsight eval` (labelled scans -> accuracy, confusion, pose).
 #include "app/classify_mode.hpp"
 
+#include <Eigen/Geometry>
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <map>
 #include <numbers>
 #include <optional>
-#include <Eigen/Geometry>
-#include <functional>
 #include <sstream>
 
 #include "algo/ply.hpp"
-#include "app/atomic_file.hpp"
 #include "app/calibration_file.hpp"
 #include "app/cli.hpp"
 #include "app/input_file.hpp"
@@ -24,9 +23,10 @@
 #include "app/perturb_mode.hpp"
 #include "app/recognition.hpp"
 #include "app/scan_mode.hpp"
-#include "drivers/sim/sim_cell.hpp"
 #include "app/sim_mode.hpp"
 #include "app/template_file.hpp"
+#include "base/atomic_file.hpp"
+#include "drivers/sim/sim_cell.hpp"
 
 namespace cellsight::app {
 namespace {

@@ -12,11 +12,11 @@
 #include <string>
 
 #include "algo/features.hpp"
-#include "app/atomic_file.hpp"
-#include "app/local_time.hpp"
 #include "app/yaml_reader.hpp"
+#include "base/atomic_file.hpp"
 #include "base/crc32.hpp"
 #include "base/file_read.hpp"
+#include "base/local_time.hpp"
 #include "drivers/log.hpp"
 
 namespace cellsight::app {

@@ -4,11 +4,11 @@
 #include <cstdio>
 
 #include "algo/ply.hpp"
-#include "app/atomic_file.hpp"
 #include "app/calibration_file.hpp"
 #include "app/cli.hpp"
 #include "app/input_file.hpp"
 #include "app/train_mode.hpp"
+#include "base/atomic_file.hpp"
 
 namespace cellsight::app {
 namespace {

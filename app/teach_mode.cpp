@@ -4,25 +4,25 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
-#include <limits>
-#include <optional>
 #include <cstdio>
 #include <filesystem>
+#include <limits>
+#include <optional>
 
 #include "algo/part_isolation.hpp"
 #include "algo/ply.hpp"
-#include "app/atomic_file.hpp"
 #include "app/calibration_file.hpp"
 #include "app/cli.hpp"
 #include "app/input_file.hpp"
-#include "app/local_time.hpp"
 #include "app/mode_args.hpp"
 #include "app/perturb_mode.hpp"
 #include "app/recognition.hpp"
 #include "app/scan_mode.hpp"
 #include "app/template_file.hpp"
 #include "app/train_mode.hpp"
+#include "base/atomic_file.hpp"
 #include "base/crc32.hpp"
+#include "base/local_time.hpp"
 #include "drivers/log.hpp"
 
 namespace cellsight::app {

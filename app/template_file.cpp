@@ -23,7 +23,7 @@
 #include <type_traits>
 #include <utility>
 
-#include "app/atomic_file.hpp"
+#include "base/atomic_file.hpp"
 #include "base/crc32.hpp"
 
 namespace cellsight::app {

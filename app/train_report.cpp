@@ -14,8 +14,8 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "app/atomic_file.hpp"
-#include "app/local_time.hpp"
+#include "base/atomic_file.hpp"
+#include "base/local_time.hpp"
 
 namespace cellsight::app {
 namespace {
