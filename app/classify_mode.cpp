@@ -14,19 +14,19 @@
 #include <optional>
 #include <sstream>
 
-#include "algo/ply.hpp"
-#include "app/calibration_file.hpp"
 #include "app/cli.hpp"
-#include "app/input_file.hpp"
 #include "app/mode_args.hpp"
 #include "app/model_db.hpp"
 #include "app/perturb_mode.hpp"
 #include "app/recognition.hpp"
 #include "app/scan_mode.hpp"
 #include "app/sim_mode.hpp"
-#include "app/template_file.hpp"
 #include "base/atomic_file.hpp"
 #include "drivers/sim/sim_cell.hpp"
+#include "formats/calibration_file.hpp"
+#include "formats/input_file.hpp"
+#include "formats/ply.hpp"
+#include "formats/template_file.hpp"
 
 namespace cellsight::app {
 namespace {

@@ -6,7 +6,7 @@
 
 #include <filesystem>
 
-#include "app/yaml_reader.hpp"
+#include "formats/yaml_reader.hpp"
 
 namespace cellsight::app {
 namespace {
@@ -329,6 +329,14 @@ Expected<Config> find_and_load_config(const std::string& explicit_path) {
   std::string where;
   for (const auto& c : candidates) where += (where.empty() ? "" : ", ") + c;
   return make_error("no configuration found (looked at " + where + "); pass --config FILE or set CELLSIGHT_CONFIG");
+}
+
+std::string default_calibration_path(const Config& config) {
+  std::error_code ec;
+  if (!config.source.empty() && config.source.front() != '(' && fs::is_regular_file(config.source, ec)) {
+    return (fs::path(config.source).parent_path() / "calibration.yaml").lexically_normal().string();
+  }
+  return "config/calibration.yaml";
 }
 
 }  // namespace cellsight::app

@@ -12,12 +12,12 @@
 #include <string>
 
 #include "algo/features.hpp"
-#include "app/yaml_reader.hpp"
 #include "base/atomic_file.hpp"
 #include "base/crc32.hpp"
 #include "base/file_read.hpp"
 #include "base/local_time.hpp"
 #include "drivers/log.hpp"
+#include "formats/yaml_reader.hpp"
 
 namespace cellsight::app {
 namespace {

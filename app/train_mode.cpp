@@ -9,9 +9,7 @@
 #include <set>
 
 #include "algo/augment.hpp"
-#include "algo/ply.hpp"
 #include "algo/splitmix.hpp"
-#include "app/calibration_file.hpp"
 #include "app/cli.hpp"
 #include "app/mode_args.hpp"
 #include "app/recognition.hpp"
@@ -23,6 +21,8 @@
 #include "base/local_time.hpp"
 #include "base/parallel_for.hpp"
 #include "drivers/log.hpp"
+#include "formats/calibration_file.hpp"
+#include "formats/ply.hpp"
 
 namespace cellsight::app {
 namespace {

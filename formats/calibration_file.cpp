@@ -1,5 +1,5 @@
 // calibration.yaml: validating reader, writer with checksum, dated backup before every save.
-#include "app/calibration_file.hpp"
+#include "formats/calibration_file.hpp"
 
 #include <algorithm>
 #include <cinttypes>
@@ -8,10 +8,10 @@
 #include <ctime>
 #include <filesystem>
 
-#include "app/yaml_reader.hpp"
 #include "base/atomic_file.hpp"
 #include "base/file_read.hpp"
 #include "base/local_time.hpp"
+#include "formats/yaml_reader.hpp"
 
 namespace cellsight::app {
 namespace {
@@ -283,14 +283,6 @@ Expected<std::string> save_calibration(const std::string& path, const Calibratio
   }
   if (auto ok = write_file_atomic(path, calibration_yaml(record)); !ok) return ok.error();
   return backup;
-}
-
-std::string default_calibration_path(const Config& config) {
-  std::error_code ec;
-  if (!config.source.empty() && config.source.front() != '(' && fs::is_regular_file(config.source, ec)) {
-    return (fs::path(config.source).parent_path() / "calibration.yaml").lexically_normal().string();
-  }
-  return "config/calibration.yaml";
 }
 
 }  // namespace cellsight::app

@@ -1,5 +1,5 @@
 // Template files: build from a scan, streaming atomic write, memory-mapped checked open.
-#include "app/template_file.hpp"
+#include "formats/template_file.hpp"
 
 #include <fcntl.h>
 #include <sys/mman.h>
@@ -542,7 +542,7 @@ Status write_template(const std::string& path, const TemplateModel& model, const
   h.body_crc32 = crc;
   h.header_crc32 = header_crc(h);
 
-  // Streaming atomic save: temp beside the target, fsync, rename, fsync of the folder (as app/atomic_file).
+  // Streaming atomic save: temp beside the target, fsync, rename, fsync of the folder (as base/atomic_file).
   std::string temp = atomic_temp_template(path);
   UniqueFd fd(::mkstemp(temp.data()));
   if (fd.get() < 0) return fail("cannot create a temporary file beside it: " + errno_text(errno));

@@ -1,7 +1,7 @@
 // PLY reader and writer. Hand-written because no Debian 12 C++ library we already depend on reads PLY
 // (OpenCV's viz module is not in Debian's libopencv-dev core set, PCL would be a large new dependency), and the
 // format subset we need is small; every field is bounds-checked because scans come from outside.
-#include "algo/ply.hpp"
+#include "formats/ply.hpp"
 
 #include <algorithm>
 #include <charconv>
@@ -109,7 +109,7 @@ struct ParsedHeader {
 Expected<ParsedHeader> parse_header(std::string_view bytes, const PlyLimits& limits) {
   if (bytes.substr(0, 4) != "ply\n" && bytes.substr(0, 5) != "ply\r\n") return fail("not a PLY file (no 'ply' magic)");
   // Only the first max_header_bytes may hold the header, the line break after end_header included: a file that is
-  // no scan is refused from its first bytes, and a file is judged alike from those bytes alone (app/input_file).
+  // no scan is refused from its first bytes, and a file is judged alike from those bytes alone (formats/input_file).
   const std::string_view window = bytes.substr(0, limits.max_header_bytes);
   const bool window_full = bytes.size() >= limits.max_header_bytes;
   const std::size_t header_end = window.find("end_header");
