@@ -9,8 +9,8 @@
 #include <vector>
 
 #include "algo/svm.hpp"
-#include "app/model_db.hpp"
 #include "base/file_read.hpp"
+#include "formats/manifest.hpp"
 #include "formats/ply.hpp"
 #include "formats/template_file.hpp"
 #include "tests/fuzz/seed_grid.hpp"
