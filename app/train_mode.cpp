@@ -14,6 +14,7 @@
 #include "app/mode_args.hpp"
 #include "app/recognition.hpp"
 #include "app/scan_mode.hpp"
+#include "app/train_progress.hpp"
 #include "app/train_report.hpp"
 #include "base/atomic_file.hpp"
 #include "base/crc32.hpp"
