@@ -106,25 +106,135 @@ bool safe_relative(const std::string& p) {
 
 }  // namespace
 
-Expected<Manifest> parse_manifest(const std::string& path, const std::string& bytes) {
+namespace {
+
+// The checksum line: present, readable and matching everything before it.
+Status check_manifest_checksum(const std::string& path, const std::string& bytes) {
   const std::size_t at = formats::checksum_line_start(bytes, kChecksumKey);
   if (at == std::string::npos) {
     return make_error(path + ": no " + kChecksumKey + " line: the manifest is truncated or not cellsight's");
   }
+  const std::string line = bytes.substr(at);
+  std::uint32_t stored = 0;
+  const std::size_t q1 = line.find('"');
+  const std::size_t q2 = q1 == std::string::npos ? q1 : line.find('"', q1 + 1);
+  if (q2 == std::string::npos || !parse_hex32(line.substr(q1 + 1, q2 - q1 - 1), stored)) {
+    return make_error(path + ": unreadable " + kChecksumKey + " line");
+  }
+  const std::uint32_t actual = base::crc32(std::string_view(bytes).substr(0, at));
+  if (actual != stored) {
+    return make_error(path + ": checksum mismatch (stored " + hex32(stored) + ", content " + hex32(actual) +
+                      "): the manifest was changed or damaged; restore it from a backup or teach again");
+  }
+  return {};
+}
+
+void read_grid(YamlSection g, algo::GridSpec& grid) {
+  for (const char* key : {"nx", "ny", "nz", "resolution_m", "origin_m"}) g.require(key);
+  g.integer("nx", grid.nx, 1, 4096, "cells");
+  g.integer("ny", grid.ny, 1, 4096, "cells");
+  g.integer("nz", grid.nz, 1, 4096, "cells");
+  g.number("resolution_m", grid.resolution_m, 1e-5, 1.0, "m");
+  g.vec3("origin_m", grid.origin_m, -100.0, 100.0, "m");
+  g.finish();
+}
+
+void read_thresholds(YamlSection t, PartThresholds& thresholds) {
+  t.boolean("learnt", thresholds.learnt);
+  // Learnt limits are used as they stand: none may be left to a default. Limits from a version that learnt fewer
+  // of them count as not learnt, so the database says 'run cellsight train' instead of refusing to open.
+  for (const char* key : {"max_error", "max_missing_area_m2", "max_extra_area_m2", "max_uncovered", "max_outliers",
+                          "size_centre_x_m", "size_centre_y_m", "max_size_dev_m"}) {
+    if (!t.has(key)) thresholds.learnt = false;
+  }
+  t.number("max_error", thresholds.max_error, 0.0, 1.0, "");
+  t.number("max_missing_area_m2", thresholds.max_missing_area_m2, 0.0, 100.0, "m2");
+  t.number("max_extra_area_m2", thresholds.max_extra_area_m2, 0.0, 100.0, "m2");
+  t.number("max_uncovered", thresholds.max_uncovered, 0.0, 1.0, "");
+  t.number("max_outliers", thresholds.max_outliers, 0.0, 1.0, "");
+  t.number("size_centre_x_m", thresholds.size_centre_x_m, -1.0, 1.0, "m");
+  t.number("size_centre_y_m", thresholds.size_centre_y_m, -1.0, 1.0, "m");
+  t.number("max_size_dev_m", thresholds.max_size_dev_m, 0.0, 1.0, "m");
+  t.finish();
+}
+
+// One entry of `parts`; `names` and `ids` (of the entries before it) catch a name or PLC id given twice.
+PartEntry read_part(YamlSection& p, std::set<std::string>& names, std::set<int>& ids) {
+  PartEntry e;
+  for (const char* key : {"name", "id", "template", "taught_at", "thresholds", "scans"}) p.require(key);
+  p.text("name", e.name);
+  p.integer("id", e.id, 1, kMaxPartId, "");
+  p.text("template", e.template_file);
+  p.text("taught_at", e.taught_at, true);
+  p.text("template_scan", e.template_scan, true);  // optional (older databases: the first scan)
+  if (!valid_part_name(e.name)) p.error("name", "'" + e.name + "' is not a valid part name");
+  if (!names.insert(e.name).second) p.error("name", "part '" + e.name + "' appears twice");
+  if (!ids.insert(e.id).second) p.error("id", "PLC id " + std::to_string(e.id) + " appears twice");
+  if (!safe_relative(e.template_file)) p.error("template", "must be a path inside the database");
   {
-    const std::string line = bytes.substr(at);
-    std::uint32_t stored = 0;
-    const std::size_t q1 = line.find('"');
-    const std::size_t q2 = q1 == std::string::npos ? q1 : line.find('"', q1 + 1);
-    if (q2 == std::string::npos || !parse_hex32(line.substr(q1 + 1, q2 - q1 - 1), stored)) {
-      return make_error(path + ": unreadable " + kChecksumKey + " line");
-    }
-    const std::uint32_t actual = base::crc32(std::string_view(bytes).substr(0, at));
-    if (actual != stored) {
-      return make_error(path + ": checksum mismatch (stored " + hex32(stored) + ", content " + hex32(actual) +
-                        "): the manifest was changed or damaged; restore it from a backup or teach again");
+    std::string list;
+    p.text("confusable", list, true);  // optional: a database trained before look-alikes were learnt has none
+    std::stringstream in(list);
+    for (std::string name; std::getline(in, name, ',');) {
+      if (!valid_part_name(name)) {
+        p.error("confusable", "'" + name + "' is not a valid part name");
+      } else {
+        e.confusable.push_back(name);
+      }
     }
   }
+  std::string flagged;
+  p.text("flagged", flagged, true);  // optional: none flagged, or trained before scans were flagged
+  read_thresholds(p.section("thresholds"), e.thresholds);
+  for (YamlSection s : p.list("scans")) {
+    ScanEntry se;
+    s.require("file");
+    s.require("crc32");
+    s.text("file", se.file);
+    read_crc(s, "crc32", se.crc32);
+    s.text("source", se.source, true);
+    if (!safe_relative(se.file)) s.error("file", "must be a path inside the database");
+    s.finish();
+    e.scans.push_back(std::move(se));
+  }
+  {
+    std::stringstream in(flagged);
+    for (std::string file; std::getline(in, file, ',');) {
+      const bool known =
+          std::any_of(e.scans.begin(), e.scans.end(), [&](const ScanEntry& se) { return se.file == file; });
+      if (!known) {
+        p.error("flagged", "'" + file + "' is not one of the part's scans");
+      } else {
+        e.flagged.push_back(file);
+      }
+    }
+  }
+  return e;
+}
+
+void read_svm(YamlSection s, SvmEntry& svm) {
+  s.boolean("present", svm.present);
+  if (svm.present) {
+    for (const char* key : {"file", "crc32", "trained_at", "parts_fingerprint"}) s.require(key);
+  }
+  s.text("file", svm.file, true);
+  read_crc(s, "crc32", svm.crc32);
+  s.text("trained_at", svm.trained_at, true);
+  s.text("parts_fingerprint", svm.parts_fingerprint, true);
+  s.number("test_accuracy", svm.test_accuracy, 0.0, 1.0, "");
+  s.number("cv_accuracy", svm.cv_accuracy, 0.0, 1.0, "");
+  s.integer("train_scans", svm.train_scans, 0, 100000000, "");
+  s.integer("test_scans", svm.test_scans, 0, 100000000, "");
+  s.integer("active_features", svm.active_features, 0, algo::kFeatureCount, "");
+  s.text("hyper", svm.hyper, true);
+  if (svm.present && !safe_relative(svm.file)) s.error("file", "must be a path inside the database");
+  s.finish();
+}
+
+}  // namespace
+
+Expected<Manifest> parse_manifest(const std::string& path, const std::string& bytes) {
+  if (Status checksum = check_manifest_checksum(path, bytes); !checksum) return checksum.error();
   YAML::Node root;
   try {
     root = YAML::Load(bytes);
@@ -144,108 +254,15 @@ Expected<Manifest> parse_manifest(const std::string& path, const std::string& by
   std::int64_t feature_version = 0;
   top.integer("feature_version", feature_version, 0, 1000000, "");
   m.feature_version = static_cast<std::uint32_t>(feature_version);
-  {
-    YamlSection g = top.section("grid");
-    for (const char* key : {"nx", "ny", "nz", "resolution_m", "origin_m"}) g.require(key);
-    g.integer("nx", m.grid.nx, 1, 4096, "cells");
-    g.integer("ny", m.grid.ny, 1, 4096, "cells");
-    g.integer("nz", m.grid.nz, 1, 4096, "cells");
-    g.number("resolution_m", m.grid.resolution_m, 1e-5, 1.0, "m");
-    g.vec3("origin_m", m.grid.origin_m, -100.0, 100.0, "m");
-    g.finish();
-  }
+  read_grid(top.section("grid"), m.grid);
   std::set<std::string> names;
   std::set<int> ids;
   for (YamlSection p : top.list("parts")) {
-    PartEntry e;
-    for (const char* key : {"name", "id", "template", "taught_at", "thresholds", "scans"}) p.require(key);
-    p.text("name", e.name);
-    p.integer("id", e.id, 1, kMaxPartId, "");
-    p.text("template", e.template_file);
-    p.text("taught_at", e.taught_at, true);
-    p.text("template_scan", e.template_scan, true);  // optional (older databases: the first scan)
-    if (!valid_part_name(e.name)) p.error("name", "'" + e.name + "' is not a valid part name");
-    if (!names.insert(e.name).second) p.error("name", "part '" + e.name + "' appears twice");
-    if (!ids.insert(e.id).second) p.error("id", "PLC id " + std::to_string(e.id) + " appears twice");
-    if (!safe_relative(e.template_file)) p.error("template", "must be a path inside the database");
-    {
-      std::string list;
-      p.text("confusable", list, true);  // optional: a database trained before look-alikes were learnt has none
-      std::stringstream in(list);
-      for (std::string name; std::getline(in, name, ',');) {
-        if (!valid_part_name(name)) {
-          p.error("confusable", "'" + name + "' is not a valid part name");
-        } else {
-          e.confusable.push_back(name);
-        }
-      }
-    }
-    std::string flagged;
-    p.text("flagged", flagged, true);  // optional: none flagged, or trained before scans were flagged
-    {
-      YamlSection t = p.section("thresholds");
-      t.boolean("learnt", e.thresholds.learnt);
-      // Learnt limits are used as they stand: none may be left to a default. Limits from a version that learnt fewer
-      // of them count as not learnt, so the database says 'run cellsight train' instead of refusing to open.
-      for (const char* key : {"max_error", "max_missing_area_m2", "max_extra_area_m2", "max_uncovered", "max_outliers",
-                              "size_centre_x_m", "size_centre_y_m", "max_size_dev_m"}) {
-        if (!t.has(key)) e.thresholds.learnt = false;
-      }
-      t.number("max_error", e.thresholds.max_error, 0.0, 1.0, "");
-      t.number("max_missing_area_m2", e.thresholds.max_missing_area_m2, 0.0, 100.0, "m2");
-      t.number("max_extra_area_m2", e.thresholds.max_extra_area_m2, 0.0, 100.0, "m2");
-      t.number("max_uncovered", e.thresholds.max_uncovered, 0.0, 1.0, "");
-      t.number("max_outliers", e.thresholds.max_outliers, 0.0, 1.0, "");
-      t.number("size_centre_x_m", e.thresholds.size_centre_x_m, -1.0, 1.0, "m");
-      t.number("size_centre_y_m", e.thresholds.size_centre_y_m, -1.0, 1.0, "m");
-      t.number("max_size_dev_m", e.thresholds.max_size_dev_m, 0.0, 1.0, "m");
-      t.finish();
-    }
-    for (YamlSection s : p.list("scans")) {
-      ScanEntry se;
-      s.require("file");
-      s.require("crc32");
-      s.text("file", se.file);
-      read_crc(s, "crc32", se.crc32);
-      s.text("source", se.source, true);
-      if (!safe_relative(se.file)) s.error("file", "must be a path inside the database");
-      s.finish();
-      e.scans.push_back(std::move(se));
-    }
-    {
-      std::stringstream in(flagged);
-      for (std::string file; std::getline(in, file, ',');) {
-        const bool known =
-            std::any_of(e.scans.begin(), e.scans.end(), [&](const ScanEntry& se) { return se.file == file; });
-        if (!known) {
-          p.error("flagged", "'" + file + "' is not one of the part's scans");
-        } else {
-          e.flagged.push_back(file);
-        }
-      }
-    }
+    PartEntry e = read_part(p, names, ids);
     p.finish();
     m.parts.push_back(std::move(e));
   }
-  {
-    YamlSection s = top.section("svm");
-    s.boolean("present", m.svm.present);
-    if (m.svm.present) {
-      for (const char* key : {"file", "crc32", "trained_at", "parts_fingerprint"}) s.require(key);
-    }
-    s.text("file", m.svm.file, true);
-    read_crc(s, "crc32", m.svm.crc32);
-    s.text("trained_at", m.svm.trained_at, true);
-    s.text("parts_fingerprint", m.svm.parts_fingerprint, true);
-    s.number("test_accuracy", m.svm.test_accuracy, 0.0, 1.0, "");
-    s.number("cv_accuracy", m.svm.cv_accuracy, 0.0, 1.0, "");
-    s.integer("train_scans", m.svm.train_scans, 0, 100000000, "");
-    s.integer("test_scans", m.svm.test_scans, 0, 100000000, "");
-    s.integer("active_features", m.svm.active_features, 0, algo::kFeatureCount, "");
-    s.text("hyper", m.svm.hyper, true);
-    if (m.svm.present && !safe_relative(m.svm.file)) s.error("file", "must be a path inside the database");
-    s.finish();
-  }
+  read_svm(top.section("svm"), m.svm);
   std::string ignored;
   top.text(kChecksumKey, ignored);
   top.finish();
