@@ -1,7 +1,5 @@
-// The report of `cellsight train`: summary text, YAML and CSV, and the folder they are written into.
+// The report of `cellsight train`: its summary text and the folder the whole report is written into.
 #include "app/train_report.hpp"
-
-#include <yaml-cpp/yaml.h>
 
 #include <algorithm>
 #include <cmath>
@@ -22,7 +20,6 @@ namespace {
 namespace fs = std::filesystem;
 
 constexpr double kPercent = 100.0;
-constexpr int kReportFormatVersion = 1;
 constexpr int kWorstConfusionsShown = 5;
 constexpr double kOverfitGap = 0.03;  // CV above test by more than this: the model learned its training scans
 constexpr std::size_t kWrapColumn = 100;
@@ -49,6 +46,21 @@ std::string classifier_display_name(algo::Classifier classifier) {
       return "MLP";
   }
   return "?";
+}
+
+int active_feature_count(const algo::ClassifierReport& r) {
+  return r.features.empty() ? static_cast<int>(r.mask.count()) : static_cast<int>(r.features.size());
+}
+
+std::vector<const algo::ClassifierReport*> report_classifiers(const algo::TrainingReport& report) {
+  std::vector<const algo::ClassifierReport*> all = {&report.svm};
+  if (report.knn) all.push_back(&*report.knn);
+  if (report.mlp) all.push_back(&*report.mlp);
+  return all;
+}
+
+std::string report_file_stem(const algo::ClassifierReport& r) {
+  return std::string(algo::to_string(r.classifier));
 }
 
 namespace {
@@ -113,25 +125,10 @@ int trace(const std::vector<std::vector<int>>& confusion) {
   return s;
 }
 
-int active_count(const algo::ClassifierReport& r) {
-  return r.features.empty() ? static_cast<int>(r.mask.count()) : static_cast<int>(r.features.size());
-}
-
-std::vector<const algo::ClassifierReport*> all_classifiers(const algo::TrainingReport& report) {
-  std::vector<const algo::ClassifierReport*> all = {&report.svm};
-  if (report.knn) all.push_back(&*report.knn);
-  if (report.mlp) all.push_back(&*report.mlp);
-  return all;
-}
-
-std::string file_stem(const algo::ClassifierReport& r) {
-  return std::string(algo::to_string(r.classifier));
-}
-
 Status validate_report(const algo::TrainingReport& report) {
   const std::size_t k = report.class_names.size();
   if (k == 0) return make_error("training report: no classes");
-  for (const algo::ClassifierReport* r : all_classifiers(report)) {
+  for (const algo::ClassifierReport* r : report_classifiers(report)) {
     const std::string who = "training report (" + classifier_display_name(r->classifier) + "): ";
     if (r->confusion.size() != k) {
       return make_error(who + "the confusion matrix has " + std::to_string(r->confusion.size()) + " rows for " +
@@ -256,14 +253,13 @@ std::vector<Confusion> worst_confusions(const std::vector<std::vector<int>>& con
   return all;
 }
 
-std::string training_summary_text(const algo::TrainingReport& report, const TrainReportContext& context) {
-  if (Status ok = validate_report(report); !ok) {
-    return "cellsight training report\n\nThe report is inconsistent: " + ok.error().message + "\n";
-  }
+namespace {
+
+// Date, database, dataset and the verdict against the target accuracy.
+void append_summary_header(std::string& s, const algo::TrainingReport& report, const TrainReportContext& context) {
   const algo::ClassifierReport& svm = report.svm;
   const std::string date = context.date.empty() ? local_time_text() : context.date;
   const std::size_t k = report.class_names.size();
-  std::string s;
   s += "cellsight training report\n=========================\n";
   s += "Date:            " + date + "\n";
   s +=
@@ -292,7 +288,12 @@ std::string training_summary_text(const algo::TrainingReport& report, const Trai
                        percent_text(svm.test_accuracy).c_str(), context.target_accuracy * kPercent);
   }
   if (report.stopped) s += "WARNING: the training was stopped early (see \"Training\").\n";
+}
 
+// The production recogniser: accuracies, calibration, kernel, chosen features and recall per part.
+void append_svm_section(std::string& s, const algo::TrainingReport& report) {
+  const algo::ClassifierReport& svm = report.svm;
+  const std::size_t k = report.class_names.size();
   s += "\nSVM (the recogniser used in production)\n---------------------------------------\n";
   s += "Test accuracy (held-back scans):   " + percent_text(svm.test_accuracy);
   if (report.test_samples > 0) s += string_printf("  (%d of %d scans)", trace(svm.confusion), report.test_samples);
@@ -307,8 +308,8 @@ std::string training_summary_text(const algo::TrainingReport& report, const Trai
                          b.mean_probability, b.accuracy);
     }
   }
-  append_paragraph(s, "Kernel: ", kernel_text(report.svm_hyper, active_count(svm)));
-  s += string_printf("Chosen features (%d of %d):\n", active_count(svm), algo::kFeatureCount);
+  append_paragraph(s, "Kernel: ", kernel_text(report.svm_hyper, active_feature_count(svm)));
+  s += string_printf("Chosen features (%d of %d):\n", active_feature_count(svm), algo::kFeatureCount);
   append_wrapped(s, svm.features, "  ");
 
   const std::vector<double> recall = per_class_recall(svm.confusion);
@@ -322,8 +323,10 @@ std::string training_summary_text(const algo::TrainingReport& report, const Trai
         svm.confusion[i][i],
         std::isfinite(recall[i]) ? string_printf("%5.1f %%", recall[i] * kPercent).c_str() : "  n/a (no test scans)");
   }
+}
 
-  const std::vector<Confusion> worst = worst_confusions(svm.confusion, kWorstConfusionsShown);
+void append_worst_confusions(std::string& s, const algo::TrainingReport& report, const std::vector<Confusion>& worst) {
+  const algo::ClassifierReport& svm = report.svm;
   s += "\nWorst confusions on the test split (true part -> recognised as)\n";
   if (worst.empty()) s += "  none: every test scan was recognised as its own part.\n";
   for (const Confusion& c : worst) {
@@ -332,21 +335,28 @@ std::string training_summary_text(const algo::TrainingReport& report, const Trai
                        report.class_names[static_cast<std::size_t>(c.predicted_class)].c_str(), c.count,
                        row_sum(svm.confusion[static_cast<std::size_t>(c.true_class)]), c.share * kPercent);
   }
+}
 
+// kNN and MLP beside the SVM, when they were trained for comparison (thesis 4.2).
+void append_comparison(std::string& s, const algo::TrainingReport& report) {
   if (report.knn || report.mlp) {
     s += "\nComparison (thesis 4.2; only the SVM is used in production)\n";
     s += "  classifier  test      CV        features  time\n";
-    for (const algo::ClassifierReport* r : all_classifiers(report)) {
+    for (const algo::ClassifierReport* r : report_classifiers(report)) {
       s += string_printf("  %-10s  %-8s  %-8s  %8d  %s%s\n", classifier_display_name(r->classifier).c_str(),
-                         percent_text(r->test_accuracy).c_str(), percent_text(r->cv_accuracy).c_str(), active_count(*r),
+                         percent_text(r->test_accuracy).c_str(), percent_text(r->cv_accuracy).c_str(), active_feature_count(*r),
                          human_duration(r->seconds).c_str(), r->stopped ? "  (stopped early)" : "");
     }
     s += "  parameters chosen by cross-validation:\n";
-    for (const algo::ClassifierReport* r : all_classifiers(report)) {
+    for (const algo::ClassifierReport* r : report_classifiers(report)) {
       append_paragraph(s, "    " + classifier_display_name(r->classifier) + ": ", r->parameters);
     }
   }
+}
 
+// Time, annealing steps and whether the training was stopped early.
+void append_training_section(std::string& s, const algo::TrainingReport& report, const TrainReportContext& context) {
+  const algo::ClassifierReport& svm = report.svm;
   s += "\nTraining\n--------\n";
   s += string_printf("Time: %s in all on %d threads; the SVM annealing took %s.\n",
                      human_duration(report.seconds).c_str(), report.threads, human_duration(svm.seconds).c_str());
@@ -368,134 +378,36 @@ std::string training_summary_text(const algo::TrainingReport& report, const Trai
     stop_text += ".";
   }
   append_paragraph(s, "Stopped early: ", stop_text);
+}
 
-  append_advice(s, report, context, worst);
-
+void append_file_list(std::string& s, const algo::TrainingReport& report) {
   s += "\nFiles in this folder\n--------------------\n";
   s += "summary.txt        this text\nreport.yaml        the same figures for programs (curve, confusion, features)\n";
-  for (const algo::ClassifierReport* r : all_classifiers(report)) {
-    const std::string stem = file_stem(*r);
+  for (const algo::ClassifierReport* r : report_classifiers(report)) {
+    const std::string stem = report_file_stem(*r);
     s += string_printf(
         "confusion_%s.png  %s confusion matrix of the test split (rows: true part, columns: recognised as)\n",
         stem.c_str(), classifier_display_name(r->classifier).c_str());
     s += string_printf("annealing_%s.png  %s feature-selection curve; its numbers in annealing_%s.csv\n", stem.c_str(),
                        classifier_display_name(r->classifier).c_str(), stem.c_str());
   }
-  return s;
-}
-
-// ---- YAML and CSV -------------------------------------------------------------------------------------------------
-
-namespace {
-
-void emit_number(YAML::Emitter& out, double v) {
-  if (std::isfinite(v)) {
-    out << v;
-  } else {
-    out << YAML::Null;
-  }
-}
-
-void emit_classifier(YAML::Emitter& out, const algo::ClassifierReport& r, const std::vector<std::string>& names) {
-  out << YAML::BeginMap;
-  out << YAML::Key << "parameters" << YAML::Value << r.parameters;
-  out << YAML::Key << "test_accuracy" << YAML::Value;
-  emit_number(out, r.test_accuracy);
-  out << YAML::Key << "cv_accuracy" << YAML::Value;
-  emit_number(out, r.cv_accuracy);
-  if (r.classifier == algo::Classifier::kSvm) {
-    out << YAML::Key << "test_top2" << YAML::Value;
-    emit_number(out, r.test_top2);
-    out << YAML::Key << "test_ece" << YAML::Value;
-    emit_number(out, r.test_ece);
-    out << YAML::Key << "reliability" << YAML::Value << YAML::BeginSeq;
-    for (const algo::CalibrationBin& b : r.reliability) {
-      out << YAML::Flow
-          << std::vector<double>{b.lo, b.hi, static_cast<double>(b.scans), b.mean_probability, b.accuracy};
-    }
-    out << YAML::EndSeq;
-  }
-  out << YAML::Key << "active_features" << YAML::Value << active_count(r);
-  out << YAML::Key << "features" << YAML::Value << YAML::Flow << r.features;
-  out << YAML::Key << "evaluations" << YAML::Value << r.evaluations;
-  out << YAML::Key << "cache_hits" << YAML::Value << r.cache_hits;
-  out << YAML::Key << "seconds" << YAML::Value << r.seconds;
-  out << YAML::Key << "stopped" << YAML::Value << r.stopped;
-  const std::vector<double> recall = per_class_recall(r.confusion);
-  out << YAML::Key << "per_class_recall" << YAML::Value << YAML::BeginMap;
-  for (std::size_t i = 0; i < names.size() && i < recall.size(); ++i) {
-    out << YAML::Key << names[i] << YAML::Value;
-    emit_number(out, recall[i]);
-  }
-  out << YAML::EndMap;
-  out << YAML::Key << "confusion" << YAML::Value << YAML::BeginSeq;
-  for (const auto& row : r.confusion) out << YAML::Flow << row;
-  out << YAML::EndSeq;
-  out << YAML::Key << "curve" << YAML::Value << YAML::BeginMap;
-  out << YAML::Key << "columns" << YAML::Value << YAML::Flow
-      << std::vector<std::string>{"iteration",        "temperature",   "candidate_accuracy",
-                                  "current_accuracy", "best_accuracy", "candidate_active",
-                                  "accepted"};
-  out << YAML::Key << "rows" << YAML::Value << YAML::BeginSeq;
-  for (const algo::AnnealingStep& st : r.curve) {
-    out << YAML::Flow << YAML::BeginSeq << st.iteration << st.temperature << st.candidate_accuracy
-        << st.current_accuracy << st.best_accuracy << st.candidate_active << st.accepted << YAML::EndSeq;
-  }
-  out << YAML::EndSeq << YAML::EndMap;
-  out << YAML::EndMap;
 }
 
 }  // namespace
 
-std::string training_report_yaml(const algo::TrainingReport& report, const TrainReportContext& context) {
-  YAML::Emitter out;
-  out.SetDoublePrecision(8);
-  out << YAML::Comment(
-      "cellsight training report; accuracies are fractions (0.983 = 98.3 %); confusion rows are the true class,\n"
-      "columns the predicted class, both in the order of `classes`");
-  out << YAML::BeginMap;
-  out << YAML::Key << "format_version" << YAML::Value << kReportFormatVersion;
-  out << YAML::Key << "date" << YAML::Value << (context.date.empty() ? local_time_text() : context.date);
-  out << YAML::Key << "model_db" << YAML::Value << context.model_db_path;
-  out << YAML::Key << "dataset" << YAML::Value << context.dataset;
-  out << YAML::Key << "feature_version" << YAML::Value << context.feature_version;
-  out << YAML::Key << "feature_count" << YAML::Value << algo::kFeatureCount;
-  out << YAML::Key << "classes" << YAML::Value << YAML::Flow << report.class_names;
-  out << YAML::Key << "train_samples" << YAML::Value << report.train_samples;
-  out << YAML::Key << "test_samples" << YAML::Value << report.test_samples;
-  out << YAML::Key << "synthetic_samples" << YAML::Value << report.synthetic_samples;
-  out << YAML::Key << "search_samples" << YAML::Value << report.search_samples;
-  out << YAML::Key << "folds" << YAML::Value << report.folds;
-  out << YAML::Key << "threads" << YAML::Value << report.threads;
-  out << YAML::Key << "seconds" << YAML::Value << report.seconds;
-  out << YAML::Key << "stopped" << YAML::Value << report.stopped;
-  out << YAML::Key << "target_accuracy" << YAML::Value << context.target_accuracy;
-  const algo::SvmHyper& h = report.svm_hyper;
-  out << YAML::Key << "svm_hyper" << YAML::Value << YAML::BeginMap;
-  out << YAML::Key << "kernel" << YAML::Value << std::string(algo::to_string(h.kernel));
-  out << YAML::Key << "c" << YAML::Value << h.c;
-  out << YAML::Key << "gamma_factor" << YAML::Value << h.gamma_factor;
-  out << YAML::Key << "gamma" << YAML::Value;
-  emit_number(
-      out, active_count(report.svm) > 0 ? h.gamma(active_count(report.svm)) : std::numeric_limits<double>::quiet_NaN());
-  out << YAML::Key << "degree" << YAML::Value << h.degree;
-  out << YAML::Key << "coef0" << YAML::Value << h.coef0;
-  out << YAML::EndMap;
-  out << YAML::Key << "classifiers" << YAML::Value << YAML::BeginMap;
-  for (const algo::ClassifierReport* r : all_classifiers(report)) {
-    out << YAML::Key << file_stem(*r) << YAML::Value;
-    emit_classifier(out, *r, report.class_names);
+std::string training_summary_text(const algo::TrainingReport& report, const TrainReportContext& context) {
+  if (Status ok = validate_report(report); !ok) {
+    return "cellsight training report\n\nThe report is inconsistent: " + ok.error().message + "\n";
   }
-  out << YAML::EndMap << YAML::EndMap;
-  return std::string(out.c_str()) + "\n";
-}
-
-std::string annealing_curve_csv(const algo::ClassifierReport& report) {
-  std::string s = "iteration,temperature,candidate_accuracy,current_accuracy,best_accuracy,candidate_active,accepted\n";
-  for (const algo::AnnealingStep& st : report.curve) {
-    s += string_printf("%d,%.9g,%.9g,%.9g,%.9g,%d,%d\n", st.iteration, st.temperature, st.candidate_accuracy,
-                       st.current_accuracy, st.best_accuracy, st.candidate_active, st.accepted ? 1 : 0);
-  }
+  std::string s;
+  append_summary_header(s, report, context);
+  append_svm_section(s, report);
+  const std::vector<Confusion> worst = worst_confusions(report.svm.confusion, kWorstConfusionsShown);
+  append_worst_confusions(s, report, worst);
+  append_comparison(s, report);
+  append_training_section(s, report, context);
+  append_advice(s, report, context, worst);
+  append_file_list(s, report);
   return s;
 }
 
@@ -557,8 +469,8 @@ Expected<std::string> write_training_report(const std::string& dir, const algo::
   };
   if (Status s = put("summary.txt", training_summary_text(report, ctx)); !s) return s.error();
   if (Status s = put("report.yaml", training_report_yaml(report, ctx)); !s) return s.error();
-  for (const algo::ClassifierReport* r : all_classifiers(report)) {
-    const std::string stem = file_stem(*r);
+  for (const algo::ClassifierReport* r : report_classifiers(report)) {
+    const std::string stem = report_file_stem(*r);
     const std::string who = classifier_display_name(r->classifier);
     const std::string confusion_title =
         who + " confusion on the held-back test split - accuracy " + percent_text(r->test_accuracy);
@@ -567,7 +479,7 @@ Expected<std::string> write_training_report(const std::string& dir, const algo::
     if (!confusion) return confusion.error();
     if (Status s = put("confusion_" + stem + ".png", *confusion); !s) return s.error();
     const std::string curve_title = who + " feature selection by simulated annealing - best CV " +
-                                    percent_text(r->cv_accuracy) + string_printf(" with %d features", active_count(*r));
+                                    percent_text(r->cv_accuracy) + string_printf(" with %d features", active_feature_count(*r));
     auto curve = encode_png(render_annealing_image(*r, curve_title), "annealing_" + stem + ".png");
     if (!curve) return curve.error();
     if (Status s = put("annealing_" + stem + ".png", *curve); !s) return s.error();

@@ -62,5 +62,11 @@ struct Confusion {
 
 // "SVM", "kNN", "MLP": how the report and the progress line name a classifier.
 [[nodiscard]] std::string classifier_display_name(algo::Classifier classifier);
+// The classifiers of a report: the SVM, then kNN and MLP when they were trained for comparison.
+[[nodiscard]] std::vector<const algo::ClassifierReport*> report_classifiers(const algo::TrainingReport& report);
+// How many features the classifier uses.
+[[nodiscard]] int active_feature_count(const algo::ClassifierReport& r);
+// The stem of its files in the report folder: "svm", "knn", "mlp".
+[[nodiscard]] std::string report_file_stem(const algo::ClassifierReport& r);
 
 }  // namespace cellsight::app
