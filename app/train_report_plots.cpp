@@ -270,20 +270,29 @@ void draw_legend(cv::Mat& image, const std::vector<LegendEntry>& entries, int x,
 
 }  // namespace
 
-cv::Mat render_annealing_image(const algo::ClassifierReport& report, const std::string& title,
-                               AnnealingPlotLayout* layout) {
-  constexpr int kWidth = 1000, kHeight = 720, kLeft = 80, kRight = 80;
-  constexpr int kTopY = 62, kTopH = 380, kBottomY = 506, kBottomH = 150;
-  constexpr int kTargetTicks = 8;
-  cv::Mat image(kHeight, kWidth, CV_8UC3, kWhite);
-  put_text(image, title, 10, 22, kTitleScale, kBlack);
-  const auto& curve = report.curve;
+namespace {
 
+// The annealing image: size, margins and the two panels' rows (pixels).
+constexpr int kWidth = 1000, kHeight = 720, kLeft = 80, kRight = 80;
+constexpr int kTopY = 62, kTopH = 380, kBottomY = 506, kBottomH = 150;
+
+// The axes of both panels and their tick steps, from the curve.
+struct AnnealingScales {
   AnnealingPlotLayout geo;
+  std::vector<double> x_ticks;
+  double y_step = 1.0;                      // accuracy ticks, %
+  double decade_lo = 0.0, decade_hi = 1.0;  // temperature axis, log10
+  double features_step = 1.0;
+};
+
+AnnealingScales annealing_scales(const std::vector<algo::AnnealingStep>& curve) {
+  constexpr int kTargetTicks = 8;
+  AnnealingScales scales;
+  AnnealingPlotLayout& geo = scales.geo;
   // x: iterations, from 0 to the last step (at least 1 so a one-point curve has an axis).
   const double last = curve.empty() ? 1.0 : std::max(1.0, static_cast<double>(curve.back().iteration));
   const double x_step = nice_step(last, kTargetTicks);
-  const std::vector<double> x_ticks = ticks_between(0.0, last, x_step);
+  scales.x_ticks = ticks_between(0.0, last, x_step);
 
   // Accuracy panel in percent: from a round value below the lowest point to 100.
   double lo = kPercent;
@@ -292,6 +301,7 @@ cv::Mat render_annealing_image(const algo::ClassifierReport& report, const std::
   }
   lo = std::clamp(lo, 0.0, kPercent - 1.0);
   const double y_step = nice_step(kPercent - lo, 5);
+  scales.y_step = y_step;
   double y_min = std::floor(lo / y_step) * y_step;
   if (lo - y_min < 0.02 * (kPercent - y_min)) y_min -= y_step;
   y_min = std::max(0.0, y_min);
@@ -315,15 +325,22 @@ cv::Mat render_annealing_image(const algo::ClassifierReport& report, const std::
   if (!(t_hi > 0.0)) t_lo = t_hi = 1.0;
   double d_lo = std::floor(std::log10(t_lo)), d_hi = std::ceil(std::log10(t_hi));
   if (d_hi <= d_lo) d_hi = d_lo + 1.0;
+  scales.decade_lo = d_lo;
+  scales.decade_hi = d_hi;
   const cv::Rect bottom(kLeft, kBottomY, kWidth - kLeft - kRight, kBottomH);
   geo.temperature = {bottom, 0.0, last, std::pow(10.0, d_lo), std::pow(10.0, d_hi), true};
   const double f_step = nice_step(max_active, 4);
+  scales.features_step = f_step;
   geo.features = {bottom, 0.0, last, 0.0, std::ceil((max_active + 1) / f_step) * f_step, false};  // headroom
+  return scales;
+}
 
+// CV accuracy of every candidate with the current and best lines.
+void draw_accuracy_panel(cv::Mat& image, const std::vector<algo::AnnealingStep>& curve, const AnnealingScales& scales) {
   // Accuracy panel.
-  const PlotAxes& acc = geo.accuracy;
-  draw_x_axis(image, acc, x_ticks, true);
-  draw_y_ticks(image, acc, ticks_between(acc.y_min, kPercent, y_step), false, true, "");
+  const PlotAxes& acc = scales.geo.accuracy;
+  draw_x_axis(image, acc, scales.x_ticks, true);
+  draw_y_ticks(image, acc, ticks_between(acc.y_min, kPercent, scales.y_step), false, true, "");
   put_text_vertical(image, "CV accuracy [%]", 18, acc.area.y + acc.area.height / 2 + 60, kTextScale, kBlack);
   draw_legend(image,
               {{"candidate (accepted)", kAcceptedPointColor, LegendEntry::Mark::kDot},
@@ -331,12 +348,10 @@ cv::Mat render_annealing_image(const algo::ClassifierReport& report, const std::
                {"current", kCurrentLineColor, LegendEntry::Mark::kLine},
                {"best so far", kBestLineColor, LegendEntry::Mark::kLine}},
               kLeft, kTopY - 14);
-  std::vector<cv::Point2d> current, best, temperature, active;
+  std::vector<cv::Point2d> current, best;
   for (const algo::AnnealingStep& s : curve) {
     current.emplace_back(s.iteration, s.current_accuracy * kPercent);
     best.emplace_back(s.iteration, s.best_accuracy * kPercent);
-    temperature.emplace_back(s.iteration, s.temperature);
-    active.emplace_back(s.iteration, s.candidate_active);
   }
   // Current line under the candidates (an accepted candidate is the new current), best line on top.
   draw_steps(image, acc, current, kCurrentLineColor, 1);
@@ -354,14 +369,25 @@ cv::Mat render_annealing_image(const algo::ClassifierReport& report, const std::
     put_text_centered(image, "no annealing steps recorded", acc.area.x + acc.area.width / 2,
                       acc.area.y + acc.area.height / 2, kTitleScale, kAxisColor);
   }
+}
 
+// Temperature (log, left axis) and the active features of each candidate (right axis).
+void draw_temperature_panel(cv::Mat& image, const std::vector<algo::AnnealingStep>& curve,
+                            const AnnealingScales& scales) {
   // Temperature and active-feature panel.
+  const AnnealingPlotLayout& geo = scales.geo;
   const PlotAxes& temp = geo.temperature;
-  draw_x_axis(image, temp, x_ticks, true);
+  std::vector<cv::Point2d> temperature, active;
+  for (const algo::AnnealingStep& s : curve) {
+    temperature.emplace_back(s.iteration, s.temperature);
+    active.emplace_back(s.iteration, s.candidate_active);
+  }
+  draw_x_axis(image, temp, scales.x_ticks, true);
   std::vector<double> decades;
-  for (int d = static_cast<int>(d_lo); d <= static_cast<int>(d_hi); ++d) decades.push_back(std::pow(10.0, d));
+  for (int d = static_cast<int>(scales.decade_lo); d <= static_cast<int>(scales.decade_hi); ++d)
+    decades.push_back(std::pow(10.0, d));
   draw_y_ticks(image, temp, decades, false, true, "");
-  draw_y_ticks(image, geo.features, ticks_between(0.0, geo.features.y_max, f_step), true, false, "");
+  draw_y_ticks(image, geo.features, ticks_between(0.0, geo.features.y_max, scales.features_step), true, false, "");
   put_text_vertical(image, "temperature", 18, temp.area.y + temp.area.height / 2 + 40, kTextScale, kBlack);
   put_text_vertical(image, "active features", kWidth - 14, temp.area.y + temp.area.height / 2 + 55, kTextScale, kBlack);
   draw_legend(image,
@@ -376,7 +402,18 @@ cv::Mat render_annealing_image(const algo::ClassifierReport& report, const std::
   cv::rectangle(image, temp.area, kAxisColor, 1);
   put_text_centered(image, "annealing iteration (one candidate feature set per iteration)", kWidth / 2,
                     kBottomY + kBottomH + 40, kTextScale, kBlack);
-  if (layout != nullptr) *layout = geo;
+}
+
+}  // namespace
+
+cv::Mat render_annealing_image(const algo::ClassifierReport& report, const std::string& title,
+                               AnnealingPlotLayout* layout) {
+  cv::Mat image(kHeight, kWidth, CV_8UC3, kWhite);
+  put_text(image, title, 10, 22, kTitleScale, kBlack);
+  const AnnealingScales scales = annealing_scales(report.curve);
+  draw_accuracy_panel(image, report.curve, scales);
+  draw_temperature_panel(image, report.curve, scales);
+  if (layout != nullptr) *layout = scales.geo;
   return image;
 }
 
