@@ -139,22 +139,32 @@ void read_grid(YamlSection g, algo::GridSpec& grid) {
   g.finish();
 }
 
+// The learnt limits of a part as the manifest names them, with their ranges.
+struct ThresholdField {
+  const char* key;
+  double PartThresholds::*value;
+  double min, max;
+  const char* unit;
+};
+constexpr ThresholdField kThresholdFields[] = {
+    {"max_error", &PartThresholds::max_error, 0.0, 1.0, ""},
+    {"max_missing_area_m2", &PartThresholds::max_missing_area_m2, 0.0, 100.0, "m2"},
+    {"max_extra_area_m2", &PartThresholds::max_extra_area_m2, 0.0, 100.0, "m2"},
+    {"max_uncovered", &PartThresholds::max_uncovered, 0.0, 1.0, ""},
+    {"max_outliers", &PartThresholds::max_outliers, 0.0, 1.0, ""},
+    {"size_centre_x_m", &PartThresholds::size_centre_x_m, -1.0, 1.0, "m"},
+    {"size_centre_y_m", &PartThresholds::size_centre_y_m, -1.0, 1.0, "m"},
+    {"max_size_dev_m", &PartThresholds::max_size_dev_m, 0.0, 1.0, "m"},
+};
+
 void read_thresholds(YamlSection t, PartThresholds& thresholds) {
   t.boolean("learnt", thresholds.learnt);
   // Learnt limits are used as they stand: none may be left to a default. Limits from a version that learnt fewer
   // of them count as not learnt, so the database says 'run cellsight train' instead of refusing to open.
-  for (const char* key : {"max_error", "max_missing_area_m2", "max_extra_area_m2", "max_uncovered", "max_outliers",
-                          "size_centre_x_m", "size_centre_y_m", "max_size_dev_m"}) {
-    if (!t.has(key)) thresholds.learnt = false;
+  for (const ThresholdField& f : kThresholdFields) {
+    if (!t.has(f.key)) thresholds.learnt = false;
   }
-  t.number("max_error", thresholds.max_error, 0.0, 1.0, "");
-  t.number("max_missing_area_m2", thresholds.max_missing_area_m2, 0.0, 100.0, "m2");
-  t.number("max_extra_area_m2", thresholds.max_extra_area_m2, 0.0, 100.0, "m2");
-  t.number("max_uncovered", thresholds.max_uncovered, 0.0, 1.0, "");
-  t.number("max_outliers", thresholds.max_outliers, 0.0, 1.0, "");
-  t.number("size_centre_x_m", thresholds.size_centre_x_m, -1.0, 1.0, "m");
-  t.number("size_centre_y_m", thresholds.size_centre_y_m, -1.0, 1.0, "m");
-  t.number("max_size_dev_m", thresholds.max_size_dev_m, 0.0, 1.0, "m");
+  for (const ThresholdField& f : kThresholdFields) t.number(f.key, thresholds.*f.value, f.min, f.max, f.unit);
   t.finish();
 }
 
