@@ -453,107 +453,146 @@ std::string SvmModel::serialize() const {
   return std::move(w.bytes());
 }
 
-Expected<SvmModel> SvmModel::deserialize(std::string_view blob) {
-  const std::string refuse = "SVM model refused: ";
+namespace {
+
+constexpr const char* kRefused = "SVM model refused: ";
+
+Error refused(const std::string& why) { return make_error(kRefused + why); }
+Error truncated() { return refused("truncated or malformed content"); }
+
+// Magic and checksum; `body` is what the checksum covers.
+Status check_envelope(std::string_view blob, std::string_view& body) {
   if (blob.size() < kMagic.size() + 4 || std::memcmp(blob.data(), kMagic.data(), kMagic.size()) != 0) {
-    return make_error(refuse + "not a cellsight SVM model (bad magic or too short)");
+    return refused("not a cellsight SVM model (bad magic or too short)");
   }
   std::uint32_t stored_crc = 0;
   std::memcpy(&stored_crc, blob.data() + blob.size() - 4, 4);
-  const std::string_view body = blob.substr(0, blob.size() - 4);
-  if (base::crc32(body) != stored_crc) {
-    return make_error(refuse + "checksum mismatch (the file is corrupt or truncated)");
-  }
+  body = blob.substr(0, blob.size() - 4);
+  if (base::crc32(body) != stored_crc) return refused("checksum mismatch (the file is corrupt or truncated)");
+  return {};
+}
 
-  ByteReader r(body.substr(kMagic.size()));
-  const auto truncated = [&] { return make_error(refuse + "truncated or malformed content"); };
+// Format version, feature version and the 74 feature names: the model must have been trained on this build's.
+Status read_versions(ByteReader& r) {
   std::uint32_t format = 0, feature_version = 0, feature_count = 0;
   if (!r.get(format) || !r.get(feature_version) || !r.get(feature_count)) return truncated();
-  if (format != kFormatVersion) {
-    return make_error(refuse + "format version " + std::to_string(format) + ", this build reads version " +
-                      std::to_string(kFormatVersion));
+  if (format != SvmModel::kFormatVersion) {
+    return refused("format version " + std::to_string(format) + ", this build reads version " +
+                   std::to_string(SvmModel::kFormatVersion));
   }
   if (feature_version != kFeatureVersion || feature_count != kFeatureCount) {
-    return make_error(refuse + "trained on feature version " + std::to_string(feature_version) + " (" +
-                      std::to_string(feature_count) + " features); this build computes version " +
-                      std::to_string(kFeatureVersion) + " (" + std::to_string(kFeatureCount) +
-                      " features): retrain the model");
+    return refused("trained on feature version " + std::to_string(feature_version) + " (" +
+                   std::to_string(feature_count) + " features); this build computes version " +
+                   std::to_string(kFeatureVersion) + " (" + std::to_string(kFeatureCount) +
+                   " features): retrain the model");
   }
   for (const FeatureInfo& f : kFeatureTable) {
     std::string name;
     if (!r.get_string(name)) return truncated();
     if (name != f.name) {
-      return make_error(refuse + "feature '" + name + "' where this build has '" + std::string(f.name) +
-                        "': the model was trained on other features; retrain it");
+      return refused("feature '" + name + "' where this build has '" + std::string(f.name) +
+                     "': the model was trained on other features; retrain it");
     }
   }
-  SvmModel m;
+  return {};
+}
+
+Status read_mask_and_scaler(ByteReader& r, FeatureMask& mask, Scaler& scaler) {
   for (int f = 0; f < kFeatureCount; ++f) {
     std::uint8_t bit = 0;
     if (!r.get(bit) || bit > 1) return truncated();
-    m.mask_.set(static_cast<std::size_t>(f), bit == 1);
+    mask.set(static_cast<std::size_t>(f), bit == 1);
   }
   std::array<Scaler::Range, kFeatureCount> ranges{};
   for (Scaler::Range& range : ranges) {
     if (!r.get(range.compress) || !r.get(range.lo) || !r.get(range.hi)) return truncated();
     if (!std::isfinite(range.compress) || !std::isfinite(range.lo) || !std::isfinite(range.hi) ||
         range.compress < 0.0 || range.hi < range.lo) {
-      return make_error(refuse + "invalid scaler range");
+      return refused("invalid scaler range");
     }
   }
-  m.scaler_ = Scaler::from_ranges(ranges);
+  scaler = Scaler::from_ranges(ranges);
+  return {};
+}
+
+Status read_classes(ByteReader& r, std::vector<ClassInfo>& classes) {
   std::uint32_t k = 0;
   if (!r.get(k)) return truncated();
-  if (k < 2 || k > kMaxClasses) return make_error(refuse + "class count " + std::to_string(k) + " out of range");
+  if (k < 2 || k > kMaxClasses) return refused("class count " + std::to_string(k) + " out of range");
   for (std::uint32_t c = 0; c < k; ++c) {
     std::int32_t id = 0;
     ClassInfo info;
     if (!r.get(id) || !r.get_string(info.name)) return truncated();
     info.id = id;
-    m.classes_.push_back(std::move(info));
+    classes.push_back(std::move(info));
   }
+  return {};
+}
+
+Status read_kernel(ByteReader& r, SvmHyper& hyper) {
   std::uint8_t kernel = 0;
   std::int32_t degree = 0;
-  if (!r.get(kernel) || !r.get(m.hyper_.c) || !r.get(m.hyper_.gamma_factor) || !r.get(degree) ||
-      !r.get(m.hyper_.coef0)) {
+  if (!r.get(kernel) || !r.get(hyper.c) || !r.get(hyper.gamma_factor) || !r.get(degree) || !r.get(hyper.coef0)) {
     return truncated();
   }
-  if (kernel > static_cast<std::uint8_t>(KernelType::kPoly) || !(m.hyper_.c > 0.0) || !(m.hyper_.gamma_factor > 0.0) ||
-      !std::isfinite(m.hyper_.c) || !std::isfinite(m.hyper_.gamma_factor) || !std::isfinite(m.hyper_.coef0) ||
-      degree < 1 || degree > kMaxDegree) {
-    return make_error(refuse + "invalid kernel parameters");
+  if (kernel > static_cast<std::uint8_t>(KernelType::kPoly) || !(hyper.c > 0.0) || !(hyper.gamma_factor > 0.0) ||
+      !std::isfinite(hyper.c) || !std::isfinite(hyper.gamma_factor) || !std::isfinite(hyper.coef0) || degree < 1 ||
+      degree > kMaxDegree) {
+    return refused("invalid kernel parameters");
   }
-  m.hyper_.kernel = static_cast<KernelType>(kernel);
-  m.hyper_.degree = degree;
-  std::uint32_t dims = 0, l = 0;
-  if (!r.get(dims) || !r.get(l)) return truncated();
-  if (dims != m.mask_.count() || dims == 0) return make_error(refuse + "support vector size does not match the mask");
-  if (l == 0 || l > r.remaining() / sizeof(double)) return make_error(refuse + "support vector count out of range");
-  m.dims_ = static_cast<int>(dims);
-  m.sv_count_ = static_cast<int>(l);
+  hyper.kernel = static_cast<KernelType>(kernel);
+  hyper.degree = degree;
+  return {};
+}
+
+// libsvm's slot order of the k classes (a permutation) and the support vectors per slot, adding up to `l`.
+Status read_slots(ByteReader& r, std::uint32_t k, std::uint32_t l, std::vector<int>& slot_class,
+                  std::vector<int>& slot_sv_count) {
   std::vector<bool> seen(k, false);
   std::uint64_t total = 0;
   for (std::uint32_t s = 0; s < k; ++s) {
     std::uint32_t c = 0;
     if (!r.get(c)) return truncated();
-    if (c >= k || seen[c]) return make_error(refuse + "class slots are not a permutation of the classes");
+    if (c >= k || seen[c]) return refused("class slots are not a permutation of the classes");
     seen[c] = true;
-    m.slot_class_.push_back(static_cast<int>(c));
+    slot_class.push_back(static_cast<int>(c));
   }
   for (std::uint32_t s = 0; s < k; ++s) {
     std::uint32_t c = 0;
     if (!r.get(c)) return truncated();
     total += c;
-    m.slot_sv_count_.push_back(static_cast<int>(c));
+    slot_sv_count.push_back(static_cast<int>(c));
   }
-  if (total != l) return make_error(refuse + "per-class support vector counts do not add up");
+  if (total != l) return refused("per-class support vector counts do not add up");
+  return {};
+}
+
+}  // namespace
+
+Expected<SvmModel> SvmModel::deserialize(std::string_view blob) {
+  std::string_view body;
+  if (Status envelope = check_envelope(blob, body); !envelope) return envelope.error();
+  ByteReader r(body.substr(kMagic.size()));
+  if (Status versions = read_versions(r); !versions) return versions.error();
+  SvmModel m;
+  if (Status scaling = read_mask_and_scaler(r, m.mask_, m.scaler_); !scaling) return scaling.error();
+  if (Status classes = read_classes(r, m.classes_); !classes) return classes.error();
+  const auto k = static_cast<std::uint32_t>(m.classes_.size());
+  if (Status kernel = read_kernel(r, m.hyper_); !kernel) return kernel.error();
+  std::uint32_t dims = 0, l = 0;
+  if (!r.get(dims) || !r.get(l)) return truncated();
+  if (dims != m.mask_.count() || dims == 0) return refused("support vector size does not match the mask");
+  if (l == 0 || l > r.remaining() / sizeof(double)) return refused("support vector count out of range");
+  m.dims_ = static_cast<int>(dims);
+  m.sv_count_ = static_cast<int>(l);
+  if (Status slots = read_slots(r, k, l, m.slot_class_, m.slot_sv_count_); !slots) return slots.error();
   const std::size_t pairs = static_cast<std::size_t>(k) * (k - 1) / 2;
   if (!r.get_doubles(static_cast<std::size_t>(l) * dims, m.sv_) ||
       !r.get_doubles(static_cast<std::size_t>(k - 1) * l, m.coef_) || !r.get_doubles(pairs, m.rho_) ||
       !r.get_doubles(pairs, m.prob_a_) || !r.get_doubles(pairs, m.prob_b_)) {
     return truncated();
   }
-  if (r.remaining() != 0) return make_error(refuse + "unexpected bytes after the model");
+  if (r.remaining() != 0) return refused("unexpected bytes after the model");
   m.allocate_scratch();
   return m;
 }

@@ -12,13 +12,13 @@
 #include <set>
 
 #include "algo/calibration.hpp"
-#include "app/atomic_file.hpp"
-#include "app/calibration_file.hpp"
 #include "app/cli.hpp"
-#include "app/local_time.hpp"
-#include "app/yaml_reader.hpp"
+#include "base/atomic_file.hpp"
+#include "base/local_time.hpp"
 #include "drivers/sim/board.hpp"
 #include "drivers/sim/random.hpp"
+#include "formats/calibration_file.hpp"
+#include "formats/yaml_reader.hpp"
 
 namespace cellsight::app {
 

@@ -7,7 +7,7 @@
 #include <set>
 #include <sstream>
 
-#include "app/yaml_reader.hpp"
+#include "formats/yaml_reader.hpp"
 
 namespace cellsight::app {
 namespace {

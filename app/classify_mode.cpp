@@ -1,32 +1,32 @@
 // `cellsight classify` (one decision per scan) and `cellsight eval` (labelled scans -> accuracy, confusion, pose).
 #include "app/classify_mode.hpp"
 
+#include <Eigen/Geometry>
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <map>
 #include <numbers>
 #include <optional>
-#include <Eigen/Geometry>
-#include <functional>
 #include <sstream>
 
-#include "algo/ply.hpp"
-#include "app/atomic_file.hpp"
-#include "app/calibration_file.hpp"
 #include "app/cli.hpp"
-#include "app/input_file.hpp"
 #include "app/mode_args.hpp"
 #include "app/model_db.hpp"
 #include "app/perturb_mode.hpp"
 #include "app/recognition.hpp"
 #include "app/scan_mode.hpp"
-#include "drivers/sim/sim_cell.hpp"
 #include "app/sim_mode.hpp"
-#include "app/template_file.hpp"
+#include "base/atomic_file.hpp"
+#include "drivers/sim/sim_cell.hpp"
+#include "formats/calibration_file.hpp"
+#include "formats/input_file.hpp"
+#include "formats/ply.hpp"
+#include "formats/template_file.hpp"
 
 namespace cellsight::app {
 namespace {
@@ -332,53 +332,42 @@ int run_classify(const std::vector<std::string>& words, const Config& config, co
   return failures == 0 ? kExitOk : kExitUsage;
 }
 
-int run_eval(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
-  ModeArgs args;
-  std::string error;
-  if (!parse_mode_args(words, {"--scans", "--calibration", "--count", "--seed", "--parts", "--perturb"},
-                       {"--json", "--svm-only", "--pm-only", "--sim"}, args, error) ||
-      !args.positional.empty()) {
-    return fail(kExitUsage, "eval: " + (error.empty() ? "unexpected argument '" + args.positional.front() + "'" : error));
+namespace {
+
+// eval --sim: generates the labelled set into `dir` first (it stays there: the same scans can be run again, or
+// elsewhere, as PLY). An exit code when it fails (the message printed), nothing when the set is written.
+std::optional<int> generate_eval_set(const ModeArgs& args, const Config& config, const std::string& models_dir,
+                                     const Options& options, const PassPerturbation* perturb, const std::string& dir) {
+  std::int64_t count = 0, seed = 100001;
+  const std::string* c = args.value("--count");
+  if (c == nullptr || !parse_whole(*c, 1, 100000, count)) return fail(kExitUsage, "eval --sim needs --count K");
+  if (const std::string* s = args.value("--seed"); s != nullptr && !parse_whole(*s, 0, INT64_MAX, seed)) {
+    return fail(kExitUsage, "eval: --seed '" + *s + "': expected a whole number");
   }
-  const std::string* dir = args.value("--scans");
-  if (dir == nullptr) return fail(kExitUsage, "eval needs --scans DIR (DIR/<part>/*.ply, optional DIR/truth.csv)");
-  auto options = common_options(args, config);
-  if (!options) return fail(kExitUsage, "eval: " + options.error().message);
-  auto perturb = perturbation_option(args, config, options->calibration_path, kPerturbEval);
-  if (!perturb) return fail(kExitUsage, "eval: " + perturb.error().message);
-  if (*perturb && !args.has("--sim")) return fail(kExitUsage, "eval: --perturb applies to --sim only");
-  if (args.has("--sim")) {
-    // Generate the labelled set first (it stays in DIR: the same scans can be run again, or elsewhere, as PLY).
-    std::int64_t count = 0, seed = 100001;
-    const std::string* c = args.value("--count");
-    if (c == nullptr || !parse_whole(*c, 1, 100000, count)) return fail(kExitUsage, "eval --sim needs --count K");
-    if (const std::string* s = args.value("--seed"); s != nullptr && !parse_whole(*s, 0, INT64_MAX, seed)) {
-      return fail(kExitUsage, "eval: --seed '" + *s + "': expected a whole number");
+  auto db = ModelDb::open(models_dir, grid_spec(config), false);
+  if (!db) return fail(kExitUsage, db.error().message);
+  std::vector<std::string> parts;
+  if (const std::string* list = args.value("--parts")) {
+    std::stringstream in(*list);
+    for (std::string p; std::getline(in, p, ',');) {
+      if (!p.empty()) parts.push_back(p);
     }
-    auto db = ModelDb::open(models_dir, grid_spec(config), false);
-    if (!db) return fail(kExitUsage, db.error().message);
-    std::vector<std::string> parts;
-    if (const std::string* list = args.value("--parts")) {
-      std::stringstream in(*list);
-      for (std::string p; std::getline(in, p, ',');) {
-        if (!p.empty()) parts.push_back(p);
-      }
-    } else {
-      for (const PartEntry& p : db->manifest().parts) parts.push_back(p.name);
-    }
-    if (fs::exists(*dir) && !fs::is_empty(*dir)) return fail(kExitUsage, "eval --sim: " + *dir + " is not empty");
-    if (auto ok = generate_sim_scans(config, *db, parts, static_cast<int>(count), static_cast<std::uint64_t>(seed),
-                                     options->calibration_path, *dir, *perturb ? &**perturb : nullptr);
-        !ok) {
-      return fail(kExitFailure, "eval --sim: " + ok.error().message);
-    }
+  } else {
+    for (const PartEntry& p : db->manifest().parts) parts.push_back(p.name);
   }
-  std::error_code ec;
-  if (!fs::is_directory(*dir, ec)) return fail(kExitUsage, "eval: " + *dir + " is not a folder");
-  auto truth = read_truth(*dir);
-  if (!truth) return fail(kExitUsage, "eval: " + truth.error().message);
+  if (fs::exists(dir) && !fs::is_empty(dir)) return fail(kExitUsage, "eval --sim: " + dir + " is not empty");
+  if (auto ok = generate_sim_scans(config, *db, parts, static_cast<int>(count), static_cast<std::uint64_t>(seed),
+                                   options.calibration_path, dir, perturb);
+      !ok) {
+    return fail(kExitFailure, "eval --sim: " + ok.error().message);
+  }
+  return std::nullopt;
+}
+
+// DIR/<part>/*.ply, labelled with the folder's name and, when DIR/truth.csv lists it, the true pose; sorted by path.
+std::vector<LabelledScan> labelled_scans(const std::string& dir, const std::map<std::string, algo::PlanarPose>& truth) {
   std::vector<LabelledScan> scans;
-  for (const auto& entry : fs::directory_iterator(*dir)) {
+  for (const auto& entry : fs::directory_iterator(dir)) {
     if (!entry.is_directory()) continue;
     for (const auto& f : fs::directory_iterator(entry.path())) {
       if (f.path().extension() != ".ply") continue;
@@ -386,7 +375,7 @@ int run_eval(const std::vector<std::string>& words, const Config& config, const 
       s.path = f.path().string();
       s.truth_class = entry.path().filename().string();
       const std::string rel = s.truth_class + "/" + f.path().filename().string();
-      if (const auto t = truth->find(rel); t != truth->end()) {
+      if (const auto t = truth.find(rel); t != truth.end()) {
         s.has_pose = true;
         s.pose = t->second;
       }
@@ -394,61 +383,57 @@ int run_eval(const std::vector<std::string>& words, const Config& config, const 
     }
   }
   std::sort(scans.begin(), scans.end(), [](const auto& a, const auto& b) { return a.path < b.path; });
-  if (scans.empty()) return fail(kExitUsage, "eval: no DIR/<part>/*.ply under " + *dir);
-  auto recogniser = make_recogniser(config, models_dir, options->calibration_path, options->mode);
-  if (!recogniser) return fail(kExitUsage, recogniser.error().message);
-  auto db = ModelDb::open(models_dir, grid_spec(config), false);
-  if (!db) return fail(kExitUsage, db.error().message);
+  return scans;
+}
 
-  EvalTotals t;
-  for (const LabelledScan& s : scans) {
-    auto points = load_ply_file(s.path);
-    if (!points) return fail(kExitUsage, points.error().message);
-    const auto deadline = Clock::now() + std::chrono::milliseconds(config.runtime.deadline_ms);
-    const algo::Decision d = (*recogniser)->recognise(*points, deadline);
-    const std::string decided = d.class_index >= 0 ? std::string((*recogniser)->class_name(d.class_index)) : "unknown";
-    const bool taught = db->find(s.truth_class) != nullptr;
-    ++t.scans;
-    ++t.confusion[s.truth_class][decided];
-    ++t.sources[std::string(algo::to_string(d.source))];
-    t.ms.push_back(d.total_ms);
-    if (!taught) {
-      ++t.untaught;
-      if (d.class_index < 0) ++t.untaught_unknown;
-      else ++t.wrong;
-    } else if (decided == s.truth_class) {
-      ++t.correct;
-      if (s.has_pose && d.pose_valid) {
-        t.pose_mm.push_back(std::hypot(d.pose.x_m - s.pose.x_m, d.pose.y_m - s.pose.y_m) * 1e3);
-        t.pose_deg.push_back(std::abs(d.pose.theta_rad - s.pose.theta_rad) * kRadToDeg);
-      }
-    } else if (d.class_index < 0) {
-      ++t.unknown;
-    } else {
+// Counts one decision on a labelled scan: right, wrong or unknown, pose error, source, time, what the SVM alone
+// would have said (its rank order is in the decision) and how far the cascade had to go.
+void count_decision(const LabelledScan& s, const algo::Decision& d, const Recogniser& recogniser, bool taught,
+                    EvalTotals& t) {
+  const std::string decided = d.class_index >= 0 ? std::string(recogniser.class_name(d.class_index)) : "unknown";
+  ++t.scans;
+  ++t.confusion[s.truth_class][decided];
+  ++t.sources[std::string(algo::to_string(d.source))];
+  t.ms.push_back(d.total_ms);
+  if (!taught) {
+    ++t.untaught;
+    if (d.class_index < 0)
+      ++t.untaught_unknown;
+    else
       ++t.wrong;
+  } else if (decided == s.truth_class) {
+    ++t.correct;
+    if (s.has_pose && d.pose_valid) {
+      t.pose_mm.push_back(std::hypot(d.pose.x_m - s.pose.x_m, d.pose.y_m - s.pose.y_m) * 1e3);
+      t.pose_deg.push_back(std::abs(d.pose.theta_rad - s.pose.theta_rad) * kRadToDeg);
     }
-    if (args.has("--json")) std::printf("%s\n", decision_json(s.path, d, decided, class_names(**recogniser)).c_str());
-    // What the SVM alone would have said (its rank order is in the decision), and how far the cascade had to go.
-    if (taught && d.candidate_count > 0) {
-      ++t.svm_ranked;
-      for (int r = 0; r < std::min(2, d.candidate_count); ++r) {
-        if ((*recogniser)->class_name(d.candidates[static_cast<std::size_t>(r)].class_index) != s.truth_class) continue;
-        if (r == 0) ++t.svm_top1;
-        ++t.svm_top2;
-      }
-    }
-    if (d.accepted()) {
-      ++t.decided;
-      if (d.verified_count <= 2) ++t.decided_within_two;
-    }
-    if (taught && d.class_index < 0) {
-      t.reasons.push_back(s.path + " (" + s.truth_class + "): " + unknown_reason_text(d, class_names(**recogniser)));
-    } else if (d.class_index >= 0 && decided != s.truth_class) {
-      t.reasons.push_back(s.path + " (" + s.truth_class + "): WRONG id " + decided);
+  } else if (d.class_index < 0) {
+    ++t.unknown;
+  } else {
+    ++t.wrong;
+  }
+  if (taught && d.candidate_count > 0) {
+    ++t.svm_ranked;
+    for (int r = 0; r < std::min(2, d.candidate_count); ++r) {
+      if (recogniser.class_name(d.candidates[static_cast<std::size_t>(r)].class_index) != s.truth_class) continue;
+      if (r == 0) ++t.svm_top1;
+      ++t.svm_top2;
     }
   }
+  if (d.accepted()) {
+    ++t.decided;
+    if (d.verified_count <= 2) ++t.decided_within_two;
+  }
+  if (taught && d.class_index < 0) {
+    t.reasons.push_back(s.path + " (" + s.truth_class + "): " + unknown_reason_text(d, class_names(recogniser)));
+  } else if (d.class_index >= 0 && decided != s.truth_class) {
+    t.reasons.push_back(s.path + " (" + s.truth_class + "): WRONG id " + decided);
+  }
+}
+
+void print_eval_totals(const EvalTotals& t, const std::string& dir) {
   const int taught_scans = t.scans - t.untaught;
-  std::printf("eval of %d scans in %s (%d of taught parts, %d of parts not taught)\n", t.scans, dir->c_str(),
+  std::printf("eval of %d scans in %s (%d of taught parts, %d of parts not taught)\n", t.scans, dir.c_str(),
               taught_scans, t.untaught);
   if (taught_scans > 0) {
     std::printf("  accuracy     %.2f %% (%d correct, %d unknown, %d wrong)\n", 100.0 * t.correct / taught_scans,
@@ -473,9 +458,13 @@ int run_eval(const std::vector<std::string>& words, const Config& config, const 
   print_stats("pose xy", t.pose_mm, "mm");
   print_stats("pose theta", t.pose_deg, "deg");
   print_stats("time", t.ms, "ms");
+}
+
+// Rows: the true classes seen; columns: the taught parts in manifest order, then unknown.
+void print_confusion(const EvalTotals& t, const Manifest& manifest) {
   std::printf("confusion (rows: truth, columns: decision)\n");
   std::vector<std::string> columns;
-  for (const PartEntry& p : db->manifest().parts) columns.push_back(p.name);
+  for (const PartEntry& p : manifest.parts) columns.push_back(p.name);
   columns.push_back("unknown");
   std::printf("  %-20s", "");
   for (std::size_t c = 0; c < columns.size(); ++c) std::printf(" %4zu", c);
@@ -489,6 +478,57 @@ int run_eval(const std::vector<std::string>& words, const Config& config, const 
     std::printf("\n");
   }
   for (std::size_t c = 0; c < columns.size(); ++c) std::printf("  column %zu = %s\n", c, columns[c].c_str());
+}
+
+}  // namespace
+
+int run_eval(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
+  ModeArgs args;
+  std::string error;
+  if (!parse_mode_args(words, {"--scans", "--calibration", "--count", "--seed", "--parts", "--perturb"},
+                       {"--json", "--svm-only", "--pm-only", "--sim"}, args, error) ||
+      !args.positional.empty()) {
+    return fail(kExitUsage,
+                "eval: " + (error.empty() ? "unexpected argument '" + args.positional.front() + "'" : error));
+  }
+  const std::string* dir = args.value("--scans");
+  if (dir == nullptr) return fail(kExitUsage, "eval needs --scans DIR (DIR/<part>/*.ply, optional DIR/truth.csv)");
+  auto options = common_options(args, config);
+  if (!options) return fail(kExitUsage, "eval: " + options.error().message);
+  auto perturb = perturbation_option(args, config, options->calibration_path, kPerturbEval);
+  if (!perturb) return fail(kExitUsage, "eval: " + perturb.error().message);
+  if (*perturb && !args.has("--sim")) return fail(kExitUsage, "eval: --perturb applies to --sim only");
+  if (args.has("--sim")) {
+    if (auto failed = generate_eval_set(args, config, models_dir, *options, *perturb ? &**perturb : nullptr, *dir)) {
+      return *failed;
+    }
+  }
+  std::error_code ec;
+  if (!fs::is_directory(*dir, ec)) return fail(kExitUsage, "eval: " + *dir + " is not a folder");
+  auto truth = read_truth(*dir);
+  if (!truth) return fail(kExitUsage, "eval: " + truth.error().message);
+  const std::vector<LabelledScan> scans = labelled_scans(*dir, *truth);
+  if (scans.empty()) return fail(kExitUsage, "eval: no DIR/<part>/*.ply under " + *dir);
+  auto recogniser = make_recogniser(config, models_dir, options->calibration_path, options->mode);
+  if (!recogniser) return fail(kExitUsage, recogniser.error().message);
+  auto db = ModelDb::open(models_dir, grid_spec(config), false);
+  if (!db) return fail(kExitUsage, db.error().message);
+
+  EvalTotals t;
+  for (const LabelledScan& s : scans) {
+    auto points = load_ply_file(s.path);
+    if (!points) return fail(kExitUsage, points.error().message);
+    const auto deadline = Clock::now() + std::chrono::milliseconds(config.runtime.deadline_ms);
+    const algo::Decision d = (*recogniser)->recognise(*points, deadline);
+    count_decision(s, d, **recogniser, db->find(s.truth_class) != nullptr, t);
+    if (args.has("--json")) {
+      const std::string decided =
+          d.class_index >= 0 ? std::string((*recogniser)->class_name(d.class_index)) : "unknown";
+      std::printf("%s\n", decision_json(s.path, d, decided, class_names(**recogniser)).c_str());
+    }
+  }
+  print_eval_totals(t, *dir);
+  print_confusion(t, db->manifest());
   return kExitOk;
 }
 

@@ -6,7 +6,7 @@
 
 #include <filesystem>
 
-#include "app/yaml_reader.hpp"
+#include "formats/yaml_reader.hpp"
 
 namespace cellsight::app {
 namespace {
@@ -107,162 +107,173 @@ void read_sim(YamlSection s, Config& cfg) {
   s.finish();
 }
 
+void read_grid_section(YamlSection g, Config& cfg) {
+  g.vec3("origin_m", cfg.grid.origin_m, -5.0, 5.0, "m");
+  g.integer("nx", cfg.grid.nx, 8, 4096, "cells");
+  g.integer("ny", cfg.grid.ny, 8, 4096, "cells");
+  g.integer("nz", cfg.grid.nz, 8, 4096, "cells");
+  g.number("resolution_m", cfg.grid.resolution_m, 0.0002, 0.05, "m");
+  g.finish();
+}
+
+void read_camera_section(YamlSection c, Config& cfg) {
+  c.choice("backend", cfg.camera.backend, {"sim", "v4l2"});
+  c.text("device", cfg.camera.device);
+  c.integer("buffers", cfg.camera.buffers, 4, 32, "buffers");
+  c.integer("timeout_ms", cfg.camera.timeout_ms, 10, 60000, "ms");
+  c.number("exposure_us", cfg.camera.exposure_us, 1.0, 1e6, "us");
+  c.number("exposure_min_us", cfg.camera.exposure_min_us, 1.0, 1e6, "us");
+  c.number("exposure_max_us", cfg.camera.exposure_max_us, 1.0, 1e6, "us");
+  c.boolean("external_trigger", cfg.camera.external_trigger);
+  c.integer("trigger_control_id", cfg.camera.trigger_control_id, 0, 0xFFFFFFFFLL, "");
+  c.integer("trigger_control_value", cfg.camera.trigger_control_value, -1000000, 1000000, "");
+  if (cfg.camera.exposure_min_us > cfg.camera.exposure_max_us)
+    c.error("exposure_min_us", "must not exceed camera.exposure_max_us");
+  c.finish();
+}
+
+void read_exposure_section(YamlSection e, Config& cfg) {
+  e.number("width_min_px", cfg.exposure.width_min_px, 0.5, 100.0, "px");
+  e.number("width_max_px", cfg.exposure.width_max_px, 0.5, 100.0, "px");
+  if (cfg.exposure.width_min_px >= cfg.exposure.width_max_px) e.error("width_min_px", "must be below exposure.width_max_px");
+  e.number("max_step_ratio", cfg.exposure.max_step_ratio, 1.01, 10.0, "");
+  e.finish();
+}
+
+void read_gpio_section(YamlSection g, Config& cfg) {
+  g.choice("backend", cfg.gpio.backend, {"sim", "gpiod"});
+  g.text("chip", cfg.gpio.chip);
+  g.integer("laser_line", cfg.gpio.laser_line, 0, 1023, "");
+  g.integer("trigger_line", cfg.gpio.trigger_line, 0, 1023, "");
+  g.integer("part_present_line", cfg.gpio.part_present_line, 0, 1023, "");
+  g.integer("encoder_a_line", cfg.gpio.encoder_a_line, 0, 1023, "");
+  g.integer("encoder_b_line", cfg.gpio.encoder_b_line, 0, 1023, "");
+  g.boolean("part_present_active_low", cfg.gpio.part_present_active_low);
+  g.boolean("laser_active_low", cfg.gpio.laser_active_low);
+  g.boolean("trigger_active_low", cfg.gpio.trigger_active_low);
+  g.boolean("encoder_reverse", cfg.gpio.encoder_reverse);
+  g.integer("trigger_pulse_us", cfg.gpio.trigger_pulse_us, 1, 100000, "us");
+  g.integer("debounce_us", cfg.gpio.debounce_us, 0, 1000000, "us");
+  g.finish();
+}
+
+void read_modbus_section(YamlSection m, Config& cfg) {
+  m.text("bind_address", cfg.modbus.bind_address);
+  // libmodbus listens on a numeric IPv4 address only: a host name or a bad address would fail at `run` time.
+  in_addr parsed{};
+  if (::inet_pton(AF_INET, cfg.modbus.bind_address.c_str(), &parsed) != 1) {
+    m.error("bind_address", "'" + cfg.modbus.bind_address +
+                                "' is not valid, expected a dotted IPv4 address such as 0.0.0.0 (every interface) "
+                                "or 192.168.0.10 (host names are not accepted)");
+  }
+  m.integer("port", cfg.modbus.port, 1, 65535, "");
+  m.integer("max_clients", cfg.modbus.max_clients, 1, 64, "clients");
+  m.integer("byte_timeout_ms", cfg.modbus.byte_timeout_ms, 1, 10000, "ms");
+  m.integer("plc_heartbeat_timeout_ms", cfg.modbus.plc_heartbeat_timeout_ms, 0, 600000, "ms");
+  m.integer("result_queue_depth", cfg.modbus.result_queue_depth, 1, 256, "results");
+  m.finish();
+}
+
+void read_support_section(YamlSection s, Config& cfg) {
+  s.number("distance_threshold_mm", cfg.support.distance_threshold_mm, 0.1, 100.0, "mm");
+  s.finish();
+}
+
+void read_svm_section(YamlSection s, Config& cfg) {
+  s.number("sa_start_temperature", cfg.svm.sa_start_temperature, 1e-6, 1e6, "");
+  s.number("sa_cooling_ratio", cfg.svm.sa_cooling_ratio, 0.5, 0.9999, "");
+  s.integer("sa_iterations", cfg.svm.sa_iterations, 1, 100000, "");
+  s.integer("folds", cfg.svm.folds, 2, 50, "");
+  s.number("train_fraction", cfg.svm.train_fraction, 0.1, 0.95, "");
+  s.choice("kernel", cfg.svm.kernel, {"rbf", "poly"});
+  s.integer("threads", cfg.svm.threads, 0, 256, "threads");
+  s.integer("seed", cfg.svm.seed, 0, INT64_MAX, "");
+  s.integer("augment_per_scan", cfg.svm.augment_per_scan, 0, 100, "");
+  s.integer("augment_search_per_scan", cfg.svm.augment_search_per_scan, 0, 100, "");
+  s.finish();
+}
+
+void read_perfect_match_section(YamlSection s, Config& cfg) {
+  s.number("lc_m", cfg.pm.lc_m, 1e-4, 10.0, "m");
+  s.number("fit_lc_m", cfg.pm.fit_lc_m, 0.0, 10.0, "m");
+  s.number("eta_plus", cfg.pm.eta_plus, 1.0, 5.0, "");
+  s.number("eta_minus", cfg.pm.eta_minus, 0.01, 1.0, "");
+  s.number("step_initial_m", cfg.pm.step_initial_m, 1e-9, 1.0, "m");
+  s.number("step_min_m", cfg.pm.step_min_m, 1e-9, 1.0, "m");
+  s.number("step_max_m", cfg.pm.step_max_m, 1e-9, 1.0, "m");
+  s.number("step_initial_rad", cfg.pm.step_initial_rad, 1e-9, 1.0, "rad");
+  s.number("step_min_rad", cfg.pm.step_min_rad, 1e-9, 1.0, "rad");
+  s.number("step_max_rad", cfg.pm.step_max_rad, 1e-9, 1.0, "rad");
+  s.integer("max_iterations", cfg.pm.max_iterations, 1, 100000, "");
+  s.integer("max_points", cfg.pm.max_points, 10, 1000000, "points");
+  s.number("informative_fraction", cfg.pm.informative_fraction, 0.0, 1.0, "");
+  s.integer("coarse_points", cfg.pm.coarse_points, 0, 1000000, "points");
+  s.integer("coarse_iterations", cfg.pm.coarse_iterations, 0, 100000, "");
+  s.integer("level_passes", cfg.pm.level_passes, 0, 10, "");
+  s.number("level_clip_m", cfg.pm.level_clip_m, 1e-4, 0.1, "m");
+  s.finish();
+  if (cfg.pm.step_min_m > cfg.pm.step_initial_m || cfg.pm.step_initial_m > cfg.pm.step_max_m) {
+    s.error("step_initial_m", "must lie between perfect_match.step_min_m and perfect_match.step_max_m");
+  }
+  if (cfg.pm.step_min_rad > cfg.pm.step_initial_rad || cfg.pm.step_initial_rad > cfg.pm.step_max_rad) {
+    s.error("step_initial_rad", "must lie between perfect_match.step_min_rad and perfect_match.step_max_rad");
+  }
+}
+
+void read_cascade_section(YamlSection s, Config& cfg) {
+  s.number("accept_p1", cfg.cascade.accept_p1, 0.0, 1.0, "");
+  s.number("accept_p2_max", cfg.cascade.accept_p2_max, 0.0, 1.0, "");
+  s.integer("pm_candidates", cfg.cascade.pm_candidates, 1, 64, "classes");
+  s.number("verify_budget_ms", cfg.cascade.verify_budget_ms, 1.0, 3000.0, "ms");
+  s.number("stop_ratio", cfg.cascade.stop_ratio, 0.0, 1.0, "");
+  s.number("margin_ratio", cfg.cascade.margin_ratio, 0.0, 1.0, "");
+  s.number("margin_floor_m2", cfg.cascade.margin_floor_m2, 0.0, 1.0, "m^2");
+  s.number("near_fail_factor", cfg.cascade.near_fail_factor, 1.0, 100.0, "");
+  s.number("blob_window_m", cfg.cascade.blob_window_m, 0.0, 0.05, "m");
+  s.number("depth_tolerance_m", cfg.cascade.depth_tolerance_m, 1e-4, 0.1, "m");
+  s.boolean("per_cell_depth", cfg.cascade.per_cell_depth);
+  s.number("fine_window_m", cfg.cascade.fine_window_m, 0.0, 0.05, "m");
+  s.number("fine_depth_tolerance_m", cfg.cascade.fine_depth_tolerance_m, 1e-4, 0.1, "m");
+  s.integer("refine_iterations", cfg.cascade.refine_iterations, 0, 1000, "");
+  s.boolean("level_depth", cfg.cascade.level_depth);
+  s.number("error_factor", cfg.cascade.error_factor, 1.0, 100.0, "");
+  s.number("error_floor", cfg.cascade.error_floor, 0.0, 1.0, "");
+  s.number("error_margin_floor", cfg.cascade.error_margin_floor, 0.0, 1.0, "");
+  s.number("area_factor", cfg.cascade.area_factor, 1.0, 100.0, "");
+  s.number("area_floor_m2", cfg.cascade.area_floor_m2, 0.0, 1.0, "m^2");
+  s.number("share_factor", cfg.cascade.share_factor, 1.0, 100.0, "");
+  s.number("share_floor", cfg.cascade.share_floor, 0.0, 1.0, "");
+  s.number("weak_evidence_weight", cfg.cascade.weak_evidence_weight, 0.0, 1.0, "");
+  s.number("band_elongation", cfg.cascade.band_elongation, 1.0, 1000.0, "");
+  s.number("band_contact_max", cfg.cascade.band_contact_max, 0.0, 1.0, "");
+  s.number("band_max_width_m", cfg.cascade.band_max_width_m, 0.0, 1.0, "m");
+  s.number("verify_all_lost_m2", cfg.cascade.verify_all_lost_m2, 0.0, 1.0, "m^2");
+  s.number("size_factor", cfg.cascade.size_factor, 1.0, 100.0, "");
+  s.number("size_floor_m", cfg.cascade.size_floor_m, 0.0, 1.0, "m");
+  s.number("robust_k", cfg.cascade.robust_k, 1.0, 100.0, "");
+  s.finish();
+}
+
+void read_runtime_section(YamlSection s, Config& cfg) {
+  s.integer("deadline_ms", cfg.runtime.deadline_ms, 10, 60000, "ms");
+  s.boolean("lock_memory", cfg.runtime.lock_memory);
+  s.integer("realtime_priority", cfg.runtime.realtime_priority, 0, 99, "");
+  s.text("models_dir", cfg.runtime.models_dir);
+  s.finish();
+}
+
+// The sections after the rig and the simulator, in the order of the shipped file.
 void read_rest(YamlSection& root, Config& cfg) {
-  {
-    YamlSection g = root.section("grid");
-    g.vec3("origin_m", cfg.grid.origin_m, -5.0, 5.0, "m");
-    g.integer("nx", cfg.grid.nx, 8, 4096, "cells");
-    g.integer("ny", cfg.grid.ny, 8, 4096, "cells");
-    g.integer("nz", cfg.grid.nz, 8, 4096, "cells");
-    g.number("resolution_m", cfg.grid.resolution_m, 0.0002, 0.05, "m");
-    g.finish();
-  }
-  {
-    YamlSection c = root.section("camera");
-    c.choice("backend", cfg.camera.backend, {"sim", "v4l2"});
-    c.text("device", cfg.camera.device);
-    c.integer("buffers", cfg.camera.buffers, 4, 32, "buffers");
-    c.integer("timeout_ms", cfg.camera.timeout_ms, 10, 60000, "ms");
-    c.number("exposure_us", cfg.camera.exposure_us, 1.0, 1e6, "us");
-    c.number("exposure_min_us", cfg.camera.exposure_min_us, 1.0, 1e6, "us");
-    c.number("exposure_max_us", cfg.camera.exposure_max_us, 1.0, 1e6, "us");
-    c.boolean("external_trigger", cfg.camera.external_trigger);
-    c.integer("trigger_control_id", cfg.camera.trigger_control_id, 0, 0xFFFFFFFFLL, "");
-    c.integer("trigger_control_value", cfg.camera.trigger_control_value, -1000000, 1000000, "");
-    if (cfg.camera.exposure_min_us > cfg.camera.exposure_max_us)
-      c.error("exposure_min_us", "must not exceed camera.exposure_max_us");
-    c.finish();
-  }
-  {
-    YamlSection e = root.section("exposure");
-    e.number("width_min_px", cfg.exposure.width_min_px, 0.5, 100.0, "px");
-    e.number("width_max_px", cfg.exposure.width_max_px, 0.5, 100.0, "px");
-    if (cfg.exposure.width_min_px >= cfg.exposure.width_max_px) e.error("width_min_px", "must be below exposure.width_max_px");
-    e.number("max_step_ratio", cfg.exposure.max_step_ratio, 1.01, 10.0, "");
-    e.finish();
-  }
-  {
-    YamlSection g = root.section("gpio");
-    g.choice("backend", cfg.gpio.backend, {"sim", "gpiod"});
-    g.text("chip", cfg.gpio.chip);
-    g.integer("laser_line", cfg.gpio.laser_line, 0, 1023, "");
-    g.integer("trigger_line", cfg.gpio.trigger_line, 0, 1023, "");
-    g.integer("part_present_line", cfg.gpio.part_present_line, 0, 1023, "");
-    g.integer("encoder_a_line", cfg.gpio.encoder_a_line, 0, 1023, "");
-    g.integer("encoder_b_line", cfg.gpio.encoder_b_line, 0, 1023, "");
-    g.boolean("part_present_active_low", cfg.gpio.part_present_active_low);
-    g.boolean("laser_active_low", cfg.gpio.laser_active_low);
-    g.boolean("trigger_active_low", cfg.gpio.trigger_active_low);
-    g.boolean("encoder_reverse", cfg.gpio.encoder_reverse);
-    g.integer("trigger_pulse_us", cfg.gpio.trigger_pulse_us, 1, 100000, "us");
-    g.integer("debounce_us", cfg.gpio.debounce_us, 0, 1000000, "us");
-    g.finish();
-  }
-  {
-    YamlSection m = root.section("modbus");
-    m.text("bind_address", cfg.modbus.bind_address);
-    // libmodbus listens on a numeric IPv4 address only: a host name or a bad address would fail at `run` time.
-    in_addr parsed{};
-    if (::inet_pton(AF_INET, cfg.modbus.bind_address.c_str(), &parsed) != 1) {
-      m.error("bind_address", "'" + cfg.modbus.bind_address +
-                                  "' is not valid, expected a dotted IPv4 address such as 0.0.0.0 (every interface) "
-                                  "or 192.168.0.10 (host names are not accepted)");
-    }
-    m.integer("port", cfg.modbus.port, 1, 65535, "");
-    m.integer("max_clients", cfg.modbus.max_clients, 1, 64, "clients");
-    m.integer("byte_timeout_ms", cfg.modbus.byte_timeout_ms, 1, 10000, "ms");
-    m.integer("plc_heartbeat_timeout_ms", cfg.modbus.plc_heartbeat_timeout_ms, 0, 600000, "ms");
-    m.integer("result_queue_depth", cfg.modbus.result_queue_depth, 1, 256, "results");
-    m.finish();
-  }
-  {
-    YamlSection s = root.section("support");
-    s.number("distance_threshold_mm", cfg.support.distance_threshold_mm, 0.1, 100.0, "mm");
-    s.finish();
-  }
-  {
-    YamlSection s = root.section("svm");
-    s.number("sa_start_temperature", cfg.svm.sa_start_temperature, 1e-6, 1e6, "");
-    s.number("sa_cooling_ratio", cfg.svm.sa_cooling_ratio, 0.5, 0.9999, "");
-    s.integer("sa_iterations", cfg.svm.sa_iterations, 1, 100000, "");
-    s.integer("folds", cfg.svm.folds, 2, 50, "");
-    s.number("train_fraction", cfg.svm.train_fraction, 0.1, 0.95, "");
-    s.choice("kernel", cfg.svm.kernel, {"rbf", "poly"});
-    s.integer("threads", cfg.svm.threads, 0, 256, "threads");
-    s.integer("seed", cfg.svm.seed, 0, INT64_MAX, "");
-    s.integer("augment_per_scan", cfg.svm.augment_per_scan, 0, 100, "");
-    s.integer("augment_search_per_scan", cfg.svm.augment_search_per_scan, 0, 100, "");
-    s.finish();
-  }
-  {
-    YamlSection s = root.section("perfect_match");
-    s.number("lc_m", cfg.pm.lc_m, 1e-4, 10.0, "m");
-    s.number("fit_lc_m", cfg.pm.fit_lc_m, 0.0, 10.0, "m");
-    s.number("eta_plus", cfg.pm.eta_plus, 1.0, 5.0, "");
-    s.number("eta_minus", cfg.pm.eta_minus, 0.01, 1.0, "");
-    s.number("step_initial_m", cfg.pm.step_initial_m, 1e-9, 1.0, "m");
-    s.number("step_min_m", cfg.pm.step_min_m, 1e-9, 1.0, "m");
-    s.number("step_max_m", cfg.pm.step_max_m, 1e-9, 1.0, "m");
-    s.number("step_initial_rad", cfg.pm.step_initial_rad, 1e-9, 1.0, "rad");
-    s.number("step_min_rad", cfg.pm.step_min_rad, 1e-9, 1.0, "rad");
-    s.number("step_max_rad", cfg.pm.step_max_rad, 1e-9, 1.0, "rad");
-    s.integer("max_iterations", cfg.pm.max_iterations, 1, 100000, "");
-    s.integer("max_points", cfg.pm.max_points, 10, 1000000, "points");
-    s.number("informative_fraction", cfg.pm.informative_fraction, 0.0, 1.0, "");
-    s.integer("coarse_points", cfg.pm.coarse_points, 0, 1000000, "points");
-    s.integer("coarse_iterations", cfg.pm.coarse_iterations, 0, 100000, "");
-    s.integer("level_passes", cfg.pm.level_passes, 0, 10, "");
-    s.number("level_clip_m", cfg.pm.level_clip_m, 1e-4, 0.1, "m");
-    s.finish();
-    if (cfg.pm.step_min_m > cfg.pm.step_initial_m || cfg.pm.step_initial_m > cfg.pm.step_max_m) {
-      s.error("step_initial_m", "must lie between perfect_match.step_min_m and perfect_match.step_max_m");
-    }
-    if (cfg.pm.step_min_rad > cfg.pm.step_initial_rad || cfg.pm.step_initial_rad > cfg.pm.step_max_rad) {
-      s.error("step_initial_rad", "must lie between perfect_match.step_min_rad and perfect_match.step_max_rad");
-    }
-  }
-  {
-    YamlSection s = root.section("cascade");
-    s.number("accept_p1", cfg.cascade.accept_p1, 0.0, 1.0, "");
-    s.number("accept_p2_max", cfg.cascade.accept_p2_max, 0.0, 1.0, "");
-    s.integer("pm_candidates", cfg.cascade.pm_candidates, 1, 64, "classes");
-    s.number("verify_budget_ms", cfg.cascade.verify_budget_ms, 1.0, 3000.0, "ms");
-    s.number("stop_ratio", cfg.cascade.stop_ratio, 0.0, 1.0, "");
-    s.number("margin_ratio", cfg.cascade.margin_ratio, 0.0, 1.0, "");
-    s.number("margin_floor_m2", cfg.cascade.margin_floor_m2, 0.0, 1.0, "m^2");
-    s.number("near_fail_factor", cfg.cascade.near_fail_factor, 1.0, 100.0, "");
-    s.number("blob_window_m", cfg.cascade.blob_window_m, 0.0, 0.05, "m");
-    s.number("depth_tolerance_m", cfg.cascade.depth_tolerance_m, 1e-4, 0.1, "m");
-    s.boolean("per_cell_depth", cfg.cascade.per_cell_depth);
-    s.number("fine_window_m", cfg.cascade.fine_window_m, 0.0, 0.05, "m");
-    s.number("fine_depth_tolerance_m", cfg.cascade.fine_depth_tolerance_m, 1e-4, 0.1, "m");
-    s.integer("refine_iterations", cfg.cascade.refine_iterations, 0, 1000, "");
-    s.boolean("level_depth", cfg.cascade.level_depth);
-    s.number("error_factor", cfg.cascade.error_factor, 1.0, 100.0, "");
-    s.number("error_floor", cfg.cascade.error_floor, 0.0, 1.0, "");
-    s.number("error_margin_floor", cfg.cascade.error_margin_floor, 0.0, 1.0, "");
-    s.number("area_factor", cfg.cascade.area_factor, 1.0, 100.0, "");
-    s.number("area_floor_m2", cfg.cascade.area_floor_m2, 0.0, 1.0, "m^2");
-    s.number("share_factor", cfg.cascade.share_factor, 1.0, 100.0, "");
-    s.number("share_floor", cfg.cascade.share_floor, 0.0, 1.0, "");
-    s.number("weak_evidence_weight", cfg.cascade.weak_evidence_weight, 0.0, 1.0, "");
-    s.number("band_elongation", cfg.cascade.band_elongation, 1.0, 1000.0, "");
-    s.number("band_contact_max", cfg.cascade.band_contact_max, 0.0, 1.0, "");
-    s.number("band_max_width_m", cfg.cascade.band_max_width_m, 0.0, 1.0, "m");
-    s.number("verify_all_lost_m2", cfg.cascade.verify_all_lost_m2, 0.0, 1.0, "m^2");
-    s.number("size_factor", cfg.cascade.size_factor, 1.0, 100.0, "");
-    s.number("size_floor_m", cfg.cascade.size_floor_m, 0.0, 1.0, "m");
-    s.number("robust_k", cfg.cascade.robust_k, 1.0, 100.0, "");
-    s.finish();
-  }
-  {
-    YamlSection s = root.section("runtime");
-    s.integer("deadline_ms", cfg.runtime.deadline_ms, 10, 60000, "ms");
-    s.boolean("lock_memory", cfg.runtime.lock_memory);
-    s.integer("realtime_priority", cfg.runtime.realtime_priority, 0, 99, "");
-    s.text("models_dir", cfg.runtime.models_dir);
-    s.finish();
-  }
+  read_grid_section(root.section("grid"), cfg);
+  read_camera_section(root.section("camera"), cfg);
+  read_exposure_section(root.section("exposure"), cfg);
+  read_gpio_section(root.section("gpio"), cfg);
+  read_modbus_section(root.section("modbus"), cfg);
+  read_support_section(root.section("support"), cfg);
+  read_svm_section(root.section("svm"), cfg);
+  read_perfect_match_section(root.section("perfect_match"), cfg);
+  read_cascade_section(root.section("cascade"), cfg);
+  read_runtime_section(root.section("runtime"), cfg);
 }
 
 }  // namespace
@@ -329,6 +340,14 @@ Expected<Config> find_and_load_config(const std::string& explicit_path) {
   std::string where;
   for (const auto& c : candidates) where += (where.empty() ? "" : ", ") + c;
   return make_error("no configuration found (looked at " + where + "); pass --config FILE or set CELLSIGHT_CONFIG");
+}
+
+std::string default_calibration_path(const Config& config) {
+  std::error_code ec;
+  if (!config.source.empty() && config.source.front() != '(' && fs::is_regular_file(config.source, ec)) {
+    return (fs::path(config.source).parent_path() / "calibration.yaml").lexically_normal().string();
+  }
+  return "config/calibration.yaml";
 }
 
 }  // namespace cellsight::app

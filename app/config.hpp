@@ -114,5 +114,7 @@ struct Config {
 [[nodiscard]] Expected<Config> parse_config(const std::string& text, const std::string& path);
 // Finds the config: explicit path, $CELLSIGHT_CONFIG, ./config/cellsight.yaml, <exe>/../config, /etc/cellsight.
 [[nodiscard]] Expected<Config> find_and_load_config(const std::string& explicit_path);
+// calibration.yaml beside the configuration file (config/calibration.yaml with the built-in defaults).
+[[nodiscard]] std::string default_calibration_path(const Config& config);
 
 }  // namespace cellsight::app

@@ -3,12 +3,12 @@
 
 #include <cstdio>
 
-#include "algo/ply.hpp"
-#include "app/atomic_file.hpp"
-#include "app/calibration_file.hpp"
 #include "app/cli.hpp"
-#include "app/input_file.hpp"
 #include "app/train_mode.hpp"
+#include "base/atomic_file.hpp"
+#include "formats/calibration_file.hpp"
+#include "formats/input_file.hpp"
+#include "formats/ply.hpp"
 
 namespace cellsight::app {
 namespace {

@@ -6,11 +6,11 @@
 #include <limits>
 
 #include "algo/support.hpp"
-#include "app/calibration_file.hpp"
 #include "app/scan_mode.hpp"
 #include "base/crc32.hpp"
 #include "base/file_read.hpp"
 #include "drivers/log.hpp"
+#include "formats/calibration_file.hpp"
 
 namespace cellsight::app {
 

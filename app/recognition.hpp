@@ -3,28 +3,27 @@
 #pragma once
 
 #include <memory>
+#include <opencv2/core.hpp>
 #include <optional>
-#include <vector>
 #include <span>
 #include <string>
 #include <string_view>
-
-#include <opencv2/core.hpp>
+#include <vector>
 
 #include "algo/canonical.hpp"
 #include "algo/cascade.hpp"
 #include "algo/features.hpp"
-#include "algo/perfect_match.hpp"
-#include "algo/svm.hpp"
 #include "algo/grid.hpp"
 #include "algo/part_isolation.hpp"
+#include "algo/perfect_match.hpp"
 #include "algo/result.hpp"
 #include "algo/scan.hpp"
 #include "algo/sensor_model.hpp"
+#include "algo/svm.hpp"
 #include "app/config.hpp"
 #include "app/model_db.hpp"
-#include "app/template_file.hpp"
 #include "app/recogniser.hpp"
+#include "formats/template_file.hpp"
 
 namespace cellsight::app {
 

@@ -22,7 +22,6 @@
 #include <string_view>
 #include <thread>
 
-#include "app/calibration_file.hpp"
 #include "app/cli.hpp"
 #include "app/devices.hpp"
 #include "app/model_db.hpp"
@@ -31,10 +30,11 @@
 #include "app/scan_mode.hpp"
 #include "app/service_notify.hpp"
 #include "app/sim_mode.hpp"
-#include "app/template_file.hpp"
 #include "drivers/log.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "drivers/sim/sim_faults.hpp"
+#include "formats/calibration_file.hpp"
+#include "formats/template_file.hpp"
 
 namespace cellsight::app {
 

@@ -8,18 +8,18 @@
 #include <filesystem>
 #include <mutex>
 
-#include "algo/ply.hpp"
 #include "algo/support.hpp"
 #include "app/acquire.hpp"
-#include "app/atomic_file.hpp"
-#include "app/calibration_file.hpp"
 #include "app/devices.hpp"
-#include "app/input_file.hpp"
-#include "app/local_time.hpp"
 #include "app/perturb_mode.hpp"
 #include "app/sim_mode.hpp"
+#include "base/atomic_file.hpp"
+#include "base/local_time.hpp"
 #include "base/parallel_for.hpp"
 #include "drivers/log.hpp"
+#include "formats/calibration_file.hpp"
+#include "formats/input_file.hpp"
+#include "formats/ply.hpp"
 
 namespace cellsight::app {
 

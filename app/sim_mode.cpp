@@ -10,8 +10,8 @@
 #include <opencv2/imgcodecs.hpp>
 #include <sstream>
 
-#include "app/atomic_file.hpp"
 #include "app/catalogue.hpp"
+#include "base/atomic_file.hpp"
 #include "drivers/log.hpp"
 #include "drivers/sim/random_catalogue.hpp"
 

@@ -4,26 +4,26 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
-#include <limits>
-#include <optional>
 #include <cstdio>
 #include <filesystem>
+#include <limits>
+#include <optional>
 
 #include "algo/part_isolation.hpp"
-#include "algo/ply.hpp"
-#include "app/atomic_file.hpp"
-#include "app/calibration_file.hpp"
 #include "app/cli.hpp"
-#include "app/input_file.hpp"
-#include "app/local_time.hpp"
 #include "app/mode_args.hpp"
 #include "app/perturb_mode.hpp"
 #include "app/recognition.hpp"
 #include "app/scan_mode.hpp"
-#include "app/template_file.hpp"
 #include "app/train_mode.hpp"
+#include "base/atomic_file.hpp"
 #include "base/crc32.hpp"
+#include "base/local_time.hpp"
 #include "drivers/log.hpp"
+#include "formats/calibration_file.hpp"
+#include "formats/input_file.hpp"
+#include "formats/ply.hpp"
+#include "formats/template_file.hpp"
 
 namespace cellsight::app {
 namespace {

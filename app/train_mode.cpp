@@ -9,20 +9,21 @@
 #include <set>
 
 #include "algo/augment.hpp"
-#include "algo/ply.hpp"
 #include "algo/splitmix.hpp"
-#include "app/atomic_file.hpp"
-#include "app/calibration_file.hpp"
 #include "app/cli.hpp"
-#include "app/local_time.hpp"
 #include "app/mode_args.hpp"
 #include "app/recognition.hpp"
 #include "app/scan_mode.hpp"
+#include "app/train_progress.hpp"
 #include "app/train_report.hpp"
+#include "base/atomic_file.hpp"
 #include "base/crc32.hpp"
 #include "base/file_read.hpp"
+#include "base/local_time.hpp"
 #include "base/parallel_for.hpp"
 #include "drivers/log.hpp"
+#include "formats/calibration_file.hpp"
+#include "formats/ply.hpp"
 
 namespace cellsight::app {
 namespace {
@@ -234,24 +235,21 @@ Expected<std::vector<std::vector<algo::MatchReport>>> cross_matches(const Config
   return out;
 }
 
-int run_train(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
-  ModeArgs args;
-  std::string error;
-  if (!parse_mode_args(words, {"--report", "--calibration", "--iterations", "--seed"}, {"--compare"}, args, error) ||
-      !args.positional.empty()) {
-    std::fprintf(stderr, "cellsight train: %s\n",
-                 error.empty() ? ("unexpected argument '" + args.positional.front() + "'").c_str() : error.c_str());
-    return kExitUsage;
-  }
-  const auto fail = [](int code, const std::string& message) {
-    std::fprintf(stderr, "cellsight train: %s\n", message.c_str());
-    return code;
-  };
-  auto db = ModelDb::open_for_writing(models_dir, grid_spec(config), false);
-  if (!db) return fail(kExitUsage, db.error().message);
-  const Manifest& m = db->manifest();
+namespace {
 
-  algo::TrainParams params;
+// A refusal of `cellsight train`: the exit code and the message printed after "cellsight train: ".
+struct TrainFailure {
+  int code = kExitUsage;
+  std::string message;
+};
+
+int report_failure(const TrainFailure& failure) {
+  std::fprintf(stderr, "cellsight train: %s\n", failure.message.c_str());
+  return failure.code;
+}
+
+// The training parameters: the configuration's, then --iterations, --seed and --compare.
+std::optional<TrainFailure> read_train_params(const ModeArgs& args, const Config& config, algo::TrainParams& params) {
   params.annealing.start_temperature = config.svm.sa_start_temperature;
   params.annealing.cooling_ratio = config.svm.sa_cooling_ratio;
   params.annealing.iterations = config.svm.sa_iterations;
@@ -263,19 +261,27 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
   params.compare = args.has("--compare");
   if (const std::string* v = args.value("--iterations")) {
     std::int64_t n = 0;
-    if (!parse_whole(*v, 0, 100000, n)) return fail(kExitUsage, "--iterations '" + *v + "': expected 0..100000");
+    if (!parse_whole(*v, 0, 100000, n))
+      return TrainFailure{kExitUsage, "--iterations '" + *v + "': expected 0..100000"};
     params.annealing.iterations = static_cast<int>(n);
   }
   if (const std::string* v = args.value("--seed")) {
     std::int64_t n = 0;
-    if (!parse_whole(*v, 0, INT64_MAX, n)) return fail(kExitUsage, "--seed '" + *v + "': expected a whole number");
+    if (!parse_whole(*v, 0, INT64_MAX, n))
+      return TrainFailure{kExitUsage, "--seed '" + *v + "': expected a whole number"};
     params.seed = static_cast<std::uint64_t>(n);
   }
+  return std::nullopt;
+}
 
-  // Everything that can be refused is refused before hours of work start.
+// Training scans per part: train_fraction of the fewest scans any part has. Refuses a database that cannot be
+// trained (fewer than two parts, a part with too few scans) before hours of work start, and lowers the folds to
+// the training scans when they are fewer.
+Expected<int> train_scans_per_part(const Manifest& m, const Config& config, const std::string& models_dir,
+                                   algo::TrainParams& params) {
   if (m.parts.size() < 2) {
-    return fail(kExitUsage, "the database " + models_dir + " has " + std::to_string(m.parts.size()) +
-                                " part(s); the SVM needs at least two taught parts");
+    return make_error("the database " + models_dir + " has " + std::to_string(m.parts.size()) +
+                      " part(s); the SVM needs at least two taught parts");
   }
   // A part taught with few scans (5 is a normal first teach) lowers the folds to its training scans rather than
   // being refused: cross-validation needs at least two, and one scan must stay back for the test.
@@ -290,94 +296,78 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
              need - static_cast<int>(std::lround(config.svm.train_fraction * need)) < 1) {
         ++need;
       }
-      return fail(kExitUsage, "part '" + p.name + "' has " + std::to_string(n) + " scans: with train_fraction " +
-                                  std::to_string(config.svm.train_fraction) + " it needs at least " +
-                                  std::to_string(need) + " (two for cross-validation, one held back for the test; " +
-                                  "teach more: cellsight teach --part " + p.name + " ...)");
+      return make_error("part '" + p.name + "' has " + std::to_string(n) + " scans: with train_fraction " +
+                        std::to_string(config.svm.train_fraction) + " it needs at least " + std::to_string(need) +
+                        " (two for cross-validation, one held back for the test; " +
+                        "teach more: cellsight teach --part " + p.name + " ...)");
     }
     min_scans = std::min(min_scans, n);
   }
   const int train_per_class = static_cast<int>(std::lround(config.svm.train_fraction * min_scans));
   if (train_per_class < params.folds) {
-    std::printf("note: %d-fold cross-validation instead of %d: the part with the fewest scans has %d for training "
-                "(teach more scans for the configured folds)\n",
-                train_per_class, params.folds, train_per_class);
+    std::printf(
+        "note: %d-fold cross-validation instead of %d: the part with the fewest scans has %d for training "
+        "(teach more scans for the configured folds)\n",
+        train_per_class, params.folds, train_per_class);
     params.folds = train_per_class;
   }
+  return train_per_class;
+}
 
-  const std::string* calibration_arg = args.value("--calibration");
-  auto support = load_support_plane(calibration_arg ? *calibration_arg : default_calibration_path(config));
-  if (!support) return fail(kExitUsage, support.error().message);
-
-  StopOnSignal stop_on_signal;
-  const int threads = config.svm.threads > 0 ? config.svm.threads : base::hardware_threads();
-  std::printf("computing the features of %zu taught scans of %zu parts...\n", [&] {
-    std::size_t n = 0;
-    for (const PartEntry& p : m.parts) n += p.scans.size();
-    return n;
-  }(), m.parts.size());
-  const LoadedTemplates templates = open_templates(config, *db);
-  if (!templates.problems.empty()) {
-    std::string all;
-    for (const std::string& p : templates.problems) all += "\n  " + p;
-    return fail(kExitUsage, "refused templates:" + all + "\n(delete the part with 'cellsight parts delete' and teach it again)");
-  }
-  auto taught = build_dataset(config, *db, *support, threads, &g_stop, &templates);
-  if (!taught) return fail(kExitUsage, taught.error().message);
-  auto split = algo::split_per_class(taught->data, train_per_class, params.seed);
-  if (!split) return fail(kExitUsage, split.error().message);
-
-  ProgressPrinter printer = ProgressPrinter::for_stream(stdout);
-  auto trained = algo::train_recogniser(
-      *split, params, [&](const algo::TrainingProgress& p) { printer.update(p); }, &g_stop);
-  printer.finish();
-  if (!trained) return fail(kExitFailure, trained.error().message);
-  const algo::TrainingReport& report = trained->report;
-  if (report.stopped) std::printf("stopped: the model is trained on the best feature set found so far\n");
-
-  // Acceptance thresholds of every template from its own taught scans that agree with each other, with a margin to
-  // the other parts' scans (the unknown-part decision, algo/cascade).
-  std::printf("learning the acceptance thresholds (every taught scan against every template)...\n");
-  auto others = cross_matches(config, *db, *support, threads, templates, &g_stop);
-  if (!others) return fail(kExitFailure, "thresholds: " + others.error().message);
+// What training learns for each part beside the SVM (manifest order).
+struct LearntParts {
   std::vector<PartThresholds> thresholds;
-  std::vector<algo::TemplateThresholds> learnt_thresholds;
-  std::vector<std::vector<std::string>> flagged(m.parts.size());
-  for (std::size_t c = 0; c < taught->own_matches.size(); ++c) {
+  std::vector<algo::TemplateThresholds> template_thresholds;
+  std::vector<std::vector<std::string>> flagged;  // taught scans that disagree with the part's others
+  std::vector<std::set<std::string>> confusable;  // look-alikes verified with the part
+};
+
+// Acceptance thresholds of every template from its own taught scans that agree with each other, with a margin to
+// the other parts' scans (the unknown-part decision, algo/cascade); warns about scans that disagree.
+void learn_part_thresholds(const Manifest& m, const Config& config, const TaughtData& taught,
+                           const std::vector<std::vector<algo::MatchReport>>& others, LearntParts& learnt_parts) {
+  learnt_parts.flagged.assign(m.parts.size(), {});
+  for (std::size_t c = 0; c < taught.own_matches.size(); ++c) {
     const algo::ThresholdLearning learnt =
-        algo::learn_thresholds(taught->own_matches[c], (*others)[c], cascade_params(config));
+        algo::learn_thresholds(taught.own_matches[c], others[c], cascade_params(config));
     const algo::TemplateThresholds& t = learnt.thresholds;
-    learnt_thresholds.push_back(t);
-    thresholds.push_back({true, t.max_error, t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered, t.max_outliers,
-                          t.size_centre_x_m, t.size_centre_y_m, t.max_size_dev_m});
+    learnt_parts.template_thresholds.push_back(t);
+    learnt_parts.thresholds.push_back({true, t.max_error, t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered,
+                                       t.max_outliers, t.size_centre_x_m, t.size_centre_y_m, t.max_size_dev_m});
     const PartEntry& part = m.parts[c];
-    flagged[c].clear();
     for (const int i : learnt.flagged) {
-      flagged[c].push_back(part.scans[static_cast<std::size_t>(i)].file);
-      const algo::MatchReport& r = taught->own_matches[c][static_cast<std::size_t>(i)];
-      std::printf("warning: %s: taught scan %s disagrees with the other scans of the part (PM error %.3g, missing "
-                  "%.0f mm2, extra %.0f mm2): it does not widen the thresholds; check it (glare, a stray part, the "
-                  "wrong part?)\n",
-                  part.name.c_str(), part.scans[static_cast<std::size_t>(i)].file.c_str(), r.pm.error,
-                  r.missing_area_m2 * 1e6, r.extra_area_m2 * 1e6);
+      learnt_parts.flagged[c].push_back(part.scans[static_cast<std::size_t>(i)].file);
+      const algo::MatchReport& r = taught.own_matches[c][static_cast<std::size_t>(i)];
+      std::printf(
+          "warning: %s: taught scan %s disagrees with the other scans of the part (PM error %.3g, missing "
+          "%.0f mm2, extra %.0f mm2): it does not widen the thresholds; check it (glare, a stray part, the "
+          "wrong part?)\n",
+          part.name.c_str(), part.scans[static_cast<std::size_t>(i)].file.c_str(), r.pm.error, r.missing_area_m2 * 1e6,
+          r.extra_area_m2 * 1e6);
     }
     if (learnt.other_scans_inseparable > 0) {
-      std::printf("warning: %s: %d scans of other parts cannot be told from it by any gate: those parts may be "
-                  "reported as %s; teach more scans or check the parts differ\n",
-                  part.name.c_str(), learnt.other_scans_inseparable, part.name.c_str());
+      std::printf(
+          "warning: %s: %d scans of other parts cannot be told from it by any gate: those parts may be "
+          "reported as %s; teach more scans or check the parts differ\n",
+          part.name.c_str(), learnt.other_scans_inseparable, part.name.c_str());
     }
   }
+}
 
-  // Look-alikes: a part whose scans came within kNearPassFactor of passing another's template (either way round) is
-  // verified with it at run time (algo::CascadeParams, candidate policy).
+// Look-alikes: a part whose scans came within kNearPassFactor of passing another's template (either way round) is
+// verified with it at run time (algo::CascadeParams, candidate policy).
+void find_look_alikes(const Manifest& m, const std::vector<std::vector<algo::MatchReport>>& others,
+                      LearntParts& learnt_parts) {
   constexpr double kNearPassFactor = 3.0;
-  std::vector<std::set<std::string>> confusable(m.parts.size());
+  std::vector<std::set<std::string>>& confusable = learnt_parts.confusable;
+  confusable.assign(m.parts.size(), {});
   for (std::size_t c = 0; c < m.parts.size(); ++c) {
-    std::size_t k = 0;  // (*others)[c] holds the other classes' scans in manifest order
+    std::size_t k = 0;  // others[c] holds the other classes' scans in manifest order
     for (std::size_t o = 0; o < m.parts.size(); ++o) {
       if (o == c) continue;
       for (std::size_t s = 0; s < m.parts[o].scans.size(); ++s, ++k) {
-        if (k < (*others)[c].size() && algo::near_pass((*others)[c][k], learnt_thresholds[c], kNearPassFactor)) {
+        if (k < others[c].size() &&
+            algo::near_pass(others[c][k], learnt_parts.template_thresholds[c], kNearPassFactor)) {
           confusable[c].insert(m.parts[o].name);
           confusable[o].insert(m.parts[c].name);
         }
@@ -390,44 +380,53 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
     for (const std::string& n : confusable[c]) list += (list.empty() ? "" : ", ") + n;
     std::printf("%s: look-alikes verified with it: %s\n", m.parts[c].name.c_str(), list.c_str());
   }
+}
 
-  // Atomic update: the new model under a new name, then the manifest that points at it, then the old one goes.
+// Atomic update: the new model under a new name, then the manifest that points at it, then the old one goes.
+// Returns the model's file name (relative to the database).
+Expected<std::string> store_trained_model(ModelDb& db, const algo::TrainingResult& trained,
+                                          const LearntParts& learnt_parts) {
+  const algo::TrainingReport& report = trained.report;
   const std::string model_file = "svm-" + local_time_text().substr(0, 10) + "-" +
                                  std::to_string(static_cast<long long>(std::time(nullptr))) + ".model";
-  const std::string blob = trained->model.serialize();
-  if (auto ok = write_file_atomic(db->path_of(model_file), blob); !ok) return fail(kExitFailure, ok.error().message);
-  const std::string old_model = m.svm.present ? m.svm.file : "";
-  Manifest& mm = db->manifest();
+  const std::string blob = trained.model.serialize();
+  if (auto ok = write_file_atomic(db.path_of(model_file), blob); !ok) return ok.error();
+  const std::string old_model = db.manifest().svm.present ? db.manifest().svm.file : "";
+  Manifest& mm = db.manifest();
   mm.feature_version = algo::kFeatureVersion;
   mm.svm.present = true;
   mm.svm.file = model_file;
   mm.svm.crc32 = base::crc32(blob);
   mm.svm.trained_at = local_time_text();
-  mm.svm.parts_fingerprint = db->parts_fingerprint();
+  mm.svm.parts_fingerprint = db.parts_fingerprint();
   mm.svm.test_accuracy = report.svm.test_accuracy;
   mm.svm.cv_accuracy = report.svm.cv_accuracy;
   mm.svm.train_scans = report.train_samples;
   mm.svm.test_scans = report.test_samples;
-  mm.svm.active_features = trained->model.active_features();
+  mm.svm.active_features = trained.model.active_features();
   mm.svm.hyper = report.svm.parameters;
   for (std::size_t c = 0; c < mm.parts.size(); ++c) {
-    mm.parts[c].thresholds = thresholds[c];
-    mm.parts[c].confusable.assign(confusable[c].begin(), confusable[c].end());
-    mm.parts[c].flagged = flagged[c];
+    mm.parts[c].thresholds = learnt_parts.thresholds[c];
+    mm.parts[c].confusable.assign(learnt_parts.confusable[c].begin(), learnt_parts.confusable[c].end());
+    mm.parts[c].flagged = learnt_parts.flagged[c];
   }
-  if (auto ok = db->save(); !ok) {
+  if (auto ok = db.save(); !ok) {
     std::error_code ec;
-    std::filesystem::remove(db->path_of(model_file), ec);
-    return fail(kExitFailure, ok.error().message + " (the database is unchanged)");
+    std::filesystem::remove(db.path_of(model_file), ec);
+    return make_error(ok.error().message + " (the database is unchanged)");
   }
   if (!old_model.empty() && old_model != model_file) {
     std::error_code ec;
-    std::filesystem::remove(db->path_of(old_model), ec);
+    std::filesystem::remove(db.path_of(old_model), ec);
   }
+  return model_file;
+}
 
+void print_training_result(const algo::TrainingResult& trained, const std::string& model_path) {
+  const algo::TrainingReport& report = trained.report;
   std::printf("SVM: %.2f %% on the %d held-back test scans (%d-fold CV %.2f %%), %d of %d features, %s\n",
               report.svm.test_accuracy * 100.0, report.test_samples, report.folds, report.svm.cv_accuracy * 100.0,
-              trained->model.active_features(), algo::kFeatureCount, report.svm.parameters.c_str());
+              trained.model.active_features(), algo::kFeatureCount, report.svm.parameters.c_str());
   if (report.knn) {
     std::printf("kNN: %.2f %% test (CV %.2f %%), %s\n", report.knn->test_accuracy * 100.0,
                 report.knn->cv_accuracy * 100.0, report.knn->parameters.c_str());
@@ -436,15 +435,83 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
     std::printf("MLP: %.2f %% test (CV %.2f %%), %s\n", report.mlp->test_accuracy * 100.0,
                 report.mlp->cv_accuracy * 100.0, report.mlp->parameters.c_str());
   }
-  std::printf("model -> %s (%.1f s)\n", db->path_of(model_file).c_str(), report.seconds);
+  std::printf("model -> %s (%.1f s)\n", model_path.c_str(), report.seconds);
+}
+
+}  // namespace
+
+int run_train(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
+  ModeArgs args;
+  std::string error;
+  if (!parse_mode_args(words, {"--report", "--calibration", "--iterations", "--seed"}, {"--compare"}, args, error) ||
+      !args.positional.empty()) {
+    std::fprintf(stderr, "cellsight train: %s\n",
+                 error.empty() ? ("unexpected argument '" + args.positional.front() + "'").c_str() : error.c_str());
+    return kExitUsage;
+  }
+  auto db = ModelDb::open_for_writing(models_dir, grid_spec(config), false);
+  if (!db) return report_failure({kExitUsage, db.error().message});
+  const Manifest& m = db->manifest();
+
+  algo::TrainParams params;
+  if (auto refused = read_train_params(args, config, params)) return report_failure(*refused);
+  auto train_per_class = train_scans_per_part(m, config, models_dir, params);
+  if (!train_per_class) return report_failure({kExitUsage, train_per_class.error().message});
+
+  const std::string* calibration_arg = args.value("--calibration");
+  auto support = load_support_plane(calibration_arg ? *calibration_arg : default_calibration_path(config));
+  if (!support) return report_failure({kExitUsage, support.error().message});
+
+  StopOnSignal stop_on_signal;
+  const int threads = config.svm.threads > 0 ? config.svm.threads : base::hardware_threads();
+  std::printf(
+      "computing the features of %zu taught scans of %zu parts...\n",
+      [&] {
+        std::size_t n = 0;
+        for (const PartEntry& p : m.parts) n += p.scans.size();
+        return n;
+      }(),
+      m.parts.size());
+  const LoadedTemplates templates = open_templates(config, *db);
+  if (!templates.problems.empty()) {
+    std::string all;
+    for (const std::string& p : templates.problems) all += "\n  " + p;
+    return report_failure({kExitUsage, "refused templates:" + all +
+                                           "\n(delete the part with 'cellsight parts delete' and teach it again)"});
+  }
+  auto taught = build_dataset(config, *db, *support, threads, &g_stop, &templates);
+  if (!taught) return report_failure({kExitUsage, taught.error().message});
+  auto split = algo::split_per_class(taught->data, *train_per_class, params.seed);
+  if (!split) return report_failure({kExitUsage, split.error().message});
+
+  ProgressPrinter printer = ProgressPrinter::for_stream(stdout);
+  auto trained = algo::train_recogniser(
+      *split, params, [&](const algo::TrainingProgress& p) { printer.update(p); }, &g_stop);
+  printer.finish();
+  if (!trained) return report_failure({kExitFailure, trained.error().message});
+  const algo::TrainingReport& report = trained->report;
+  if (report.stopped) std::printf("stopped: the model is trained on the best feature set found so far\n");
+
+  std::printf("learning the acceptance thresholds (every taught scan against every template)...\n");
+  auto others = cross_matches(config, *db, *support, threads, templates, &g_stop);
+  if (!others) return report_failure({kExitFailure, "thresholds: " + others.error().message});
+  LearntParts learnt_parts;
+  learn_part_thresholds(m, config, *taught, *others, learnt_parts);
+  find_look_alikes(m, *others, learnt_parts);
+
+  auto model_file = store_trained_model(*db, *trained, learnt_parts);
+  if (!model_file) return report_failure({kExitFailure, model_file.error().message});
+  print_training_result(*trained, db->path_of(*model_file));
   if (const std::string* dir = args.value("--report")) {
     TrainReportContext context;
-    context.model_db_path = db->path_of(model_file);
+    context.model_db_path = db->path_of(*model_file);
     context.dataset = models_dir + ": " + std::to_string(m.parts.size()) + " taught parts, " +
                       std::to_string(taught->data.size()) + " scans";
     context.planned_iterations = params.annealing.iterations;
     auto written = write_training_report(*dir, report, context);
-    if (!written) return fail(kExitFailure, "the model is saved, but the report failed: " + written.error().message);
+    if (!written) {
+      return report_failure({kExitFailure, "the model is saved, but the report failed: " + written.error().message});
+    }
     std::printf("report -> %s\n", written->c_str());
   }
   return kExitOk;

@@ -1,9 +1,8 @@
 // Technician calibration against independent truth: the simulated cell's rig (never read by the calibration
 // code), OpenCV projections of exact board poses, analytic stripes; and every kind of bad input refused with the
 // previous calibration.yaml left byte for byte as it was.
-#include <catch2/catch.hpp>
-
 #include <algorithm>
+#include <catch2/catch.hpp>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -14,9 +13,9 @@
 
 #include "algo/calibration.hpp"
 #include "app/calibrate_mode.hpp"
-#include "app/calibration_file.hpp"
 #include "app/cli.hpp"
 #include "drivers/sim/board.hpp"
+#include "formats/calibration_file.hpp"
 #include "tests/scratch_dir.hpp"
 
 using namespace cellsight;

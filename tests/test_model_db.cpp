@@ -1,12 +1,11 @@
 // The model database as the operator uses it, through the executable: teach (simulated and PLY import), parts,
 // train, classify, eval; and bad input (clear error, exit code 2, nothing in the database overwritten).
-#include <catch2/catch.hpp>
-
 #include <sys/wait.h>
 #include <unistd.h>
 
 #include <algorithm>
 #include <array>
+#include <catch2/catch.hpp>
 #include <csignal>
 #include <cstdio>
 #include <filesystem>
@@ -14,14 +13,14 @@
 #include <set>
 #include <sstream>
 
-#include "algo/ply.hpp"
-#include "app/calibration_file.hpp"
 #include "app/config.hpp"
 #include "app/model_db.hpp"
 #include "app/recognition.hpp"
-#include "app/template_file.hpp"
 #include "base/crc32.hpp"
 #include "drivers/sim/rig.hpp"
+#include "formats/calibration_file.hpp"
+#include "formats/ply.hpp"
+#include "formats/template_file.hpp"
 #include "sim_test_util.hpp"
 #include "tests/scratch_dir.hpp"
 

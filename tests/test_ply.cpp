@@ -1,12 +1,11 @@
 // PLY scans: round trips, the DESIGN.md subset (ASCII, binary LE, float/double, extra properties), and refusals.
 #include <catch2/catch.hpp>
 #include <chrono>
-
 #include <cstring>
 #include <limits>
 #include <random>
 
-#include "algo/ply.hpp"
+#include "formats/ply.hpp"
 
 using namespace cellsight;
 
@@ -136,7 +135,7 @@ TEST_CASE("Given a header that does not end within 64 kB, when read, then it is 
 TEST_CASE("Given a header whose end_header line ends just past the header limit, when read whole or judged from "
           "its first bytes, then both refuse it alike (fuzz_ply finding)") {
   // Found by tests/fuzz/fuzz_ply: parse_ply looked for the line break after end_header in the whole text, the file
-  // check (app/input_file) in the first max_header_bytes, so the in-memory reader took what classify refused.
+  // check (formats/input_file) in the first max_header_bytes, so the in-memory reader took what classify refused.
   const std::string head = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
                            "property float z\nend_header";
   const algo::PlyLimits limits{.max_vertices = 16, .max_header_bytes = head.size() + 1};

@@ -34,7 +34,6 @@
 #include <thread>
 #include <vector>
 
-#include "app/calibration_file.hpp"
 #include "app/config.hpp"
 #include "app/production_loop.hpp"
 #include "app/recogniser.hpp"
@@ -46,6 +45,7 @@
 #include "drivers/modbus/register_map.hpp"
 #include "drivers/modbus/sim_plc_link.hpp"
 #include "drivers/sim/sim_devices.hpp"
+#include "formats/calibration_file.hpp"
 #include "sim_test_util.hpp"
 #include "tests/scratch_dir.hpp"
 #include "tests/support/alloc_counter.hpp"

@@ -1,20 +1,19 @@
 // Reconstruction of simulated passes through the device interfaces, measured against the simulator's truth.
-#include <catch2/catch.hpp>
-
 #include <unistd.h>
 
 #include <algorithm>
+#include <catch2/catch.hpp>
 #include <filesystem>
 
 #include "algo/grid.hpp"
 #include "algo/support.hpp"
 #include "app/acquire.hpp"
 #include "app/calibrate_mode.hpp"
-#include "app/calibration_file.hpp"
 #include "app/config.hpp"
 #include "app/scan_mode.hpp"
 #include "app/sim_mode.hpp"
 #include "drivers/sim/sim_devices.hpp"
+#include "formats/calibration_file.hpp"
 #include "sim_test_util.hpp"
 #include "tests/scratch_dir.hpp"
 

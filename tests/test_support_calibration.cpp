@@ -1,18 +1,17 @@
 // `cellsight calibrate support`: the carrier plane from an empty-carrier scan, stored beside the sensor calibration.
-#include <catch2/catch.hpp>
-
 #include <unistd.h>
 
+#include <catch2/catch.hpp>
 #include <filesystem>
 #include <fstream>
 #include <random>
 #include <sstream>
 
-#include "algo/ply.hpp"
 #include "app/calibrate_mode.hpp"
-#include "app/calibration_file.hpp"
 #include "app/config.hpp"
 #include "app/scan_mode.hpp"
+#include "formats/calibration_file.hpp"
+#include "formats/ply.hpp"
 #include "tests/scratch_dir.hpp"
 
 using namespace cellsight;

@@ -1,4 +1,4 @@
-// Tests of app/template_file: template building against brute force, file round trip, every refusal of a bad
+// Tests of formats/template_file: template building against brute force, file round trip, every refusal of a bad
 // file (corrupt, truncated, foreign, other grid, missing), atomic replacement.
 #include <signal.h>
 #include <stdlib.h>
@@ -22,7 +22,7 @@
 #include <tuple>
 #include <vector>
 
-#include "app/template_file.hpp"
+#include "formats/template_file.hpp"
 #include "tests/scratch_dir.hpp"
 
 namespace {

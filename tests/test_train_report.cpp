@@ -16,7 +16,9 @@
 #include <string>
 #include <vector>
 
+#include "app/train_progress.hpp"
 #include "app/train_report.hpp"
+#include "app/train_report_plots.hpp"
 #include "tests/scratch_dir.hpp"
 
 using namespace cellsight;

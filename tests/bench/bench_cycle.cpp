@@ -19,7 +19,6 @@
 #include <vector>
 
 #include "../sim_test_util.hpp"
-#include "app/calibration_file.hpp"
 #include "app/config.hpp"
 #include "app/production_loop.hpp"
 #include "app/recognition.hpp"
@@ -28,6 +27,7 @@
 #include "drivers/modbus/modbus_server.hpp"
 #include "drivers/modbus/register_map.hpp"
 #include "drivers/sim/sim_devices.hpp"
+#include "formats/calibration_file.hpp"
 
 using namespace cellsight;
 using Clock = std::chrono::steady_clock;

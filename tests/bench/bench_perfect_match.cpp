@@ -30,8 +30,8 @@
 #include "app/config.hpp"
 #include "app/scan_mode.hpp"
 #include "app/sim_mode.hpp"
-#include "app/template_file.hpp"
 #include "drivers/sim/sim_devices.hpp"
+#include "formats/template_file.hpp"
 #include "tests/sim_test_util.hpp"
 
 namespace {

@@ -12,13 +12,13 @@
 #include <string>
 #include <vector>
 
-#include "algo/ply.hpp"
-#include "app/model_db.hpp"
-#include "app/calibration_file.hpp"
 #include "app/config.hpp"
+#include "app/model_db.hpp"
 #include "app/recognition.hpp"
 #include "app/train_mode.hpp"
 #include "base/file_read.hpp"
+#include "formats/calibration_file.hpp"
+#include "formats/ply.hpp"
 
 namespace {
 

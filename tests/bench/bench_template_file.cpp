@@ -1,4 +1,4 @@
-// Benchmark of app/template_file on the full default grid (296 x 500 x 182): build, write, open (mmap + header
+// Benchmark of formats/template_file on the full default grid (296 x 500 x 182): build, write, open (mmap + header
 // checks) and body verification, cold (file evicted from the page cache) and warm. Prints figures; not registered.
 // Usage: bench_template_file [FOLDER [keep]] (default: the system temp folder; keep: leave the file there)
 #include <fcntl.h>
@@ -11,7 +11,7 @@
 #include <string>
 #include <vector>
 
-#include "app/template_file.hpp"
+#include "formats/template_file.hpp"
 
 namespace {
 

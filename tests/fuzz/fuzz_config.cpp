@@ -1,4 +1,4 @@
-// libFuzzer target: the configuration (app/config, app/yaml_reader): YAML text parsed and validated as
+// libFuzzer target: the configuration (app/config, formats/yaml_reader): YAML text parsed and validated as
 // `cellsight --config` does, in memory. Whatever is accepted must satisfy the cross-field rules the reader states.
 #include <cstddef>
 #include <cstdint>

@@ -6,15 +6,15 @@
 #include <cstdio>
 #include <string>
 
-#include "app/model_db.hpp"
 #include "base/crc32.hpp"
+#include "formats/manifest.hpp"
 #include "tests/fuzz/fuzz_util.hpp"
 
 namespace {
 
 using namespace cellsight;
 
-constexpr const char* kChecksumKey = "checksum_crc32:";  // the manifest's last line (app/model_db.cpp)
+constexpr const char* kChecksumKey = "checksum_crc32:";  // the manifest's last line (formats/manifest.cpp)
 
 // Rewrites the last checksum line (or appends one) with the checksum of everything before it.
 void repair_checksum(std::string& text) {

@@ -1,4 +1,4 @@
-// libFuzzer target: PLY scans (algo/ply, app/input_file). Every input is parsed in memory and, through a file,
+// libFuzzer target: PLY scans (formats/ply, formats/input_file). Every input is parsed in memory and, through a file,
 // by the checks classify and teach run before reading a body; the two must agree, and whatever is accepted must
 // survive a write and a re-read unchanged.
 #include <cmath>
@@ -7,8 +7,8 @@
 #include <string_view>
 #include <vector>
 
-#include "algo/ply.hpp"
-#include "app/input_file.hpp"
+#include "formats/input_file.hpp"
+#include "formats/ply.hpp"
 #include "tests/fuzz/fuzz_util.hpp"
 
 namespace {

@@ -1,4 +1,4 @@
-// libFuzzer target: Perfect Match template files (app/template_file): the header reader of `parts list/show` and the
+// libFuzzer target: Perfect Match template files (formats/template_file): the header reader of `parts list/show` and the
 // checked, memory-mapped open of `run` and `classify`, on a scratch file (both take a path). Input: a mode byte,
 // then the file (tests/fuzz/fuzz_util.hpp). An opened template is sampled as Perfect Match samples it.
 #include <algorithm>
@@ -6,8 +6,8 @@
 #include <cstdint>
 #include <string>
 
-#include "app/template_file.hpp"
 #include "base/crc32.hpp"
+#include "formats/template_file.hpp"
 #include "tests/fuzz/fuzz_util.hpp"
 #include "tests/fuzz/seed_grid.hpp"
 

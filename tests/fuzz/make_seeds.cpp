@@ -8,11 +8,11 @@
 #include <string>
 #include <vector>
 
-#include "algo/ply.hpp"
 #include "algo/svm.hpp"
-#include "app/model_db.hpp"
-#include "app/template_file.hpp"
 #include "base/file_read.hpp"
+#include "formats/manifest.hpp"
+#include "formats/ply.hpp"
+#include "formats/template_file.hpp"
 #include "tests/fuzz/seed_grid.hpp"
 
 namespace {

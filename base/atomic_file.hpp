@@ -7,8 +7,10 @@
 #include <string_view>
 #include <vector>
 
-#include "algo/result.hpp"
+#include "base/result.hpp"
 
+// Namespace app until the command-line and runtime files that call it have moved out of app/ (issue 12); then
+// base.
 namespace cellsight::app {
 
 enum class Overwrite { kReplace, kRefuse };

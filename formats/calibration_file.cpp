@@ -1,5 +1,5 @@
 // calibration.yaml: validating reader, writer with checksum, dated backup before every save.
-#include "app/calibration_file.hpp"
+#include "formats/calibration_file.hpp"
 
 #include <algorithm>
 #include <cinttypes>
@@ -8,15 +8,17 @@
 #include <ctime>
 #include <filesystem>
 
-#include "app/atomic_file.hpp"
-#include "app/local_time.hpp"
-#include "app/yaml_reader.hpp"
+#include "base/atomic_file.hpp"
 #include "base/file_read.hpp"
+#include "base/local_time.hpp"
+#include "formats/yaml_reader.hpp"
+#include "formats/yaml_text.hpp"
 
 namespace cellsight::app {
 namespace {
 
 namespace fs = std::filesystem;
+using formats::number;
 
 constexpr const char* kChecksumKey = "checksum_fnv1a64";
 // A calibration file is a few kB; the cap of base::read_file only keeps a wrong path from filling the memory.
@@ -34,35 +36,10 @@ std::uint64_t fnv1a64(std::string_view bytes) {
   return h;
 }
 
-std::string number(double v) {
-  char buf[40];
-  std::snprintf(buf, sizeof buf, "%.17g", v);  // round-trips exactly
-  return buf;
-}
-
 std::string vec(const Eigen::Vector3d& v) {
   char buf[128];
   std::snprintf(buf, sizeof buf, "[%.17g, %.17g, %.17g]", v.x(), v.y(), v.z());
   return buf;
-}
-
-std::string quoted(const std::string& s) {
-  std::string out = "\"";
-  for (const char c : s) {
-    if (c == '"' || c == '\\') out += '\\';
-    out += c;
-  }
-  return out + "\"";
-}
-
-// Where the checksum line starts (the last line beginning with the key), or npos.
-std::size_t checksum_line_start(const std::string& text) {
-  const std::string key = std::string(kChecksumKey) + ":";
-  std::size_t found = std::string::npos;
-  for (std::size_t pos = text.find(key); pos != std::string::npos; pos = text.find(key, pos + 1)) {
-    if (pos == 0 || text[pos - 1] == '\n') found = pos;
-  }
-  return found;
 }
 
 void read_camera(YamlSection s, CalibrationRecord& r) {
@@ -156,7 +133,7 @@ std::string calibration_yaml(const CalibrationRecord& r) {
     const auto& k = r.sensor.intrinsics;
     const auto& pose = r.sensor.camera_pose;
     t += "camera:\n";
-    t += "  calibrated_at: " + quoted(r.camera_date) + "\n";
+    t += "  calibrated_at: " + formats::yaml_quoted(r.camera_date) + "\n";
     t += "  views: " + std::to_string(r.camera_views) + "\n";
     t += "  width_px: " + std::to_string(k.width_px) + "\n";
     t += "  height_px: " + std::to_string(k.height_px) + "\n";
@@ -183,7 +160,7 @@ std::string calibration_yaml(const CalibrationRecord& r) {
   }
   if (r.has_laser) {
     t += "laser:                     # plane normal . p = offset_m (cell frame)\n";
-    t += "  calibrated_at: " + quoted(r.laser_date) + "\n";
+    t += "  calibrated_at: " + formats::yaml_quoted(r.laser_date) + "\n";
     t += "  normal: " + vec(r.sensor.laser_normal) + "\n";
     t += "  offset_m: " + number(r.sensor.laser_offset_m) + "\n";
     t += "  residual_mm: " + number(r.sensor.laser_residual_mm) + "\n";
@@ -191,13 +168,13 @@ std::string calibration_yaml(const CalibrationRecord& r) {
   }
   if (r.has_conveyor) {
     t += "conveyor:\n";
-    t += "  calibrated_at: " + quoted(r.conveyor_date) + "\n";
+    t += "  calibrated_at: " + formats::yaml_quoted(r.conveyor_date) + "\n";
     t += "  mm_per_count: " + number(r.sensor.mm_per_count) + "\n";
     t += "  angle_to_x_deg: " + number(r.conveyor_angle_deg) + "\n";
   }
   if (r.has_support) {
     t += "support:                   # carrier plane: normal . p = offset_m (carrier frame)\n";
-    t += "  calibrated_at: " + quoted(r.support_date) + "\n";
+    t += "  calibrated_at: " + formats::yaml_quoted(r.support_date) + "\n";
     t += "  normal: " + vec(r.support.normal) + "\n";
     t += "  offset_m: " + number(r.support.offset_m) + "\n";
     t += "  rms_mm: " + number(r.support_rms_mm) + "\n";
@@ -212,7 +189,7 @@ Expected<CalibrationRecord> load_calibration(const std::string& path) {
   auto bytes = base::read_file(path, kMaxCalibrationBytes);
   if (!bytes) return bytes.error();
   // A file cut short loses its last line first: say so before any syntax error it causes.
-  const std::size_t at = checksum_line_start(*bytes);
+  const std::size_t at = formats::checksum_line_start(*bytes, kChecksumKey);
   if (at == std::string::npos) {
     const auto lines = std::count(bytes->begin(), bytes->end(), '\n');
     char buf[96];
@@ -283,14 +260,6 @@ Expected<std::string> save_calibration(const std::string& path, const Calibratio
   }
   if (auto ok = write_file_atomic(path, calibration_yaml(record)); !ok) return ok.error();
   return backup;
-}
-
-std::string default_calibration_path(const Config& config) {
-  std::error_code ec;
-  if (!config.source.empty() && config.source.front() != '(' && fs::is_regular_file(config.source, ec)) {
-    return (fs::path(config.source).parent_path() / "calibration.yaml").lexically_normal().string();
-  }
-  return "config/calibration.yaml";
 }
 
 }  // namespace cellsight::app

@@ -5,9 +5,9 @@
 #include <string>
 #include <vector>
 
-#include "algo/ply.hpp"
 #include "algo/result.hpp"
 #include "algo/scan.hpp"
+#include "formats/ply.hpp"
 
 namespace cellsight::app {
 

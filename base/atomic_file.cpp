@@ -1,5 +1,5 @@
 // Atomic file and folder saves.
-#include "app/atomic_file.hpp"
+#include "base/atomic_file.hpp"
 
 #include <fcntl.h>
 #include <sys/stat.h>

@@ -1,5 +1,5 @@
 // Reading files from outside: refused from a stat and the first bytes when they cannot be what they should be.
-#include "app/input_file.hpp"
+#include "formats/input_file.hpp"
 
 #include <algorithm>
 #include <cerrno>

@@ -1,7 +1,7 @@
 // PLY reader and writer. Hand-written because no Debian 12 C++ library we already depend on reads PLY
 // (OpenCV's viz module is not in Debian's libopencv-dev core set, PCL would be a large new dependency), and the
 // format subset we need is small; every field is bounds-checked because scans come from outside.
-#include "algo/ply.hpp"
+#include "formats/ply.hpp"
 
 #include <algorithm>
 #include <charconv>
@@ -106,84 +106,56 @@ struct ParsedHeader {
   int ix = -1, iy = -1, iz = -1;
 };
 
-Expected<ParsedHeader> parse_header(std::string_view bytes, const PlyLimits& limits) {
-  if (bytes.substr(0, 4) != "ply\n" && bytes.substr(0, 5) != "ply\r\n") return fail("not a PLY file (no 'ply' magic)");
-  // Only the first max_header_bytes may hold the header, the line break after end_header included: a file that is
-  // no scan is refused from its first bytes, and a file is judged alike from those bytes alone (app/input_file).
-  const std::string_view window = bytes.substr(0, limits.max_header_bytes);
-  const bool window_full = bytes.size() >= limits.max_header_bytes;
-  const std::size_t header_end = window.find("end_header");
-  if (header_end == std::string_view::npos) {
-    if (window_full) {
-      return fail("no end_header in the first " + std::to_string(limits.max_header_bytes) + " bytes: not a PLY scan");
-    }
-    return fail("no end_header: the header is truncated");
-  }
-  ParsedHeader out;
-  std::size_t data_start = window.find('\n', header_end);
-  if (data_start == std::string_view::npos) {
-    if (window_full) {
-      return fail("the end_header line does not end in the first " + std::to_string(limits.max_header_bytes) +
-                  " bytes: not a PLY scan");
-    }
-    return fail("no line break after end_header");
-  }
-  out.data_start = data_start + 1;
-  const std::string_view header = bytes.substr(0, header_end);
-  bool have_format = false;
+// One line of the header after the magic (words split, comments and empty lines already skipped).
+Status parse_header_line(const std::vector<std::string_view>& words, const std::string& where, ParsedHeader& out,
+                         bool& have_format) {
   std::vector<Element>& elements = out.elements;
-  std::size_t line_start = 0;
-  int line_number = 0;
-  while (line_start < header.size()) {
-    std::size_t line_end = header.find('\n', line_start);
-    if (line_end == std::string_view::npos) line_end = header.size();
-    const auto words = split_words(header.substr(line_start, line_end - line_start));
-    line_start = line_end + 1;
-    ++line_number;
-    if (words.empty() || words[0] == "ply" || words[0] == "comment" || words[0] == "obj_info") continue;
-    const std::string where = "header line " + std::to_string(line_number) + ": ";
-    if (words[0] == "format") {
-      if (words.size() != 3 || words[2] != "1.0") return fail(where + "expected 'format <kind> 1.0'");
-      if (words[1] == "ascii") {
-        out.binary = false;
-      } else if (words[1] == "binary_little_endian") {
-        out.binary = true;
-      } else {
-        return fail(where + "format '" + std::string(words[1]) + "' is not supported (ascii or binary_little_endian)");
-      }
-      have_format = true;
-    } else if (words[0] == "element") {
-      if (words.size() != 3) return fail(where + "expected 'element <name> <count>'");
-      Element e;
-      e.name = std::string(words[1]);
-      const auto [ptr, ec] = std::from_chars(words[2].data(), words[2].data() + words[2].size(), e.count);
-      if (ec != std::errc() || ptr != words[2].data() + words[2].size()) return fail(where + "element count is not a number");
-      elements.push_back(std::move(e));
-    } else if (words[0] == "property") {
-      if (elements.empty()) return fail(where + "property before any element");
-      Property p;
-      if (words.size() == 5 && words[1] == "list") {
-        p.is_list = true;
-        p.count_type = parse_type(words[2]);
-        p.type = parse_type(words[3]);
-        p.name = std::string(words[4]);
-        if (p.count_type == Type::kInvalid || p.type == Type::kInvalid || p.count_type == Type::kFloat32 ||
-            p.count_type == Type::kFloat64) {
-          return fail(where + "bad list property types");
-        }
-      } else if (words.size() == 3) {
-        p.type = parse_type(words[1]);
-        p.name = std::string(words[2]);
-        if (p.type == Type::kInvalid) return fail(where + "unknown property type '" + std::string(words[1]) + "'");
-      } else {
-        return fail(where + "expected 'property <type> <name>'");
-      }
-      elements.back().properties.push_back(std::move(p));
+  if (words[0] == "format") {
+    if (words.size() != 3 || words[2] != "1.0") return fail(where + "expected 'format <kind> 1.0'");
+    if (words[1] == "ascii") {
+      out.binary = false;
+    } else if (words[1] == "binary_little_endian") {
+      out.binary = true;
     } else {
-      return fail(where + "unknown keyword '" + std::string(words[0]) + "'");
+      return fail(where + "format '" + std::string(words[1]) + "' is not supported (ascii or binary_little_endian)");
     }
+    have_format = true;
+  } else if (words[0] == "element") {
+    if (words.size() != 3) return fail(where + "expected 'element <name> <count>'");
+    Element e;
+    e.name = std::string(words[1]);
+    const auto [ptr, ec] = std::from_chars(words[2].data(), words[2].data() + words[2].size(), e.count);
+    if (ec != std::errc() || ptr != words[2].data() + words[2].size()) return fail(where + "element count is not a number");
+    elements.push_back(std::move(e));
+  } else if (words[0] == "property") {
+    if (elements.empty()) return fail(where + "property before any element");
+    Property p;
+    if (words.size() == 5 && words[1] == "list") {
+      p.is_list = true;
+      p.count_type = parse_type(words[2]);
+      p.type = parse_type(words[3]);
+      p.name = std::string(words[4]);
+      if (p.count_type == Type::kInvalid || p.type == Type::kInvalid || p.count_type == Type::kFloat32 ||
+          p.count_type == Type::kFloat64) {
+        return fail(where + "bad list property types");
+      }
+    } else if (words.size() == 3) {
+      p.type = parse_type(words[1]);
+      p.name = std::string(words[2]);
+      if (p.type == Type::kInvalid) return fail(where + "unknown property type '" + std::string(words[1]) + "'");
+    } else {
+      return fail(where + "expected 'property <type> <name>'");
+    }
+    elements.back().properties.push_back(std::move(p));
+  } else {
+    return fail(where + "unknown keyword '" + std::string(words[0]) + "'");
   }
-  if (!have_format) return fail("the header has no format line");
+  return {};
+}
+
+// The vertex element and its x, y, z properties (float or double), within the vertex limit.
+Status find_vertex_coordinates(ParsedHeader& out, const PlyLimits& limits) {
+  const std::vector<Element>& elements = out.elements;
   const Element* vertex = nullptr;
   for (std::size_t i = 0; i < elements.size(); ++i) {
     if (elements[i].name == "vertex") {
@@ -209,6 +181,48 @@ Expected<ParsedHeader> parse_header(std::string_view bytes, const PlyLimits& lim
     return fail(std::to_string(vertex->count) + " vertices is more than a scan can have (limit " +
                 std::to_string(limits.max_vertices) + ")");
   }
+  return {};
+}
+
+Expected<ParsedHeader> parse_header(std::string_view bytes, const PlyLimits& limits) {
+  if (bytes.substr(0, 4) != "ply\n" && bytes.substr(0, 5) != "ply\r\n") return fail("not a PLY file (no 'ply' magic)");
+  // Only the first max_header_bytes may hold the header, the line break after end_header included: a file that is
+  // no scan is refused from its first bytes, and a file is judged alike from those bytes alone (formats/input_file).
+  const std::string_view window = bytes.substr(0, limits.max_header_bytes);
+  const bool window_full = bytes.size() >= limits.max_header_bytes;
+  const std::size_t header_end = window.find("end_header");
+  if (header_end == std::string_view::npos) {
+    if (window_full) {
+      return fail("no end_header in the first " + std::to_string(limits.max_header_bytes) + " bytes: not a PLY scan");
+    }
+    return fail("no end_header: the header is truncated");
+  }
+  ParsedHeader out;
+  std::size_t data_start = window.find('\n', header_end);
+  if (data_start == std::string_view::npos) {
+    if (window_full) {
+      return fail("the end_header line does not end in the first " + std::to_string(limits.max_header_bytes) +
+                  " bytes: not a PLY scan");
+    }
+    return fail("no line break after end_header");
+  }
+  out.data_start = data_start + 1;
+  const std::string_view header = bytes.substr(0, header_end);
+  bool have_format = false;
+  std::size_t line_start = 0;
+  int line_number = 0;
+  while (line_start < header.size()) {
+    std::size_t line_end = header.find('\n', line_start);
+    if (line_end == std::string_view::npos) line_end = header.size();
+    const auto words = split_words(header.substr(line_start, line_end - line_start));
+    line_start = line_end + 1;
+    ++line_number;
+    if (words.empty() || words[0] == "ply" || words[0] == "comment" || words[0] == "obj_info") continue;
+    const std::string where = "header line " + std::to_string(line_number) + ": ";
+    if (Status line = parse_header_line(words, where, out, have_format); !line) return line.error();
+  }
+  if (!have_format) return fail("the header has no format line");
+  if (Status vertex = find_vertex_coordinates(out, limits); !vertex) return vertex.error();
   return out;
 }
 

@@ -6,7 +6,6 @@
 
 #include "algo/result.hpp"
 #include "algo/sensor_model.hpp"
-#include "app/config.hpp"
 
 namespace cellsight::app {
 
@@ -45,8 +44,5 @@ constexpr int kCalibrationFormatVersion = 1;
 // Copies an existing file to PATH.YYYYMMDD-HHMMSS.bak, then writes the new one atomically. Returns the backup's
 // path ("" when there was no previous file). On failure the previous file is untouched.
 [[nodiscard]] Expected<std::string> save_calibration(const std::string& path, const CalibrationRecord& record);
-
-// calibration.yaml beside the configuration file (config/calibration.yaml with the built-in defaults).
-[[nodiscard]] std::string default_calibration_path(const Config& config);
 
 }  // namespace cellsight::app

@@ -1,5 +1,5 @@
 // Validating YAML reader implementation.
-#include "app/yaml_reader.hpp"
+#include "formats/yaml_reader.hpp"
 
 #include <cerrno>
 #include <cmath>
@@ -8,7 +8,7 @@
 #include <map>
 #include <sstream>
 
-#include "app/input_file.hpp"
+#include "formats/input_file.hpp"
 
 namespace cellsight::app {
 namespace {

@@ -4,6 +4,8 @@
 #include <ctime>
 #include <string>
 
+// Namespace app until the command-line and runtime files that call it have moved out of app/ (issue 12); then
+// base.
 namespace cellsight::app {
 
 // Now, formatted by strftime (thread-safe: localtime_r). Default "YYYY-MM-DD HH:MM:SS".
