@@ -26,17 +26,27 @@
 #include "app/cli.hpp"
 #include "app/devices.hpp"
 #include "app/model_db.hpp"
-#include "app/production_loop.hpp"
 #include "app/recognition.hpp"
 #include "app/scan_mode.hpp"
-#include "app/service_notify.hpp"
 #include "app/sim_mode.hpp"
 #include "app/template_file.hpp"
 #include "drivers/log.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "drivers/sim/sim_faults.hpp"
+#include "runtime/loop_wiring.hpp"
+#include "runtime/production_loop.hpp"
+#include "runtime/service_notify.hpp"
 
 namespace cellsight::app {
+
+using runtime::LoopConfig;
+using runtime::LoopObserver;
+using runtime::LoopStats;
+using runtime::PartRecord;
+using runtime::ProductionLoop;
+using runtime::RecogniserLoader;
+using runtime::ServiceNotifier;
+using runtime::TriggerSource;
 
 const char* const kRunUsage =
     "  run [--sim] [--parts N] [--models DIR] [--calibration FILE] [--port P]\n"
@@ -476,7 +486,7 @@ int run_run(const std::vector<std::string>& args, const Config& config) {
   drivers::ModbusServer server(server_config);
 
   // ---- the loop ----
-  LoopConfig loop_settings = loop_config(config);
+  LoopConfig loop_settings = runtime::loop_config(config);
   loop_settings.max_parts = options.parts;
   if (sim) {
     loop_settings.conveyor_waits_for_ready = true;
