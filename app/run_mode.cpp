@@ -279,8 +279,8 @@ bool serve(ProductionLoop& loop, const drivers::ModbusServer& server, SimRun* si
   return false;
 }
 
-void log_run_summary(double seconds, const LoopStats& stats, const drivers::LinkStats& link,
-                     const RunOptions& options, bool all_taken) {
+void log_run_summary(double seconds, const LoopStats& stats, const drivers::LinkStats& link, const RunOptions& options,
+                     bool all_taken) {
   CS_LOG_INFO(kComponent,
               "stopped after %.1f s: %" PRIu64 " parts, %" PRIu64 " results (%" PRIu64 " timeouts, %" PRIu64
               " late decisions, %" PRIu64 " aborted scans, %" PRIu64 " rejected), %" PRIu64 " faults (%" PRIu64

@@ -343,7 +343,8 @@ Expected<TeachArgs> parse_teach_args(const std::vector<std::string>& words) {
   }
   const std::string* part = t.args.value("--part");
   if (part == nullptr) return make_error("teach needs --part NAME");
-  if (!valid_part_name(*part)) return make_error("teach: part name '" + *part + "': use 1..64 letters, digits, '_' or '-'");
+  if (!valid_part_name(*part))
+    return make_error("teach: part name '" + *part + "': use 1..64 letters, digits, '_' or '-'");
   t.part = *part;
   t.sim = t.args.has("--sim");
   if (t.sim == !t.args.positional.empty()) {

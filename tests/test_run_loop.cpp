@@ -55,10 +55,10 @@
 namespace {
 
 using namespace cellsight;
-using runtime::LoopState;
 using drivers::DeviceStatus;
 using drivers::ErrorCode;
 using drivers::ResultCode;
+using runtime::LoopState;
 namespace map = drivers::modbus_map;
 using Clock = std::chrono::steady_clock;
 using std::chrono::milliseconds;
@@ -1027,7 +1027,7 @@ TEST_CASE("loop: RSS after 200 parts equals RSS after 20 within a few pages", "[
   lc.hold_when_queue_full = true;
   lc.result_queue_capacity = drivers::PlcLinkConfig{}.result_queue_capacity;
   runtime::ProductionLoop loop(lc, camera, io, encoder, app::scan_builder_params(config),
-                           test::true_calibration(cell->rig()), link);
+                               test::true_calibration(cell->rig()), link);
   loop.set_recogniser(std::make_unique<ScriptedRecogniser>(std::vector<Script>{Script{}}));
   REQUIRE(link.start().ok());
   SimPlc plc(link);
