@@ -1,12 +1,41 @@
-// Acquisition loop of one pass.
+// Blocking acquisition of one pass: a loop around the production loop's PassAcquirer.
 #include "app/acquire.hpp"
+
+#include <chrono>
+
+#include "runtime/pass_acquirer.hpp"
 
 namespace cellsight::app {
 
 using drivers::DeviceStatus;
+using runtime::PassAbort;
+using runtime::PassStatus;
+
+namespace {
+
+AcquireResult result_of(PassAbort abort) {
+  switch (abort) {
+    case PassAbort::kCameraTimeout:
+      return AcquireResult::kCameraTimeout;
+    case PassAbort::kCamera:
+    case PassAbort::kExposure:
+      return AcquireResult::kCameraFault;
+    case PassAbort::kTooManyFrames:
+      return AcquireResult::kTooManyFrames;
+    case PassAbort::kNone:
+    case PassAbort::kEncoderUnreadable:
+    case PassAbort::kLaser:
+    case PassAbort::kPartPresentInput:
+      return AcquireResult::kIoFault;
+  }
+  return AcquireResult::kIoFault;
+}
+
+}  // namespace
 
 AcquireResult acquire_pass(drivers::Camera& camera, drivers::DigitalIo& io, drivers::Encoder& encoder,
                            algo::ScanBuilder& builder, const AcquireParams& params, AcquireReport& report) {
+  using Clock = std::chrono::steady_clock;
   report = AcquireReport{};
   drivers::EdgeEvent edge;
   // Skip a stale falling edge; the pass begins at a rising one.
@@ -16,45 +45,17 @@ AcquireResult acquire_pass(drivers::Camera& camera, drivers::DigitalIo& io, driv
     if (s != DeviceStatus::kOk) return AcquireResult::kIoFault;
   } while (edge.edge != drivers::Edge::kRising);
   report.rising_ns = edge.timestamp_ns;
-  std::int64_t start_counts = 0;
-  if (encoder.read_counts(start_counts) != DeviceStatus::kOk) return AcquireResult::kIoFault;
-  builder.begin_pass(start_counts, params.start_exposure_us);
-  if (camera.set_exposure_us(params.start_exposure_us) != DeviceStatus::kOk) return AcquireResult::kCameraFault;
 
-  while (report.frames < params.max_frames) {
-    drivers::Frame frame;
-    const DeviceStatus grabbed = camera.grab(frame, params.frame_timeout_ms);
-    if (grabbed == DeviceStatus::kTimeout) {
-      // A finished pass looks like a silent camera: the falling edge tells them apart.
-      const DeviceStatus e = io.wait_edge(edge, 0);
-      if (e == DeviceStatus::kOk && edge.edge == drivers::Edge::kFalling) {
-        report.falling_ns = edge.timestamp_ns;
-        return AcquireResult::kOk;
-      }
-      return AcquireResult::kCameraTimeout;
-    }
-    if (grabbed != DeviceStatus::kOk) return AcquireResult::kCameraFault;
-    std::int64_t counts = 0;
-    if (encoder.read_counts(counts) != DeviceStatus::kOk) {
-      camera.release(frame);
-      return AcquireResult::kIoFault;
-    }
-    const algo::FrameOutcome outcome =
-        builder.add_frame(frame.data, frame.width_px, frame.height_px, frame.stride_bytes, frame.exposure_us, counts);
-    camera.release(frame);
-    ++report.frames;
-    if (outcome.exposure.exposure_us != frame.exposure_us &&
-        camera.set_exposure_us(outcome.exposure.exposure_us) != DeviceStatus::kOk) {
-      return AcquireResult::kCameraFault;
-    }
-    const DeviceStatus e = io.wait_edge(edge, 0);
-    if (e == DeviceStatus::kOk && edge.edge == drivers::Edge::kFalling) {
-      report.falling_ns = edge.timestamp_ns;
-      return AcquireResult::kOk;
-    }
-    if (e != DeviceStatus::kOk && e != DeviceStatus::kTimeout) return AcquireResult::kIoFault;
-  }
-  return AcquireResult::kTooManyFrames;
+  runtime::PassAcquirer acquirer(camera, io, encoder, builder,
+                                 runtime::AcquirerParams{params.frame_timeout_ms, params.max_frames,
+                                                         params.start_exposure_us, params.poll_slice_ms});
+  PassStatus status = acquirer.begin(false, Clock::now());
+  while (status == PassStatus::kScanning) status = acquirer.step(Clock::now());
+  (void)acquirer.end();  // a laser that stays on is the next pass's problem, not this scan's
+  report.frames = acquirer.frames();
+  if (status != PassStatus::kComplete) return result_of(acquirer.abort());
+  report.falling_ns = acquirer.falling_edge().timestamp_ns;
+  return AcquireResult::kOk;
 }
 
 }  // namespace cellsight::app

@@ -34,8 +34,9 @@ constexpr const char* to_string(AcquireResult r) {
 struct AcquireParams {
   int edge_wait_ms = 1000;     // for the rising edge
   int frame_timeout_ms = 1000;
-  int max_frames = 4000;       // a pass longer than this is a stuck photo-eye
+  int max_frames = 4000;       // more frames than this is a stuck photo-eye
   std::int32_t start_exposure_us = 1500;
+  int poll_slice_ms = 10;      // one PassAcquirer::step()
 };
 
 struct AcquireReport {
@@ -43,7 +44,8 @@ struct AcquireReport {
   std::int64_t rising_ns = 0, falling_ns = 0;
 };
 
-// Waits for a part, then streams its frames into `builder` until part-present falls. No allocation.
+// Waits for a part, then streams its frames into `builder` until part-present falls; the laser is on from the rising
+// edge to the end of the pass. No allocation.
 AcquireResult acquire_pass(drivers::Camera& camera, drivers::DigitalIo& io, drivers::Encoder& encoder,
                            algo::ScanBuilder& builder, const AcquireParams& params, AcquireReport& report);
 

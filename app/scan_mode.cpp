@@ -20,6 +20,7 @@
 #include "formats/calibration_file.hpp"
 #include "formats/input_file.hpp"
 #include "formats/ply.hpp"
+#include "runtime/loop_wiring.hpp"
 
 namespace cellsight::app {
 
@@ -70,16 +71,14 @@ Expected<std::vector<algo::ScanPoint>> acquire_scan(const Config& config, const 
   if (auto ok = devices->open(); !ok) return ok.error();
   algo::ScanBuilder builder(scan_builder_params(config), *calibration);
   AcquireParams params;
-  params.start_exposure_us = static_cast<std::int32_t>(config.camera.exposure_us);
-  params.frame_timeout_ms = config.camera.timeout_ms;
+  const runtime::AcquirerParams pass = runtime::acquirer_params(config);  // the production loop's, from the config
+  params.start_exposure_us = pass.start_exposure_us;
+  params.frame_timeout_ms = pass.frame_timeout_ms;
+  params.max_frames = pass.max_frames;
   params.edge_wait_ms = options.sim ? 0 : 60000;  // a real cell waits a minute for a part to arrive
-  if (devices->io->set(drivers::Output::kLaserEnable, true) != drivers::DeviceStatus::kOk) {
-    devices->close();
-    return make_error("cannot switch the laser on (gpio.laser_line)");
-  }
+  // The laser is the acquirer's: on from the rising edge to the end of the pass, as in production.
   AcquireReport report;
   const AcquireResult result = acquire_pass(*devices->camera, *devices->io, *devices->encoder, builder, params, report);
-  (void)devices->io->set(drivers::Output::kLaserEnable, false);
   devices->close();
   if (result != AcquireResult::kOk) return make_error(std::string("scan failed: ") + to_string(result));
   summary.points = builder.scan().size();

@@ -326,79 +326,164 @@ void print_part(const ModelDb& db, const PartEntry& p, bool detail) {
   }
 }
 
+// The words of `teach`: --part, and either --sim --count K or scan files. An error is a usage error.
+struct TeachArgs {
+  ModeArgs args;
+  std::string part;
+  bool sim = false;
+  std::int64_t count = 0;
+};
+
+Expected<TeachArgs> parse_teach_args(const std::vector<std::string>& words) {
+  TeachArgs t;
+  std::string error;
+  if (!parse_mode_args(words, {"--part", "--id", "--count", "--seed", "--calibration", "--perturb"}, {"--sim"}, t.args,
+                       error)) {
+    return make_error("teach: " + error);
+  }
+  const std::string* part = t.args.value("--part");
+  if (part == nullptr) return make_error("teach needs --part NAME");
+  if (!valid_part_name(*part))
+    return make_error("teach: part name '" + *part + "': use 1..64 letters, digits, '_' or '-'");
+  t.part = *part;
+  t.sim = t.args.has("--sim");
+  if (t.sim == !t.args.positional.empty()) {
+    return make_error("teach needs either --sim --count K or scan files (SCAN.ply ...), not both");
+  }
+  if (t.sim) {
+    const std::string* c = t.args.value("--count");
+    if (c == nullptr || !parse_whole(*c, 1, kMaxTeachCount, t.count)) {
+      return make_error("teach --sim needs --count K (1.." + std::to_string(kMaxTeachCount) + ")");
+    }
+  } else if (t.args.value("--count") != nullptr || t.args.value("--seed") != nullptr ||
+             t.args.value("--perturb") != nullptr) {
+    return make_error("teach: --count, --seed and --perturb apply to --sim only");
+  }
+  return t;
+}
+
+// The part's PLC id: --id (unique in the database, and the part's own if it exists), its existing id, or one more
+// than the largest so far.
+Expected<std::int64_t> plc_id_for(const ModeArgs& args, const ModelDb& db, const std::string& part,
+                                  const PartEntry* existing) {
+  std::int64_t id = 0;
+  if (const std::string* v = args.value("--id")) {
+    if (!parse_whole(*v, 1, kMaxPlcId, id)) return make_error("teach: --id '" + *v + "': expected 1..65535");
+    if (existing != nullptr && existing->id != id) {
+      return make_error("teach: part '" + part + "' already has PLC id " + std::to_string(existing->id) +
+                        "; delete it first to change its id");
+    }
+    for (const PartEntry& p : db.manifest().parts) {
+      if (p.name != part && p.id == id) {
+        return make_error("teach: PLC id " + std::to_string(id) + " belongs to part '" + p.name + "'");
+      }
+    }
+    return id;
+  }
+  if (existing != nullptr) return static_cast<std::int64_t>(existing->id);
+  for (const PartEntry& p : db.manifest().parts) id = std::max<std::int64_t>(id, p.id);
+  return id + 1;
+}
+
+// The scans to teach: simulated passes (seeds after the ones already taught, unless --seed) or the files given.
+Expected<std::vector<TaughtScan>> gather_scans(const TeachArgs& t, const Config& config, std::int64_t id,
+                                               std::size_t already, const std::string& calibration_path,
+                                               const PassPerturbation* perturb) {
+  if (!t.sim) return import_scans(t.args.positional);
+  std::uint64_t first_seed = already + 1;
+  if (const std::string* s = t.args.value("--seed")) {
+    std::int64_t v = 0;
+    if (!parse_whole(*s, 0, INT64_MAX, v)) return make_error("--seed '" + *s + "': expected a number");
+    first_seed = static_cast<std::uint64_t>(v);
+  }
+  std::printf("teaching %s (PLC id %lld): %lld simulated passes, seeds %llu..%s%s\n", t.part.c_str(),
+              static_cast<long long>(id), static_cast<long long>(t.count), static_cast<unsigned long long>(first_seed),
+              perturb != nullptr ? ", perturbed: " : "", perturb != nullptr ? perturb->spec.text.c_str() : "");
+  return acquire_sim_scans(config, t.part, static_cast<int>(t.count), first_seed, calibration_path, perturb);
+}
+
+// A new part: its entry and its template, built from the taught scan that agrees best with the others (issue 10:
+// the first one may carry a glare band or a stray edge); poses are reported relative to it and `parts show` names
+// it. Returns an exit code (kExitOk: go on); the template file is added to `written`.
+int start_new_part(const Config& config, ModelDb& db, ScanPreparer& preparer, const std::vector<TaughtScan>& scans,
+                   const std::string& part, std::int64_t id, PartEntry& entry, std::size_t& template_index,
+                   std::vector<std::string>& written) {
+  entry.name = part;
+  entry.id = static_cast<int>(id);
+  entry.template_file = "templates/" + part + ".dmap";
+  entry.taught_at = local_time_text();
+  auto choice = choose_template(config, preparer, scans);
+  if (!choice) return fail(kExitUsage, "teach: template of " + part + ": " + choice.error().message);
+  template_index = choice->index;
+  std::error_code ec;
+  std::filesystem::create_directories(db.path_of("templates"), ec);
+  TemplateIdentity identity;
+  identity.part_name = part;
+  identity.plc_id = static_cast<std::uint32_t>(id);
+  if (auto ok = write_template(db.path_of(entry.template_file), choice->model, identity); !ok) {
+    return fail(kExitFailure, "teach: " + ok.error().message);
+  }
+  written.push_back(entry.template_file);
+  return kExitOk;
+}
+
+// Writes the scans (binary PLY, atomically) and the manifest; on a failure removes every file this teach wrote.
+int store_scans(ModelDb& db, const std::vector<TaughtScan>& scans, const std::string& part, std::size_t already,
+                std::size_t template_index, PartEntry& entry, PartEntry* existing, std::vector<std::string>& written) {
+  const auto undo = [&] {
+    std::error_code ec;
+    for (const std::string& f : written) std::filesystem::remove(db.path_of(f), ec);
+  };
+  std::error_code ec;
+  std::filesystem::create_directories(db.path_of("scans/" + part), ec);
+  if (ec) return fail(kExitFailure, "teach: cannot create " + db.path_of("scans/" + part) + ": " + ec.message());
+  std::size_t index = already;
+  for (const TaughtScan& s : scans) {
+    std::string file;
+    do {
+      file = scan_file_name(part, ++index);
+    } while (std::filesystem::exists(db.path_of(file)));
+    const std::string bytes = algo::write_ply_binary(s.points);
+    if (auto ok = write_file_atomic(db.path_of(file), bytes); !ok) {
+      undo();
+      return fail(kExitFailure, "teach: " + ok.error().message);
+    }
+    written.push_back(file);
+    if (static_cast<std::size_t>(&s - scans.data()) == template_index) entry.template_scan = file;
+    entry.scans.push_back({file, base::crc32(bytes), s.source});
+  }
+  if (existing != nullptr) {
+    *existing = entry;
+  } else {
+    db.manifest().parts.push_back(entry);
+  }
+  if (auto ok = db.save(); !ok) {
+    undo();
+    return fail(kExitFailure, "teach: " + ok.error().message + " (nothing was stored)");
+  }
+  return kExitOk;
+}
+
 }  // namespace
 
 int run_teach(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
-  ModeArgs args;
-  std::string error;
-  if (!parse_mode_args(words, {"--part", "--id", "--count", "--seed", "--calibration", "--perturb"}, {"--sim"}, args,
-                       error)) {
-    return fail(kExitUsage, "teach: " + error);
-  }
-  const std::string* part = args.value("--part");
-  if (part == nullptr) return fail(kExitUsage, "teach needs --part NAME");
-  if (!valid_part_name(*part)) {
-    return fail(kExitUsage, "teach: part name '" + *part + "': use 1..64 letters, digits, '_' or '-'");
-  }
-  const bool sim = args.has("--sim");
-  if (sim == !args.positional.empty()) {
-    return fail(kExitUsage, "teach needs either --sim --count K or scan files (SCAN.ply ...), not both");
-  }
-  std::int64_t count = 0;
-  if (sim) {
-    const std::string* c = args.value("--count");
-    if (c == nullptr || !parse_whole(*c, 1, kMaxTeachCount, count)) {
-      return fail(kExitUsage, "teach --sim needs --count K (1.." + std::to_string(kMaxTeachCount) + ")");
-    }
-  } else if (args.value("--count") != nullptr || args.value("--seed") != nullptr ||
-             args.value("--perturb") != nullptr) {
-    return fail(kExitUsage, "teach: --count, --seed and --perturb apply to --sim only");
-  }
+  auto parsed = parse_teach_args(words);
+  if (!parsed) return fail(kExitUsage, parsed.error().message);
+  const TeachArgs& t = *parsed;
   auto db = ModelDb::open_for_writing(models_dir, grid_spec(config), true);
   if (!db) return fail(kExitUsage, db.error().message);
-  PartEntry* existing = db->find(*part);
-  std::int64_t id = 0;
-  if (const std::string* v = args.value("--id")) {
-    if (!parse_whole(*v, 1, kMaxPlcId, id)) return fail(kExitUsage, "teach: --id '" + *v + "': expected 1..65535");
-    if (existing != nullptr && existing->id != id) {
-      return fail(kExitUsage, "teach: part '" + *part + "' already has PLC id " + std::to_string(existing->id) +
-                                  "; delete it first to change its id");
-    }
-    for (const PartEntry& p : db->manifest().parts) {
-      if (p.name != *part && p.id == id) {
-        return fail(kExitUsage, "teach: PLC id " + std::to_string(id) + " belongs to part '" + p.name + "'");
-      }
-    }
-  } else if (existing != nullptr) {
-    id = existing->id;
-  } else {
-    for (const PartEntry& p : db->manifest().parts) id = std::max<std::int64_t>(id, p.id);
-    ++id;
-  }
-  const std::string* calibration_arg = args.value("--calibration");
+  PartEntry* existing = db->find(t.part);
+  auto id = plc_id_for(t.args, *db, t.part, existing);
+  if (!id) return fail(kExitUsage, id.error().message);
+  const std::string* calibration_arg = t.args.value("--calibration");
   const std::string calibration_path = calibration_arg ? *calibration_arg : default_calibration_path(config);
   auto support = load_support_plane(calibration_path);
   if (!support) return fail(kExitUsage, support.error().message);
-  auto perturb = perturbation_option(args, config, calibration_path, kPerturbTeach);
+  auto perturb = perturbation_option(t.args, config, calibration_path, kPerturbTeach);
   if (!perturb) return fail(kExitUsage, "teach: " + perturb.error().message);
 
   const std::size_t already = existing != nullptr ? existing->scans.size() : 0;
-  Expected<std::vector<TaughtScan>> scans = std::vector<TaughtScan>{};
-  if (sim) {
-    std::uint64_t first_seed = already + 1;
-    if (const std::string* s = args.value("--seed")) {
-      std::int64_t v = 0;
-      if (!parse_whole(*s, 0, INT64_MAX, v)) return fail(kExitUsage, "teach: --seed '" + *s + "': expected a number");
-      first_seed = static_cast<std::uint64_t>(v);
-    }
-    std::printf("teaching %s (PLC id %lld): %lld simulated passes, seeds %llu..%s%s\n", part->c_str(),
-                static_cast<long long>(id), static_cast<long long>(count), static_cast<unsigned long long>(first_seed),
-                *perturb ? ", perturbed: " : "", *perturb ? (*perturb)->spec.text.c_str() : "");
-    scans = acquire_sim_scans(config, *part, static_cast<int>(count), first_seed, calibration_path,
-                              *perturb ? &**perturb : nullptr);
-  } else {
-    scans = import_scans(args.positional);
-  }
+  auto scans = gather_scans(t, config, *id, already, calibration_path, *perturb ? &**perturb : nullptr);
   if (!scans) return fail(kExitUsage, "teach: " + scans.error().message);
 
   // Every scan must show a part that fits the grid before anything is written.
@@ -412,62 +497,18 @@ int run_teach(const std::vector<std::string>& words, const Config& config, const
   }
 
   std::vector<std::string> written;
-  const auto undo = [&] {
-    std::error_code ec;
-    for (const std::string& f : written) std::filesystem::remove(db->path_of(f), ec);
-  };
   PartEntry entry = existing != nullptr ? *existing : PartEntry{};
   std::size_t template_index = SIZE_MAX;  // of *scans, when this call builds the template
   if (existing == nullptr) {
-    entry.name = *part;
-    entry.id = static_cast<int>(id);
-    entry.template_file = "templates/" + *part + ".dmap";
-    entry.taught_at = local_time_text();
-    // The template is the taught scan that agrees best with the others (issue 10: the first one may carry a glare
-    // band or a stray edge); poses are reported relative to it and `parts show` names it.
-    auto choice = choose_template(config, preparer, *scans);
-    if (!choice) return fail(kExitUsage, "teach: template of " + *part + ": " + choice.error().message);
-    auto& model = choice->model;
-    template_index = choice->index;
-    std::error_code ec;
-    std::filesystem::create_directories(db->path_of("templates"), ec);
-    TemplateIdentity identity;
-    identity.part_name = *part;
-    identity.plc_id = static_cast<std::uint32_t>(id);
-    if (auto ok = write_template(db->path_of(entry.template_file), model, identity); !ok) {
-      return fail(kExitFailure, "teach: " + ok.error().message);
-    }
-    written.push_back(entry.template_file);
+    const int started = start_new_part(config, *db, preparer, *scans, t.part, *id, entry, template_index, written);
+    if (started != kExitOk) return started;
   }
-  std::error_code ec;
-  std::filesystem::create_directories(db->path_of("scans/" + *part), ec);
-  if (ec) return fail(kExitFailure, "teach: cannot create " + db->path_of("scans/" + *part) + ": " + ec.message());
-  std::size_t index = already;
-  for (const TaughtScan& s : *scans) {
-    std::string file;
-    do {
-      file = scan_file_name(*part, ++index);
-    } while (std::filesystem::exists(db->path_of(file)));
-    const std::string bytes = algo::write_ply_binary(s.points);
-    if (auto ok = write_file_atomic(db->path_of(file), bytes); !ok) {
-      undo();
-      return fail(kExitFailure, "teach: " + ok.error().message);
-    }
-    written.push_back(file);
-    if (static_cast<std::size_t>(&s - scans->data()) == template_index) entry.template_scan = file;
-    entry.scans.push_back({file, base::crc32(bytes), s.source});
-  }
-  if (existing != nullptr) {
-    *existing = entry;
-  } else {
-    db->manifest().parts.push_back(entry);
-  }
-  if (auto ok = db->save(); !ok) {
-    undo();
-    return fail(kExitFailure, "teach: " + ok.error().message + " (nothing was stored)");
+  if (const int stored = store_scans(*db, *scans, t.part, already, template_index, entry, existing, written);
+      stored != kExitOk) {
+    return stored;
   }
   std::printf("%s: %zu scans stored (%zu in all), template %s; the SVM is now stale: run 'cellsight train'\n",
-              part->c_str(), scans->size(), entry.scans.size(), entry.template_file.c_str());
+              t.part.c_str(), scans->size(), entry.scans.size(), entry.template_file.c_str());
   return kExitOk;
 }
 

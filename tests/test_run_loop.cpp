@@ -35,17 +35,19 @@
 #include <vector>
 
 #include "app/config.hpp"
-#include "app/production_loop.hpp"
 #include "app/recogniser.hpp"
 #include "app/run_mode.hpp"
 #include "app/scan_mode.hpp"
-#include "app/service_notify.hpp"
 #include "app/sim_mode.hpp"
 #include "drivers/modbus/modbus_server.hpp"
 #include "drivers/modbus/register_map.hpp"
 #include "drivers/modbus/sim_plc_link.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "formats/calibration_file.hpp"
+#include "runtime/loop_wiring.hpp"
+#include "runtime/plc_mapping.hpp"
+#include "runtime/production_loop.hpp"
+#include "runtime/service_notify.hpp"
 #include "sim_test_util.hpp"
 #include "tests/scratch_dir.hpp"
 #include "tests/support/alloc_counter.hpp"
@@ -53,10 +55,10 @@
 namespace {
 
 using namespace cellsight;
-using app::LoopState;
 using drivers::DeviceStatus;
 using drivers::ErrorCode;
 using drivers::ResultCode;
+using runtime::LoopState;
 namespace map = drivers::modbus_map;
 using Clock = std::chrono::steady_clock;
 using std::chrono::milliseconds;
@@ -115,8 +117,8 @@ app::Config small_config() {
   return config;
 }
 
-app::LoopConfig small_loop_config(const app::Config& config) {
-  app::LoopConfig c = app::loop_config(config);
+runtime::LoopConfig small_loop_config(const app::Config& config) {
+  runtime::LoopConfig c = runtime::loop_config(config);
   c.conveyor_waits_for_ready = true;  // the simulated conveyor
   c.require_trigger_enable = false;
   c.poll_slice_ms = 5;
@@ -235,7 +237,7 @@ class WorldEncoder final : public drivers::Encoder {
 };
 
 // Records what the loop reports, in fixed arrays (the observer runs inside the loop: no allocation).
-class Recorder final : public app::LoopObserver {
+class Recorder final : public runtime::LoopObserver {
  public:
   static constexpr std::size_t kMax = 4096;
   struct Transition {
@@ -248,11 +250,13 @@ class Recorder final : public app::LoopObserver {
     std::lock_guard lock(mutex_);
     if (transitions_ < kMax) transition_[transitions_++] = {from, to, error, now};
   }
-  void on_pass_started(std::uint32_t acq_id, app::TriggerSource /*trigger*/) override { last_started_.store(acq_id); }
+  void on_pass_started(std::uint32_t acq_id, runtime::TriggerSource /*trigger*/) override {
+    last_started_.store(acq_id);
+  }
   void on_frame(std::uint32_t acq_id, int frame_index) override {
     if (acq_id == stall_acq_.load() && frame_index == stall_frame_.load()) stall_line_->set_camera_stalled(true);
   }
-  void on_part_done(const app::PartRecord& record) override {
+  void on_part_done(const runtime::PartRecord& record) override {
     std::lock_guard lock(mutex_);
     if (parts_ < kMax) part_[parts_++] = record;
   }
@@ -266,7 +270,7 @@ class Recorder final : public app::LoopObserver {
     std::lock_guard lock(mutex_);
     return {transition_.begin(), transition_.begin() + static_cast<std::ptrdiff_t>(transitions_)};
   }
-  std::vector<app::PartRecord> parts() const {
+  std::vector<runtime::PartRecord> parts() const {
     std::lock_guard lock(mutex_);
     return {part_.begin(), part_.begin() + static_cast<std::ptrdiff_t>(parts_)};
   }
@@ -279,7 +283,7 @@ class Recorder final : public app::LoopObserver {
   mutable std::mutex mutex_;
   std::array<Transition, kMax> transition_{};
   std::size_t transitions_ = 0;
-  std::array<app::PartRecord, 512> part_{};
+  std::array<runtime::PartRecord, 512> part_{};
   std::size_t parts_ = 0;
   std::atomic<std::uint32_t> last_started_{0};
   std::atomic<std::uint32_t> stall_acq_{0};
@@ -466,7 +470,7 @@ struct Cell {
     }
   }
 
-  app::ProductionLoop& make_loop(const app::LoopConfig& loop_config, drivers::PlcLink* other_link = nullptr) {
+  runtime::ProductionLoop& make_loop(const runtime::LoopConfig& loop_config, drivers::PlcLink* other_link = nullptr) {
     loop.emplace(loop_config, camera, io, encoder, app::scan_builder_params(config),
                  test::true_calibration(sim_cell.rig()), other_link != nullptr ? *other_link : link);
     loop->set_recogniser(std::move(recogniser));
@@ -487,7 +491,7 @@ struct Cell {
   std::unique_ptr<app::Recogniser> recogniser;
   ScriptedRecogniser* recogniser_ptr = nullptr;
   Recorder recorder;
-  std::optional<app::ProductionLoop> loop;
+  std::optional<runtime::ProductionLoop> loop;
 };
 
 // ================================================================== decision -> result block
@@ -503,7 +507,7 @@ TEST_CASE("mapping: each decision source becomes the documented result block", "
   SECTION("svm and perfect match: ok, part id, per mille, um and millidegrees, Z/RX/RY 0") {
     for (const auto source : {algo::DecisionSource::kSvm, algo::DecisionSource::kPm}) {
       d.source = source;
-      const drivers::PlcResult r = app::to_plc_result(d, 42, 123456789, 17.4);
+      const drivers::PlcResult r = runtime::to_plc_result(d, 42, 123456789, 17.4);
       CHECK(r.acq_id == 42);
       CHECK(r.code == ResultCode::kOk);
       CHECK(r.source == (source == algo::DecisionSource::kSvm ? drivers::ResultSource::kSvm
@@ -523,17 +527,17 @@ TEST_CASE("mapping: each decision source becomes the documented result block", "
   SECTION("an accepted class without a usable pose is 'pose out of range', never a pose") {
     d.source = algo::DecisionSource::kPm;
     d.pose_valid = false;
-    drivers::PlcResult r = app::to_plc_result(d, 1, 0, 1.0);
+    drivers::PlcResult r = runtime::to_plc_result(d, 1, 0, 1.0);
     CHECK(r.code == ResultCode::kPoseOutOfRange);
     CHECK(r.part_id == 7);
     CHECK(r.x_um == map::kInvalidS32);
     CHECK(r.rz_mdeg == map::kInvalidS32);
     d.pose_valid = true;
     d.pose.x_m = std::numeric_limits<double>::quiet_NaN();
-    r = app::to_plc_result(d, 1, 0, 1.0);
+    r = runtime::to_plc_result(d, 1, 0, 1.0);
     CHECK(r.code == ResultCode::kPoseOutOfRange);
     d.pose.x_m = 5000.0;  // 5e9 um does not fit an s32
-    CHECK(app::to_plc_result(d, 1, 0, 1.0).code == ResultCode::kPoseOutOfRange);
+    CHECK(runtime::to_plc_result(d, 1, 0, 1.0).code == ResultCode::kPoseOutOfRange);
   }
   SECTION("unknown, timeout, bad scan, no part: their codes, no part id, no pose") {
     const std::array<std::pair<algo::DecisionSource, ResultCode>, 4> cases = {{
@@ -544,7 +548,7 @@ TEST_CASE("mapping: each decision source becomes the documented result block", "
     }};
     for (const auto& [source, code] : cases) {
       d.source = source;
-      const drivers::PlcResult r = app::to_plc_result(d, 9, 5, 3.0);
+      const drivers::PlcResult r = runtime::to_plc_result(d, 9, 5, 3.0);
       CHECK(r.code == code);
       CHECK(r.part_id == 0);
       CHECK(r.source == drivers::ResultSource::kNone);
@@ -558,9 +562,9 @@ TEST_CASE("mapping: each decision source becomes the documented result block", "
   }
   SECTION("cycle time saturates at 65535 ms and is never negative") {
     d.source = algo::DecisionSource::kSvm;
-    CHECK(app::to_plc_result(d, 1, 0, 1e9).cycle_ms == 65535);
-    CHECK(app::to_plc_result(d, 1, 0, -3.0).cycle_ms == 0);
-    CHECK(app::to_plc_result(d, 1, 0, std::numeric_limits<double>::infinity()).cycle_ms == 65535);
+    CHECK(runtime::to_plc_result(d, 1, 0, 1e9).cycle_ms == 65535);
+    CHECK(runtime::to_plc_result(d, 1, 0, -3.0).cycle_ms == 0);
+    CHECK(runtime::to_plc_result(d, 1, 0, std::numeric_limits<double>::infinity()).cycle_ms == 65535);
   }
 }
 
@@ -604,9 +608,9 @@ TEST_CASE(
   Cell cell(config, {Script{}, second, third});
   cell.enqueue(3);
   SimPlc plc(cell.link);
-  app::LoopConfig lc = small_loop_config(config);
+  runtime::LoopConfig lc = small_loop_config(config);
   lc.max_parts = 3;
-  app::ProductionLoop& loop = cell.make_loop(lc);
+  runtime::ProductionLoop& loop = cell.make_loop(lc);
   const std::uint64_t started_us = static_cast<std::uint64_t>(monotonic_ns() / 1000);
   REQUIRE(loop.start().ok());
   REQUIRE(loop.wait_finished(milliseconds(60'000)));
@@ -699,11 +703,11 @@ TEST_CASE("loop: a recogniser past the hard deadline gives 'timeout' at the dead
   Cell cell(config, {Script{}, slow, Script{}});
   cell.enqueue(3);
   SimPlc plc(cell.link);
-  app::LoopConfig lc = small_loop_config(config);
+  runtime::LoopConfig lc = small_loop_config(config);
   lc.max_parts = 3;
   lc.poll_slice_ms = kPollSliceMs;
   REQUIRE(slow.delay_ms < config.runtime.deadline_ms + lc.hung_grace_ms);
-  app::ProductionLoop& loop = cell.make_loop(lc);
+  runtime::ProductionLoop& loop = cell.make_loop(lc);
   REQUIRE(loop.start().ok());
   REQUIRE(loop.wait_finished(milliseconds(60'000)));
   REQUIRE(wait_until([&] { return plc.count() == 3; }, 5000));
@@ -720,7 +724,7 @@ TEST_CASE("loop: a recogniser past the hard deadline gives 'timeout' at the dead
   const auto s2 = plc.seen(2);
   CHECK(Block(s2.block).code() == 0);
   CHECK(Block(s2.block).acq_id() == 3);
-  const app::LoopStats stats = loop.stats();
+  const runtime::LoopStats stats = loop.stats();
   CHECK(stats.timeouts == 1);
   CHECK(stats.results == 3);
   if (!slow.honour_deadline) CHECK(stats.late_decisions == 1);
@@ -728,7 +732,7 @@ TEST_CASE("loop: a recogniser past the hard deadline gives 'timeout' at the dead
 
 // Holds the loop thread inside its kScanning -> kRecognising transition of one pass (the job is posted by then)
 // until the recogniser has answered, as a loop thread that the scheduler did not run in time would be held.
-class HoldLoopUntilAnswered final : public app::LoopObserver {
+class HoldLoopUntilAnswered final : public runtime::LoopObserver {
  public:
   HoldLoopUntilAnswered(const ScriptedRecogniser& recogniser, std::size_t call)
       : recogniser_(recogniser), call_(call) {}
@@ -755,9 +759,9 @@ TEST_CASE("loop: an answer that comes after the deadline but before the loop loo
   Cell cell(config, {Script{}, late, Script{}});
   cell.enqueue(3);
   SimPlc plc(cell.link);
-  app::LoopConfig lc = small_loop_config(config);
+  runtime::LoopConfig lc = small_loop_config(config);
   lc.max_parts = 3;
-  app::ProductionLoop& loop = cell.make_loop(lc);
+  runtime::ProductionLoop& loop = cell.make_loop(lc);
   HoldLoopUntilAnswered hold(*cell.recogniser_ptr, 2);
   loop.set_observer(&hold);
   REQUIRE(loop.start().ok());
@@ -772,7 +776,7 @@ TEST_CASE("loop: an answer that comes after the deadline but before the loop loo
   const auto s0 = plc.seen(0), s2 = plc.seen(2);
   CHECK(Block(s0.block).code() == 0);
   CHECK(Block(s2.block).code() == 0);
-  const app::LoopStats stats = loop.stats();
+  const runtime::LoopStats stats = loop.stats();
   CHECK(stats.timeouts == 1);
   CHECK(stats.late_decisions == 1);
   CHECK(cell.recogniser_ptr->calls() == 3);
@@ -789,10 +793,10 @@ TEST_CASE("loop: timeouts in a row raise ERROR_CODE 'repeated timeouts', a cycle
   Cell cell(config, {Script{}, slow, slow, slow, Script{}});
   cell.enqueue(5);
   SimPlc plc(cell.link);
-  app::LoopConfig lc = small_loop_config(config);
+  runtime::LoopConfig lc = small_loop_config(config);
   lc.max_parts = 5;
   lc.max_consecutive_timeouts = 3;
-  app::ProductionLoop& loop = cell.make_loop(lc);
+  runtime::ProductionLoop& loop = cell.make_loop(lc);
   REQUIRE(loop.start().ok());
   REQUIRE(loop.wait_finished(milliseconds(60'000)));
   REQUIRE(wait_until([&] { return plc.count() == 5; }, 5000));
@@ -814,9 +818,9 @@ TEST_CASE(
   Cell cell(config, {Script{}});
   cell.enqueue(3);
   SimPlc plc(cell.link);
-  app::LoopConfig lc = small_loop_config(config);
+  runtime::LoopConfig lc = small_loop_config(config);
   lc.max_parts = 3;
-  app::ProductionLoop& loop = cell.make_loop(lc);
+  runtime::ProductionLoop& loop = cell.make_loop(lc);
   cell.recorder.stall_at(cell.line, 2, 10);
   REQUIRE(loop.start().ok());
 
@@ -847,7 +851,7 @@ TEST_CASE(
   }
   CHECK(codes == std::array<std::uint16_t, 3>{0, 5, 0});  // ok, bad scan (aborted), ok
   CHECK(acqs == std::array<std::uint32_t, 3>{1, 2, 3});
-  const app::LoopStats stats = loop.stats();
+  const runtime::LoopStats stats = loop.stats();
   CHECK(stats.faults == 1);
   CHECK(stats.recoveries == 1);
   const auto edges = edges_of(cell.recorder.transitions());
@@ -864,9 +868,9 @@ TEST_CASE("loop: nothing is allocated inside the loop over several simulated par
   constexpr std::uint64_t kWarmUp = 2;
   cell.enqueue(kParts);
   SimPlc plc(cell.link);
-  app::LoopConfig lc = small_loop_config(config);
+  runtime::LoopConfig lc = small_loop_config(config);
   lc.max_parts = kParts;
-  app::ProductionLoop& loop = cell.make_loop(lc);
+  runtime::ProductionLoop& loop = cell.make_loop(lc);
   REQUIRE(loop.start().ok());
   REQUIRE(wait_until([&] { return loop.stats().results >= kWarmUp; }, 60'000));
   long allocations = 0;
@@ -1015,15 +1019,15 @@ TEST_CASE("loop: RSS after 200 parts equals RSS after 20 within a few pages", "[
   ReplayIo io(line);
   ReplayEncoder encoder(line);
   drivers::SimPlcLink link;
-  app::LoopConfig lc = small_loop_config(config);
+  runtime::LoopConfig lc = small_loop_config(config);
   constexpr std::uint64_t kFew = 20, kMany = 200;
   lc.max_parts = kMany;
   // The replayed conveyor waits for the cell, so the line is paced by its PLC: without holding, a Release build
   // scans faster than this PLC acknowledges, the link's queue fills and results are (rightly) rejected.
   lc.hold_when_queue_full = true;
   lc.result_queue_capacity = drivers::PlcLinkConfig{}.result_queue_capacity;
-  app::ProductionLoop loop(lc, camera, io, encoder, app::scan_builder_params(config),
-                           test::true_calibration(cell->rig()), link);
+  runtime::ProductionLoop loop(lc, camera, io, encoder, app::scan_builder_params(config),
+                               test::true_calibration(cell->rig()), link);
   loop.set_recogniser(std::make_unique<ScriptedRecogniser>(std::vector<Script>{Script{}}));
   REQUIRE(link.start().ok());
   SimPlc plc(link);
@@ -1057,10 +1061,10 @@ TEST_CASE("loop: parts wait for TRIGGER_ENABLE, and SW_TRIGGER with nothing in f
   Cell cell(config, {Script{}});
   cell.enqueue(1);
   SimPlc plc(cell.link);
-  app::LoopConfig lc = small_loop_config(config);
+  runtime::LoopConfig lc = small_loop_config(config);
   lc.require_trigger_enable = true;
   lc.max_parts = 2;
-  app::ProductionLoop& loop = cell.make_loop(lc);
+  runtime::ProductionLoop& loop = cell.make_loop(lc);
   REQUIRE(loop.start().ok());
   std::this_thread::sleep_for(milliseconds(300));
   CHECK(loop.stats().triggers == 0);
@@ -1096,11 +1100,11 @@ TEST_CASE(
   constexpr int kParts = 5;
   cell.enqueue(kParts);
   SimPlc plc(cell.link, /*ack=*/false);
-  app::LoopConfig lc = small_loop_config(config);
+  runtime::LoopConfig lc = small_loop_config(config);
   lc.hold_when_queue_full = true;
   lc.result_queue_capacity = 2;
   lc.max_parts = kParts;
-  app::ProductionLoop& loop = cell.make_loop(lc);
+  runtime::ProductionLoop& loop = cell.make_loop(lc);
   REQUIRE(loop.start().ok());
   // One result presented, two queued: the third pass is the last one taken.
   REQUIRE(wait_until([&] { return loop.stats().results == 3; }, 60'000));
@@ -1127,10 +1131,10 @@ TEST_CASE(
   Cell cell(config, {Script{}});
   cell.enqueue(1);
   SimPlc plc(cell.link);
-  app::LoopConfig lc = small_loop_config(config);
+  runtime::LoopConfig lc = small_loop_config(config);
   lc.max_parts = 1;
   lc.models_retry_ms = 600'000;  // only CLEAR_ERROR retries in this test
-  app::ProductionLoop& loop = cell.make_loop(lc);
+  runtime::ProductionLoop& loop = cell.make_loop(lc);
   loop.set_recogniser(nullptr);
   std::atomic<bool> database_ready{false};
   std::atomic<int> loads{0};
@@ -1186,10 +1190,10 @@ TEST_CASE("loop: through a real Modbus server on 127.0.0.1 a libmodbus PLC takes
   drivers::ModbusServer server(server_config);
   REQUIRE(server.start().ok());
   const auto server_started = Clock::now();
-  app::LoopConfig lc = small_loop_config(config);
+  runtime::LoopConfig lc = small_loop_config(config);
   lc.require_trigger_enable = true;  // DESIGN.md handshake: the PLC enables triggers
   lc.max_parts = kParts;
-  app::ProductionLoop& loop = cell.make_loop(lc, &server);
+  runtime::ProductionLoop& loop = cell.make_loop(lc, &server);
   REQUIRE(loop.start().ok());
 
   std::vector<ModbusPlcResult> results;
@@ -1528,7 +1532,7 @@ TEST_CASE("service: READY=1, WATCHDOG=1 only while the loop is healthy, STOPPING
       unsetenv("WATCHDOG_PID");
     }
   } unset_at_end;
-  app::ServiceNotifier service;
+  runtime::ServiceNotifier service;
   REQUIRE(service.watchdog_enabled());
   CHECK(service.pet_period_ns() == 50 * kNsPerMs);
 
@@ -1557,10 +1561,10 @@ TEST_CASE("service: READY=1, WATCHDOG=1 only while the loop is healthy, STOPPING
   Cell cell(config, {Script{}, hang, Script{}});
   cell.enqueue(3);
   SimPlc plc(cell.link);
-  app::LoopConfig lc = small_loop_config(config);
+  runtime::LoopConfig lc = small_loop_config(config);
   lc.hung_grace_ms = 200;
   lc.max_parts = 3;
-  app::ProductionLoop& loop = cell.make_loop(lc);
+  runtime::ProductionLoop& loop = cell.make_loop(lc);
   loop.set_service(&service);
   REQUIRE(loop.start().ok());
   service.ready("test cell");

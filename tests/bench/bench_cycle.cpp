@@ -20,7 +20,6 @@
 
 #include "../sim_test_util.hpp"
 #include "app/config.hpp"
-#include "app/production_loop.hpp"
 #include "app/recognition.hpp"
 #include "app/scan_mode.hpp"
 #include "app/sim_mode.hpp"
@@ -28,6 +27,8 @@
 #include "drivers/modbus/register_map.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "formats/calibration_file.hpp"
+#include "runtime/loop_wiring.hpp"
+#include "runtime/production_loop.hpp"
 
 using namespace cellsight;
 using Clock = std::chrono::steady_clock;
@@ -71,10 +72,10 @@ struct Part {
   std::uint32_t seq = 0;
 };
 
-class Timing final : public app::LoopObserver {
+class Timing final : public runtime::LoopObserver {
  public:
   explicit Timing(std::size_t parts) : parts_(parts + 1) {}
-  void on_part_done(const app::PartRecord& r) override {
+  void on_part_done(const runtime::PartRecord& r) override {
     std::lock_guard lock(mutex_);
     if (r.seq == 0 || r.seq >= parts_.size()) return;
     Part& p = parts_[r.seq];
@@ -183,13 +184,13 @@ int main(int argc, char** argv) {
     return 1;
   }
 
-  app::LoopConfig lc = app::loop_config(*config);
+  runtime::LoopConfig lc = runtime::loop_config(*config);
   lc.conveyor_waits_for_ready = true;
   lc.edge_timestamps_monotonic = false;
   lc.max_parts = static_cast<std::uint64_t>(parts);
   lc.require_trigger_enable = false;
   lc.hold_when_queue_full = true;
-  app::ProductionLoop loop(lc, camera, io, encoder, app::scan_builder_params(*config), calibration, server);
+  runtime::ProductionLoop loop(lc, camera, io, encoder, app::scan_builder_params(*config), calibration, server);
   loop.set_recogniser(std::move(recogniser));
   Timing timing(static_cast<std::size_t>(parts));
   loop.set_observer(&timing);

@@ -1,5 +1,5 @@
 // sd_notify wrapper of the systemd unit (scripts/cellsight.service).
-#include "app/service_notify.hpp"
+#include "runtime/service_notify.hpp"
 
 #include <systemd/sd-daemon.h>
 
@@ -8,7 +8,7 @@
 
 #include "drivers/log.hpp"
 
-namespace cellsight::app {
+namespace cellsight::runtime {
 namespace {
 constexpr const char* kComponent = "service";
 constexpr std::int64_t kNsPerUs = 1000;
@@ -59,4 +59,4 @@ void ServiceNotifier::pet_watchdog(std::int64_t now_ns) {
   send("WATCHDOG=1");
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::runtime

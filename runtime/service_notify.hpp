@@ -5,7 +5,7 @@
 #include <atomic>
 #include <cstdint>
 
-namespace cellsight::app {
+namespace cellsight::runtime {
 
 class ServiceNotifier {
  public:
@@ -41,4 +41,4 @@ class ServiceNotifier {
   bool under_systemd_ = false;
 };
 
-}  // namespace cellsight::app
+}  // namespace cellsight::runtime

@@ -1,0 +1,95 @@
+// The recognition thread of the production loop and its hand-off: a single-slot mailbox of atomics, so the
+// SCHED_FIFO loop thread never waits on a lock that this normal-priority thread could hold (no priority inversion).
+#pragma once
+
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <memory>
+#include <span>
+#include <string_view>
+#include <thread>
+
+#include "algo/decision.hpp"
+#include "algo/scan.hpp"
+#include "app/recogniser.hpp"
+#include "base/result.hpp"
+#include "runtime/loop_types.hpp"
+
+namespace cellsight::runtime {
+
+enum class WorkerJob : std::uint8_t { kRecognise, kLoad };
+
+// What the worker hands back for one job.
+struct WorkerAnswer {
+  WorkerJob job = WorkerJob::kRecognise;
+  algo::Decision decision;  // kRecognise
+  bool load_ok = false;     // kLoad: a recogniser is now in place
+  std::chrono::steady_clock::time_point posted_at{};
+  std::chrono::steady_clock::time_point finished_at{};
+};
+
+// One job at a time. The slot has two owners in turn, told apart by two sequence words: the poster (the loop
+// thread) writes the job and then publishes posted_seq_; the worker reads it, works, writes the answer and then
+// publishes done_seq_ = posted_seq_. Each side touches the slot only while it owns it, and each wait is a futex on
+// a word (futex.hpp), never a mutex.
+class RecognitionWorker {
+ public:
+  using Clock = std::chrono::steady_clock;
+
+  RecognitionWorker() = default;
+  ~RecognitionWorker();  // stop()
+  RecognitionWorker(const RecognitionWorker&) = delete;
+  RecognitionWorker& operator=(const RecognitionWorker&) = delete;
+
+  // Before start().
+  void set_recogniser(std::unique_ptr<app::Recogniser> recogniser);
+  void set_loader(RecogniserLoader loader);
+
+  [[nodiscard]] Status start();
+  // Lets a running job finish, then ends the thread. Any thread except the worker itself.
+  void stop();
+
+  // ---- the poster's side (one thread: the loop) ----
+  // No job in the slot: the last answer is in answer() and a new job may be posted.
+  [[nodiscard]] bool idle() const;
+  // Recognise `points` (which stay untouched until the answer is back) before `deadline`. False when busy.
+  [[nodiscard]] bool post_recognise(std::span<const algo::ScanPoint> points, Clock::time_point deadline);
+  // Load the recogniser with the loader (model database). False when busy or without a loader.
+  [[nodiscard]] bool post_load();
+  // Sleeps until the worker is idle or `until`; true when idle. Wakes as soon as the answer is published.
+  [[nodiscard]] bool wait_idle(Clock::time_point until);
+  // The last job's answer; read only while idle().
+  [[nodiscard]] const WorkerAnswer& answer() const { return answer_; }
+  [[nodiscard]] bool has_loader() const { return static_cast<bool>(loader_); }
+
+  // ---- any thread ----
+  [[nodiscard]] bool has_recogniser() const { return has_recogniser_.load(std::memory_order_acquire); }
+  // The recogniser's name of a class; empty without a recogniser. Not while a load job runs (it replaces the
+  // recogniser): the loop asks only when publishing, and it loads only in fault.
+  [[nodiscard]] std::string_view class_name(int class_index) const;
+
+ private:
+  void run();
+  void post(WorkerJob job);
+
+  std::unique_ptr<app::Recogniser> recogniser_;  // the worker's while a job runs; replaced only by kLoad
+  RecogniserLoader loader_;
+  std::thread thread_;
+
+  // The slot. Job half: written by the poster before posted_seq_ (release), read by the worker after (acquire).
+  WorkerJob job_ = WorkerJob::kRecognise;
+  std::span<const algo::ScanPoint> points_;
+  Clock::time_point deadline_{};
+  Clock::time_point posted_at_{};
+  // Answer half: written by the worker before done_seq_ (release), read by the poster after (acquire).
+  WorkerAnswer answer_;
+
+  std::atomic<std::uint32_t> posted_seq_{0};
+  std::atomic<std::uint32_t> done_seq_{0};  // == posted_seq_: idle; the poster's futex word
+  std::atomic<std::uint32_t> bell_{0};      // rung on every post and on stop: the worker's futex word
+  std::atomic<bool> exit_{false};
+  std::atomic<bool> has_recogniser_{false};
+};
+
+}  // namespace cellsight::runtime
