@@ -16,8 +16,8 @@
 #include "app/model_db.hpp"
 #include "app/recognition.hpp"
 #include "app/sim_mode.hpp"
-#include "app/template_file.hpp"
 #include "drivers/log.hpp"
+#include "formats/template_file.hpp"
 
 namespace cellsight::app {
 
