@@ -6,11 +6,11 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 # The tests with threads: the production loop's loop and recognition threads with the Modbus network thread and the
-# `run` mode (test_run_loop, test_modbus), the loop's rooms on their own (the recognition worker's futex mailbox, the
-# log queue and its writer thread, the pass acquirer), the encoder's decoding thread (test_gpio) and the training's worker threads
-# (test_recognition "[training]"). A data race or a lock-order inversion fails the stage. Own build folder: TSan
-# cannot share a process with ASan. No suppressions: every report in our code is a bug to fix, and none of these
-# tests reaches one inside a library.
+# `run` mode (test_run_loop, test_modbus), the loop's rooms on their own (the recognition worker's futex mailbox,
+# the log queue and its writer thread, the pass acquirer), the encoder's decoding thread (test_gpio) and the
+# training's worker threads (test_recognition "[training]"). A data race or a lock-order inversion fails the stage.
+# Own build folder: TSan cannot share a process with ASan. No suppressions: every report in our code is a bug to
+# fix, and none of these tests reaches one inside a library.
 TSAN_TESTS=(test_run_loop test_recognition_worker test_log_queue test_pass_acquirer test_modbus test_gpio test_recognition)
 TSAN=${CELLSIGHT_TSAN_BUILD:-build-tsan}
 selected=()
