@@ -97,8 +97,8 @@ struct PerfectMatchCost {
 };
 
 // x-y mean of the finite points; (0, 0) when there is none. set_scan() uses it for centroid_start(). A template's c
-// may be defined otherwise (app/template_file: mean of the occupied cell centres): match() works with whatever c it
-// is given, the start is then off by the difference, which RPROP removes like any other offset.
+// may be defined otherwise (formats/template_build: mean of the occupied cell centres): match() works with whatever
+// c it is given, the start is then off by the difference, which RPROP removes like any other offset.
 [[nodiscard]] Eigen::Vector2d centroid_xy_m(std::span<const ScanPoint> points);
 
 // Holds the down-sampled scan; sized once, set_scan() and match() never allocate. Not thread-safe.
