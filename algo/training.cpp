@@ -75,6 +75,12 @@ std::vector<double> scale_all(const Scaler& scaler, std::span<const FeatureVecto
   return out;
 }
 
+// correct[param] = the sum of task_correct over param's folds; task t is fold t % folds of param t / folds.
+void sum_over_folds(const std::vector<int>& task_correct, int folds, std::vector<int>& correct) {
+  std::fill(correct.begin(), correct.end(), 0);
+  for (std::size_t t = 0; t < task_correct.size(); ++t) correct[t / static_cast<std::size_t>(folds)] += task_correct[t];
+}
+
 // A classifier family as the annealing sees it: a parameter grid and "how many samples does each grid point
 // classify correctly over all k folds" for a mask.
 class Evaluator {
@@ -152,9 +158,7 @@ class SvmEvaluator final : public Evaluator {
         },
         ctx.stop);
     if (!done) return false;
-    std::fill(correct.begin(), correct.end(), 0);
-    for (int t = 0; t < tasks; ++t)
-      correct[static_cast<std::size_t>(t / ctx.folds)] += task_correct[static_cast<std::size_t>(t)];
+    sum_over_folds(task_correct, ctx.folds, correct);
     return true;
   }
 
@@ -284,9 +288,7 @@ class MlpEvaluator final : public Evaluator {
         },
         ctx.stop);
     if (!done) return false;
-    std::fill(correct.begin(), correct.end(), 0);
-    for (int t = 0; t < tasks; ++t)
-      correct[static_cast<std::size_t>(t / ctx.folds)] += task_correct[static_cast<std::size_t>(t)];
+    sum_over_folds(task_correct, ctx.folds, correct);
     return true;
   }
 
