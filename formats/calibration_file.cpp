@@ -84,13 +84,18 @@ void read_camera(YamlSection s, CalibrationRecord& r) {
   s.finish();
 }
 
-void read_laser(YamlSection s, CalibrationRecord& r) {
-  for (const char* key : {"calibrated_at", "normal", "offset_m", "residual_mm", "points"}) s.require(key);
-  s.text("calibrated_at", r.laser_date);
+// The plane's unit normal under key "normal" (the laser plane's and the carrier plane's).
+Eigen::Vector3d read_unit_normal(YamlSection& s) {
   Eigen::Vector3d n = Eigen::Vector3d::Zero();
   s.vec3("normal", n, -1.0, 1.0, "");
   if (std::abs(n.norm() - 1.0) > kUnitTolerance) s.error("normal", "must be a unit vector");
-  r.sensor.laser_normal = n;
+  return n;
+}
+
+void read_laser(YamlSection s, CalibrationRecord& r) {
+  for (const char* key : {"calibrated_at", "normal", "offset_m", "residual_mm", "points"}) s.require(key);
+  s.text("calibrated_at", r.laser_date);
+  r.sensor.laser_normal = read_unit_normal(s);
   s.number("offset_m", r.sensor.laser_offset_m, -5.0, 5.0, "m");
   s.number("residual_mm", r.sensor.laser_residual_mm, 0.0, 100.0, "mm");
   s.integer("points", r.laser_points, 3, 100000000, "points");
@@ -108,10 +113,7 @@ void read_conveyor(YamlSection s, CalibrationRecord& r) {
 void read_support(YamlSection s, CalibrationRecord& r) {
   for (const char* key : {"calibrated_at", "normal", "offset_m", "rms_mm", "points"}) s.require(key);
   s.text("calibrated_at", r.support_date);
-  Eigen::Vector3d n = Eigen::Vector3d::Zero();
-  s.vec3("normal", n, -1.0, 1.0, "");
-  if (std::abs(n.norm() - 1.0) > kUnitTolerance) s.error("normal", "must be a unit vector");
-  r.support.normal = n;
+  r.support.normal = read_unit_normal(s);
   s.number("offset_m", r.support.offset_m, -5.0, 5.0, "m");
   s.number("rms_mm", r.support_rms_mm, 0.0, 100.0, "mm");
   std::int64_t points = 0;
