@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <map>
+#include <optional>
 #include <set>
 #include <string>
 #include <vector>
@@ -131,6 +132,19 @@ bool parse_seed(const std::string& text, std::uint64_t& out) {
   return true;
 }
 
+// --seed and --pose of `sim` and `scan --sim`; the usage error, or "" when both are absent or valid.
+std::string read_seed_and_pose(const Args& args, std::uint64_t& seed, std::optional<sim::PartPose>& pose) {
+  if (const auto s = args.values.find("--seed"); s != args.values.end() && !parse_seed(s->second, seed)) {
+    return "--seed '" + s->second + "': expected a whole number >= 0";
+  }
+  if (const auto p = args.values.find("--pose"); p != args.values.end()) {
+    auto parsed = parse_pose(p->second);
+    if (!parsed) return parsed.error().message;
+    pose = *parsed;
+  }
+  return {};
+}
+
 int run_random_catalogue(const Args& args, const Config& config) {
   if (args.flags.count("--list") != 0 || args.values.count("--part") != 0 || args.values.count("--pose") != 0) {
     return usage_error("sim --random-catalogue takes only --seed and --out");
@@ -190,14 +204,7 @@ int run_sim(const Args& args, const Config& config) {
   if (out == args.values.end()) return usage_error("sim needs --out DIR");
   options.part = part->second;
   options.out_dir = out->second;
-  if (const auto seed = args.values.find("--seed"); seed != args.values.end() && !parse_seed(seed->second, options.seed)) {
-    return usage_error("--seed '" + seed->second + "': expected a whole number >= 0");
-  }
-  if (const auto pose = args.values.find("--pose"); pose != args.values.end()) {
-    auto parsed = parse_pose(pose->second);
-    if (!parsed) return usage_error(parsed.error().message);
-    options.pose = *parsed;
-  }
+  if (std::string why = read_seed_and_pose(args, options.seed, options.pose); !why.empty()) return usage_error(why);
   if (cell->find_part(options.part) == nullptr) {
     return usage_error(cell->random_pass(options.part, 0).error().message);
   }
@@ -229,14 +236,7 @@ int run_scan_mode(const Args& args, const Config& config) {
   if (!options.sim && (args.values.count("--part") != 0 || options.empty_carrier)) {
     return usage_error("--part and --empty choose what the simulated cell scans; add --sim");
   }
-  if (const auto seed = args.values.find("--seed"); seed != args.values.end() && !parse_seed(seed->second, options.seed)) {
-    return usage_error("--seed '" + seed->second + "': expected a whole number >= 0");
-  }
-  if (const auto pose = args.values.find("--pose"); pose != args.values.end()) {
-    auto parsed = parse_pose(pose->second);
-    if (!parsed) return usage_error(parsed.error().message);
-    options.pose = *parsed;
-  }
+  if (std::string why = read_seed_and_pose(args, options.seed, options.pose); !why.empty()) return usage_error(why);
   auto summary = run_scan(config, options);
   if (!summary) {
     std::fprintf(stderr, "cellsight: %s\n", summary.error().message.c_str());
