@@ -297,15 +297,28 @@ TEST_CASE("teach refuses bad scans and keeps the database as it was") {
   CHECK(r.output.find("cellsight teach") != std::string::npos);
 }
 
-TEST_CASE("a manifest that was edited or damaged is refused") {
-  const SmallCell cell = SmallCell::named("manifest");
-  app::ModelDb db = *app::ModelDb::open(cell.models, app::grid_spec(cell.config), true);
+namespace {
+
+// Part "plate" (PLC id 3) with `scan_count` scan records whose checksums are 0x1234abcd, 0x1234abce, ...
+app::PartEntry plate_entry(int scan_count) {
   app::PartEntry p;
   p.name = "plate";
   p.id = 3;
   p.template_file = "templates/plate.dmap";
-  p.scans.push_back({"scans/plate/00001.ply", 0x1234abcdU, "test"});
-  db.manifest().parts.push_back(p);
+  for (int i = 1; i <= scan_count; ++i) {
+    char path[32];
+    std::snprintf(path, sizeof path, "scans/plate/%05d.ply", i);
+    p.scans.push_back({path, 0x1234abccU + static_cast<std::uint32_t>(i), "test"});
+  }
+  return p;
+}
+
+}  // namespace
+
+TEST_CASE("a manifest that was edited or damaged is refused") {
+  const SmallCell cell = SmallCell::named("manifest");
+  app::ModelDb db = *app::ModelDb::open(cell.models, app::grid_spec(cell.config), true);
+  db.manifest().parts.push_back(plate_entry(1));
   REQUIRE(db.save().ok());
   auto reopened = app::ModelDb::open(cell.models, app::grid_spec(cell.config), false);
   REQUIRE(reopened.ok());
@@ -377,12 +390,7 @@ TEST_CASE("a part taught with few scans lowers the folds; too few for any test i
 TEST_CASE("scans flagged at training survive a save and must name scans of the part", "[model_db]") {
   const SmallCell cell = SmallCell::named("flagged");
   app::ModelDb db = *app::ModelDb::open(cell.models, app::grid_spec(cell.config), true);
-  app::PartEntry p;
-  p.name = "plate";
-  p.id = 3;
-  p.template_file = "templates/plate.dmap";
-  p.scans.push_back({"scans/plate/00001.ply", 0x1234abcdU, "test"});
-  p.scans.push_back({"scans/plate/00002.ply", 0x1234abceU, "test"});
+  app::PartEntry p = plate_entry(2);
   p.flagged = {"scans/plate/00002.ply"};
   db.manifest().parts.push_back(p);
   REQUIRE(db.save().ok());
