@@ -4,10 +4,6 @@
 
 namespace cellsight::runtime {
 
-using drivers::ErrorCode;
-using drivers::WarningCode;
-using loop_detail::kComponent;
-
 void ProductionLoop::handle_commands(const drivers::PlcCommands& commands) {
   trigger_enable_ = commands.trigger_enable;
   const LoopState state = state_.load(std::memory_order_relaxed);

@@ -5,10 +5,6 @@
 
 namespace cellsight::runtime {
 
-using drivers::DeviceStatus;
-using drivers::ErrorCode;
-using loop_detail::kComponent;
-
 void ProductionLoop::step_fault(Clock::time_point now) {
   const bool forced = clear_requested_;
   clear_requested_ = false;

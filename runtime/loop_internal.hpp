@@ -7,6 +7,7 @@
 #include <cstdint>
 
 #include "algo/decision.hpp"
+#include "drivers/device.hpp"
 #include "runtime/loop_types.hpp"
 
 namespace cellsight::runtime::loop_detail {
@@ -42,3 +43,16 @@ inline const char* trigger_name(TriggerSource trigger) {
 }
 
 }  // namespace cellsight::runtime::loop_detail
+
+namespace cellsight::runtime {
+
+// The loop's source files (the only includers of this header) name these without qualification.
+using drivers::DeviceStatus;
+using drivers::ErrorCode;
+using drivers::WarningCode;
+using loop_detail::decision_of;
+using loop_detail::kComponent;
+using loop_detail::ms_between;
+using loop_detail::to_ns;
+
+}  // namespace cellsight::runtime

@@ -5,11 +5,6 @@
 
 namespace cellsight::runtime {
 
-using drivers::DeviceStatus;
-using drivers::ErrorCode;
-using loop_detail::decision_of;
-using loop_detail::kComponent;
-
 namespace {
 constexpr int kMaxDrainedFramesPerStep = 8;
 }  // namespace

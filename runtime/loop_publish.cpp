@@ -9,12 +9,6 @@
 
 namespace cellsight::runtime {
 
-using drivers::ErrorCode;
-using drivers::WarningCode;
-using loop_detail::kComponent;
-using loop_detail::ms_between;
-using loop_detail::to_ns;
-
 namespace {
 constexpr double kDegPerRad = 180.0 / std::numbers::pi;
 constexpr double kMmPerM = 1e3;

@@ -4,11 +4,6 @@
 
 namespace cellsight::runtime {
 
-using drivers::ErrorCode;
-using loop_detail::decision_of;
-using loop_detail::kComponent;
-using loop_detail::ms_between;
-
 void ProductionLoop::step_recognising(Clock::time_point now) {
   Clock::time_point until = now + std::chrono::milliseconds(config_.poll_slice_ms);
   if (!timeout_published_) until = std::min(until, deadline_);

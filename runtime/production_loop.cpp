@@ -12,12 +12,6 @@
 
 namespace cellsight::runtime {
 
-using drivers::ErrorCode;
-using drivers::WarningCode;
-using loop_detail::kComponent;
-using loop_detail::ms_between;
-using loop_detail::to_ns;
-
 namespace {
 // A loop thread silent for longer than this is not healthy (the systemd watchdog is then not petted).
 constexpr std::int64_t kHealthyIterationNs = 1'000'000'000;
