@@ -8,6 +8,13 @@
 
 namespace cellsight::runtime {
 
+namespace {
+// Where a queued line goes: the process log, as a direct log::write would have put it.
+void write_line(const LogQueue::Line& line) {
+  log::write(line.level, line.component, "%s", line.text);
+}
+}  // namespace
+
 LogQueue::LogQueue(std::size_t capacity)
     : capacity_(std::max<std::size_t>(1, capacity)), lines_(std::make_unique<Line[]>(capacity_)) {}
 
@@ -49,14 +56,14 @@ void LogQueue::stop_writer() {
   stop_.store(true, std::memory_order_release);
   futex_ring(bell_);
   if (writer_.joinable()) writer_.join();
-  (void)drain([](const Line& line) { log::write(line.level, line.component, "%s", line.text); });
+  (void)drain(write_line);
 }
 
 void LogQueue::writer_thread() {
   for (;;) {
     // The bell before the ring: a push after this load changes the bell, so the wait below does not sleep past it.
     const std::uint32_t bell = bell_.load(std::memory_order_acquire);
-    (void)drain([](const Line& line) { log::write(line.level, line.component, "%s", line.text); });
+    (void)drain(write_line);
     if (stop_.load(std::memory_order_acquire)) return;  // stop_writer() drains what came after
     futex_wait(bell_, bell);
   }
