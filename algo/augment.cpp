@@ -44,8 +44,8 @@ void augment_scan(std::span<const ScanPoint> in, const AugmentParams& params, st
   const double swing = uniform(-params.swing_rad, params.swing_rad);
   const double keep = uniform(std::clamp(params.keep_min, 0.0, 1.0), 1.0);
   const double noise_m = uniform(0.0, params.noise_max_m);
-  std::vector<Disc> discs(static_cast<std::size_t>(
-      std::uniform_int_distribution<int>(0, std::max(0, params.dropouts_max))(rng)));
+  std::vector<Disc> discs(
+      static_cast<std::size_t>(std::uniform_int_distribution<int>(0, std::max(0, params.dropouts_max))(rng)));
   for (Disc& d : discs) {
     const ScanPoint& at = in[std::uniform_int_distribution<std::size_t>(0, in.size() - 1)(rng)];
     const double r = uniform(params.dropout_radius_min_m, params.dropout_radius_max_m);

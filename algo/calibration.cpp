@@ -25,7 +25,9 @@ cv::Mat camera_matrix(const Intrinsics& k) {
   return (cv::Mat_<double>(3, 3) << k.fx_px, 0.0, k.cx_px, 0.0, k.fy_px, k.cy_px, 0.0, 0.0, 1.0);
 }
 
-cv::Mat distortion(const Intrinsics& k) { return (cv::Mat_<double>(1, 5) << k.k1, k.k2, k.p1, k.p2, k.k3); }
+cv::Mat distortion(const Intrinsics& k) {
+  return (cv::Mat_<double>(1, 5) << k.k1, k.k2, k.p1, k.p2, k.k3);
+}
 
 std::vector<cv::Point3f> object_points(const BoardSpec& board) {
   std::vector<cv::Point3f> out;
@@ -104,11 +106,12 @@ cv::Ptr<cv::SimpleBlobDetector> dot_detector(const cv::Mat& image, const BoardSp
 // falls off across the board, and a constant level would pull the centroid toward the darker side. Relative
 // darkness (plate - I) / (plate - dot) is 1 inside the dot and 0 outside whatever the local light, and
 // point-symmetric under symmetric blur, so the centroid is the centre of the dot's image.
-Eigen::Vector2d refine_dot(const cv::Mat& image, Eigen::Vector2d centre, const Eigen::Matrix2d& to_pixels, double radius_mm) {
+Eigen::Vector2d refine_dot(const cv::Mat& image, Eigen::Vector2d centre, const Eigen::Matrix2d& to_pixels,
+                           double radius_mm) {
   constexpr int kIterations = 3;
-  constexpr double kWindow = 1.25;                // radii: the blurred edge is inside, the neighbours far outside
+  constexpr double kWindow = 1.25;                      // radii: the blurred edge is inside, the neighbours far outside
   constexpr double kRingInner = 1.7, kRingOuter = 2.0;  // plate level around the dot (neighbours start at ~3 radii)
-  constexpr double kCore = 0.5;                   // the dot's own level
+  constexpr double kCore = 0.5;                         // the dot's own level
   constexpr double kMinContrastDn = 10.0;
   const Eigen::Matrix2d to_board = to_pixels.inverse();
   const double reach_x = kRingOuter * radius_mm * to_pixels.row(0).norm();
@@ -119,7 +122,9 @@ Eigen::Vector2d refine_dot(const cv::Mat& image, Eigen::Vector2d centre, const E
     const int y0 = std::max(0, static_cast<int>(std::floor(centre.y() - reach_y)));
     const int y1 = std::min(image.rows - 1, static_cast<int>(std::ceil(centre.y() + reach_y)));
     if (x0 == 0 || y0 == 0 || x1 == image.cols - 1 || y1 == image.rows - 1) return centre;  // cut by the border
-    auto radii = [&](int x, int y) { return (to_board * Eigen::Vector2d(x - centre.x(), y - centre.y())).norm() / radius_mm; };
+    auto radii = [&](int x, int y) {
+      return (to_board * Eigen::Vector2d(x - centre.x(), y - centre.y())).norm() / radius_mm;
+    };
     // Plate level: least-squares plane I = a + b dx + c dy over the ring, then again without the pixels
     // further than 3 sigma from the first plane (hot pixels, a stray neighbour edge).
     constexpr double kMinRingPixels = 8.0;
@@ -276,10 +281,12 @@ double BoardSpec::distance_to_nearest_dot_m(const Eigen::Vector2d& uv) const {
 
 std::string validate_board(const BoardSpec& b) {
   if (b.rows < 3 || b.rows % 2 == 0) {
-    return "board rows must be odd and at least 3 (an even count makes the pattern look the same turned by 180 degrees)";
+    return "board rows must be odd and at least 3 (an even count makes the pattern look the same turned by 180 "
+           "degrees)";
   }
   if (b.cols < 2) return "board cols (dots per row) must be at least 2";
-  if (!(b.spacing_mm > 0.0) || !(b.dot_diameter_mm > 0.0)) return "board spacing_mm and dot_diameter_mm must be positive";
+  if (!(b.spacing_mm > 0.0) || !(b.dot_diameter_mm > 0.0))
+    return "board spacing_mm and dot_diameter_mm must be positive";
   // Nearest neighbours are diagonal, spacing * sqrt(2) apart; keep a clear gap so blobs never merge.
   constexpr double kMaxFill = 0.7;
   if (b.dot_diameter_mm > kMaxFill * b.spacing_mm * std::numbers::sqrt2) {
@@ -304,7 +311,8 @@ Expected<std::vector<Eigen::Vector2d>> detect_board(const cv::Mat& image, const 
     auto detector = dot_detector(image, board);
     found = cv::findCirclesGrid(image, pattern, centres, cv::CALIB_CB_ASYMMETRIC_GRID, detector);
     if (!found) {  // clustering copes better with strong perspective
-      found = cv::findCirclesGrid(image, pattern, centres, cv::CALIB_CB_ASYMMETRIC_GRID | cv::CALIB_CB_CLUSTERING, detector);
+      found = cv::findCirclesGrid(image, pattern, centres, cv::CALIB_CB_ASYMMETRIC_GRID | cv::CALIB_CB_CLUSTERING,
+                                  detector);
     }
     if (!found) {
       std::vector<cv::KeyPoint> blobs;
@@ -326,7 +334,8 @@ Expected<std::vector<Eigen::Vector2d>> detect_board(const cv::Mat& image, const 
   } catch (const cv::Exception& e) {  // OpenCV reports misuse by exception; stop it here
     return make_error(std::string("board detection failed: ") + e.what());
   }
-  if (static_cast<int>(centres.size()) != board.dot_count()) return make_error("board detection returned a wrong dot count");
+  if (static_cast<int>(centres.size()) != board.dot_count())
+    return make_error("board detection returned a wrong dot count");
 
   std::vector<Eigen::Vector2d> dots(centres.size());
   for (std::size_t i = 0; i < centres.size(); ++i) dots[i] = {centres[i].x, centres[i].y};
@@ -357,8 +366,7 @@ Expected<std::vector<Eigen::Vector2d>> detect_board(const cv::Mat& image, const 
       du.col(1) = Eigen::Vector2d(((in % 2) - (i % 2)) * s, (in - i) * s);
       dp.col(0) = at(i, jn) - at(i, j);
       dp.col(1) = at(in, j) - at(i, j);
-      refined[dot_index(board, i, j)] =
-          refine_dot(image, at(i, j), dp * du.inverse(), 0.5 * board.dot_diameter_mm);
+      refined[dot_index(board, i, j)] = refine_dot(image, at(i, j), dp * du.inverse(), 0.5 * board.dot_diameter_mm);
     }
   }
   dots.swap(refined);
@@ -373,10 +381,11 @@ Expected<CameraCalibrationResult> calibrate_intrinsics(const std::vector<std::ve
   if (const std::string why = validate_board(board); !why.empty()) return make_error(why);
   if (static_cast<int>(views.size()) < options.min_views) {
     char buf[256];
-    std::snprintf(buf, sizeof buf,
-                  "only %zu board views; at least %d are needed: take more pictures with the board tilted 20-40 degrees "
-                  "in different directions and reaching every part of the image",
-                  views.size(), options.min_views);
+    std::snprintf(
+        buf, sizeof buf,
+        "only %zu board views; at least %d are needed: take more pictures with the board tilted 20-40 degrees "
+        "in different directions and reaching every part of the image",
+        views.size(), options.min_views);
     return make_error(buf);
   }
   if (width_px <= 0 || height_px <= 0) return make_error("image size unknown");
@@ -428,7 +437,8 @@ Expected<CameraCalibrationResult> calibrate_intrinsics(const std::vector<std::ve
   const auto& in = out.intrinsics;
   out.rms_px = rms;
   if (!std::isfinite(rms) || !(in.fx_px > 0.0) || !(in.fy_px > 0.0)) {
-    return make_error("camera calibration did not converge: the views are too similar; tilt the board more between views");
+    return make_error(
+        "camera calibration did not converge: the views are too similar; tilt the board more between views");
   }
   for (std::size_t v = 0; v < views.size(); ++v) {
     out.view_rms_px.push_back(view_rms_px(object, images[v], rvecs[v], tvecs[v], k, d));
@@ -440,25 +450,29 @@ Expected<CameraCalibrationResult> calibrate_intrinsics(const std::vector<std::ve
       out.tilt_spread_deg = std::max(out.tilt_spread_deg, std::acos(std::clamp(na.dot(nb), -1.0, 1.0)) * kRadToDeg);
     }
   }
-  out.coverage = static_cast<double>(std::count(covered.begin(), covered.end(), true)) / static_cast<double>(covered.size());
+  out.coverage =
+      static_cast<double>(std::count(covered.begin(), covered.end(), true)) / static_cast<double>(covered.size());
   if (out.tilt_spread_deg < options.min_tilt_spread_deg) {
-    return make_error(format("the board views are nearly parallel (normals within %.1f deg, need %.0f): tilt the board "
-                             "20-40 degrees left, right, up and down between views",
-                             out.tilt_spread_deg, options.min_tilt_spread_deg));
+    return make_error(
+        format("the board views are nearly parallel (normals within %.1f deg, need %.0f): tilt the board "
+               "20-40 degrees left, right, up and down between views",
+               out.tilt_spread_deg, options.min_tilt_spread_deg));
   }
   if (rms > options.max_rms_px) {
     std::size_t worst = 0;
     for (std::size_t v = 1; v < out.view_rms_px.size(); ++v) {
       if (out.view_rms_px[v] > out.view_rms_px[worst]) worst = v;
     }
-    return make_error(format("reprojection error %.3f px is above the limit %.2f px (worst: view %.0f): retake blurred "
-                             "or badly lit views, check the board is flat and its dimensions are right",
-                             rms, options.max_rms_px, static_cast<double>(worst + 1)));
+    return make_error(
+        format("reprojection error %.3f px is above the limit %.2f px (worst: view %.0f): retake blurred "
+               "or badly lit views, check the board is flat and its dimensions are right",
+               rms, options.max_rms_px, static_cast<double>(worst + 1)));
   }
   if (out.coverage < options.min_coverage) {
-    out.warnings.push_back(format("the dots reached only %.0f %% of the image: hold the board near the edges and "
-                                  "corners too, or the distortion is poorly known there",
-                                  100.0 * out.coverage));
+    out.warnings.push_back(
+        format("the dots reached only %.0f %% of the image: hold the board near the edges and "
+               "corners too, or the distortion is poorly known there",
+               100.0 * out.coverage));
   }
   return out;
 }
@@ -488,7 +502,8 @@ Expected<BoardPose> solve_board_pose(const Intrinsics& intrinsics, const BoardSp
   out.board_to_camera = to_isometry(rvec, tvec);
   out.rms_px = view_rms_px(object, image, rvec, tvec, k, d);
   if (out.board_to_camera.linear().col(2).z() <= 0.0 || out.board_to_camera.translation().z() <= 0.0) {
-    return make_error("board pose puts the printed face away from the camera: the board is seen from behind or mirrored");
+    return make_error(
+        "board pose puts the printed face away from the camera: the board is seen from behind or mirrored");
   }
   return out;
 }
@@ -508,9 +523,10 @@ Expected<ReferencePose> camera_pose_from_reference(const Intrinsics& intrinsics,
   auto pose = solve_board_pose(intrinsics, board, dots);
   if (!pose) return pose.error();
   if (pose->rms_px > max_rms_px) {
-    return make_error(format("reference view reprojection error %.3f px is above %.2f px: retake the reference picture "
-                             "(board flat in the fixture, sharp, evenly lit)",
-                             pose->rms_px, max_rms_px));
+    return make_error(
+        format("reference view reprojection error %.3f px is above %.2f px: retake the reference picture "
+               "(board flat in the fixture, sharp, evenly lit)",
+               pose->rms_px, max_rms_px));
   }
   // cell -> camera = (board -> camera) * (cell -> board)
   const Eigen::Isometry3d cell_to_camera = pose->board_to_camera * board_to_cell.inverse();
@@ -595,9 +611,10 @@ Expected<LaserPlaneResult> calibrate_laser_plane(const Intrinsics& intrinsics, c
                                                  const LaserCalibrationOptions& options) {
   if (const std::string why = validate_board(board); !why.empty()) return make_error(why);
   if (views.size() < 2) {
-    return make_error(format("%.0f laser view: the plane needs at least 2 board poses that cut the laser at different "
-                             "depths or tilts",
-                             static_cast<double>(views.size())));
+    return make_error(
+        format("%.0f laser view: the plane needs at least 2 board poses that cut the laser at different "
+               "depths or tilts",
+               static_cast<double>(views.size())));
   }
   const double margin_m = options.dot_margin_mm * kMm;
   const double keep_out_m = 0.5 * board.dot_diameter_mm * kMm + margin_m;
@@ -680,15 +697,17 @@ Expected<LaserPlaneResult> calibrate_laser_plane(const Intrinsics& intrinsics, c
   out.residual_rms_mm = kept.empty() ? 0.0 : std::sqrt(sum_sq / static_cast<double>(kept.size())) / kMm;
   out.spread_mm = fit.spread.y() / kMm;
   if (out.spread_mm < options.min_spread_mm) {
-    return make_error(format("the stripe points of all views lie on nearly one line (spread %.1f mm, need %.0f mm): the "
-                             "board poses are parallel and in the same place; move the board to different depths and "
-                             "tilt it differently for each view",
-                             out.spread_mm, options.min_spread_mm));
+    return make_error(
+        format("the stripe points of all views lie on nearly one line (spread %.1f mm, need %.0f mm): the "
+               "board poses are parallel and in the same place; move the board to different depths and "
+               "tilt it differently for each view",
+               out.spread_mm, options.min_spread_mm));
   }
   if (out.residual_rms_mm > options.max_residual_mm) {
-    return make_error(format("the stripe points are %.3f mm RMS from one plane (limit %.2f mm): check the board is flat, "
-                             "the laser line is sharp and there are no reflections on the board",
-                             out.residual_rms_mm, options.max_residual_mm));
+    return make_error(
+        format("the stripe points are %.3f mm RMS from one plane (limit %.2f mm): check the board is flat, "
+               "the laser line is sharp and there are no reflections on the board",
+               out.residual_rms_mm, options.max_residual_mm));
   }
   return out;
 }
@@ -730,22 +749,24 @@ Expected<ConveyorResult> calibrate_conveyor(const Intrinsics& intrinsics, const 
   }
   if (scc <= 0.0) return make_error("all conveyor views have the same encoder count: move the carrier between views");
   const Eigen::Vector3d velocity_m = scp / scc;  // metres per count
-  const auto [c_min, c_max] = std::minmax_element(views.begin(), views.end(), [](const ConveyorView& a, const ConveyorView& b) {
-    return a.encoder_counts < b.encoder_counts;
-  });
+  const auto [c_min, c_max] = std::minmax_element(
+      views.begin(), views.end(),
+      [](const ConveyorView& a, const ConveyorView& b) { return a.encoder_counts < b.encoder_counts; });
   ConveyorResult out;
   out.travel_mm = velocity_m.norm() * static_cast<double>(c_max->encoder_counts - c_min->encoder_counts) / kMm;
   if (out.travel_mm < options.min_travel_mm) {
-    return make_error(format("the carrier moved only %.1f mm between the first and last view (need %.0f mm): move it "
-                             "about 200 mm",
-                             out.travel_mm, options.min_travel_mm));
+    return make_error(
+        format("the carrier moved only %.1f mm between the first and last view (need %.0f mm): move it "
+               "about 200 mm",
+               out.travel_mm, options.min_travel_mm));
   }
   out.mm_per_count = velocity_m.norm() / kMm;
   out.direction = velocity_m.normalized();
   out.angle_to_x_deg = std::acos(std::clamp(out.direction.x(), -1.0, 1.0)) * kRadToDeg;
   if (out.direction.x() < 0.0) {
-    return make_error("the encoder counts down while the carrier moves downstream (+x): swap the encoder A and B lines "
-                      "(gpio.encoder_a_line / encoder_b_line) and repeat");
+    return make_error(
+        "the encoder counts down while the carrier moves downstream (+x): swap the encoder A and B lines "
+        "(gpio.encoder_a_line / encoder_b_line) and repeat");
   }
   double sum_sq = 0.0;
   for (std::size_t i = 0; i < views.size(); ++i) {
@@ -756,13 +777,14 @@ Expected<ConveyorResult> calibrate_conveyor(const Intrinsics& intrinsics, const 
   }
   out.residual_rms_mm = std::sqrt(sum_sq / static_cast<double>(views.size())) / kMm;
   if (out.angle_to_x_deg > options.warn_angle_deg) {
-    out.warnings.push_back(format("the carrier moves %.2f deg away from the cell x axis (direction y %.4f, z %.4f): check the "
-                                  "reference fixture is square to the conveyor",
-                                  out.angle_to_x_deg, out.direction.y(), out.direction.z()));
+    out.warnings.push_back(
+        format("the carrier moves %.2f deg away from the cell x axis (direction y %.4f, z %.4f): check the "
+               "reference fixture is square to the conveyor",
+               out.angle_to_x_deg, out.direction.y(), out.direction.z()));
   }
   if (out.max_rotation_deg > options.warn_rotation_deg) {
-    out.warnings.push_back(format("the board turned by %.2f deg between views: clamp it rigidly to the carrier",
-                                  out.max_rotation_deg));
+    out.warnings.push_back(
+        format("the board turned by %.2f deg between views: clamp it rigidly to the carrier", out.max_rotation_deg));
   }
   return out;
 }

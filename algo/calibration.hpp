@@ -18,11 +18,11 @@ namespace cellsight::algo {
 // rows, z = x cross y pointing into the plate (the dots are printed on the face toward -z).
 // Dot (row i, column j) has index i * cols + j and sits at ((2 j + i mod 2) * spacing, i * spacing).
 struct BoardSpec {
-  int rows = 13;                  // dot rows; odd, so that no rotation maps the pattern onto itself
-  int cols = 6;                   // dots per row
-  double spacing_mm = 40.0;       // row pitch; neighbours within a row are 2 * spacing apart
+  int rows = 13;             // dot rows; odd, so that no rotation maps the pattern onto itself
+  int cols = 6;              // dots per row
+  double spacing_mm = 40.0;  // row pitch; neighbours within a row are 2 * spacing apart
   double dot_diameter_mm = 28.0;
-  double width_mm = 520.0;        // the plate, centred on the dot field
+  double width_mm = 520.0;  // the plate, centred on the dot field
   double height_mm = 560.0;
 
   [[nodiscard]] int dot_count() const { return rows * cols; }
@@ -47,9 +47,9 @@ struct BoardSpec {
 // --- Camera intrinsics (Zhang's method, as cv::calibrateCamera) ----------------------------------------------
 struct CameraCalibrationOptions {
   int min_views = 6;
-  double max_rms_px = 0.5;           // refuse above this reprojection error
-  double min_tilt_spread_deg = 20.0; // the board normals must differ by at least this (else focal length is weak)
-  double min_coverage = 0.5;         // share of an 8 x 6 image grid that dots reached; below: a warning
+  double max_rms_px = 0.5;            // refuse above this reprojection error
+  double min_tilt_spread_deg = 20.0;  // the board normals must differ by at least this (else focal length is weak)
+  double min_coverage = 0.5;          // share of an 8 x 6 image grid that dots reached; below: a warning
 };
 
 struct CameraCalibrationResult {
@@ -63,9 +63,9 @@ struct CameraCalibrationResult {
 };
 
 // `views`: detected dot centres per view (from detect_board), all of one board and one image size.
-[[nodiscard]] Expected<CameraCalibrationResult> calibrate_intrinsics(const std::vector<std::vector<Eigen::Vector2d>>& views,
-                                                                     const BoardSpec& board, int width_px, int height_px,
-                                                                     const CameraCalibrationOptions& options = {});
+[[nodiscard]] Expected<CameraCalibrationResult> calibrate_intrinsics(
+    const std::vector<std::vector<Eigen::Vector2d>>& views, const BoardSpec& board, int width_px, int height_px,
+    const CameraCalibrationOptions& options = {});
 
 // --- Board pose ---------------------------------------------------------------------------------------------
 struct BoardPose {
@@ -102,7 +102,8 @@ struct LaserLineOptions {
 
 // Sub-pixel stripe centre per image row (centre of gravity above the local background); rows without a stripe
 // are left out. Each result is (column, row).
-[[nodiscard]] std::vector<Eigen::Vector2d> laser_line_centres(const cv::Mat& image, const LaserLineOptions& options = {});
+[[nodiscard]] std::vector<Eigen::Vector2d> laser_line_centres(const cv::Mat& image,
+                                                              const LaserLineOptions& options = {});
 
 // One board pose with the laser on: dots seen with the lamp on, the stripe seen with the lamp off.
 struct LaserView {
@@ -111,25 +112,26 @@ struct LaserView {
 };
 
 struct LaserCalibrationOptions {
-  double dot_margin_mm = 8.0;     // stripe samples this close to a dark dot (or the plate edge) are not used
+  double dot_margin_mm = 8.0;  // stripe samples this close to a dark dot (or the plate edge) are not used
   int min_points_per_view = 30;
-  double min_spread_mm = 20.0;    // second principal spread of the points: below, they lie on one line
-  double max_residual_mm = 0.5;   // refuse above this RMS distance to the fitted plane
-  double reject_sigmas = 4.0;     // outlier rejection threshold in robust standard deviations
+  double min_spread_mm = 20.0;   // second principal spread of the points: below, they lie on one line
+  double max_residual_mm = 0.5;  // refuse above this RMS distance to the fitted plane
+  double reject_sigmas = 4.0;    // outlier rejection threshold in robust standard deviations
 };
 
 struct LaserPlaneResult {
   Eigen::Vector3d normal = Eigen::Vector3d::UnitX();  // cell frame, n.x >= 0
   double offset_m = 0.0;                              // n . p = offset_m
   double residual_rms_mm = 0.0;
-  double spread_mm = 0.0;         // second principal spread of the points used
+  double spread_mm = 0.0;  // second principal spread of the points used
   int points_used = 0;
   int points_rejected = 0;
   std::vector<int> points_per_view;
 };
 
-[[nodiscard]] Expected<LaserPlaneResult> calibrate_laser_plane(const Intrinsics& intrinsics, const CameraPose& camera_pose,
-                                                               const BoardSpec& board, const std::vector<LaserView>& views,
+[[nodiscard]] Expected<LaserPlaneResult> calibrate_laser_plane(const Intrinsics& intrinsics,
+                                                               const CameraPose& camera_pose, const BoardSpec& board,
+                                                               const std::vector<LaserView>& views,
                                                                const LaserCalibrationOptions& options = {});
 
 // Least-squares plane through points (centroid + SVD); the normal is unit length with n.x >= 0.
@@ -156,14 +158,15 @@ struct ConveyorResult {
   double mm_per_count = 0.0;
   Eigen::Vector3d direction = Eigen::Vector3d::UnitX();  // unit travel direction, cell frame
   double angle_to_x_deg = 0.0;
-  double travel_mm = 0.0;          // between the first and last view
-  double residual_rms_mm = 0.0;    // of the straight-line fit (0 with two views)
+  double travel_mm = 0.0;        // between the first and last view
+  double residual_rms_mm = 0.0;  // of the straight-line fit (0 with two views)
   double max_rotation_deg = 0.0;
   std::vector<std::string> warnings;
 };
 
 [[nodiscard]] Expected<ConveyorResult> calibrate_conveyor(const Intrinsics& intrinsics, const CameraPose& camera_pose,
-                                                          const BoardSpec& board, const std::vector<ConveyorView>& views,
+                                                          const BoardSpec& board,
+                                                          const std::vector<ConveyorView>& views,
                                                           const ConveyorCalibrationOptions& options = {});
 
 }  // namespace cellsight::algo

@@ -42,8 +42,10 @@ Eigen::Vector2d undistort(const Intrinsics& k, const Eigen::Vector2d& pixel) {
   for (int i = 0; i < kNewtonIterations; ++i) {
     const Eigen::Vector2d residual = distort(k, n) - target;
     Eigen::Matrix2d jacobian;
-    jacobian.col(0) = (distort(k, n + Eigen::Vector2d(kStep, 0)) - distort(k, n - Eigen::Vector2d(kStep, 0))) / (2 * kStep);
-    jacobian.col(1) = (distort(k, n + Eigen::Vector2d(0, kStep)) - distort(k, n - Eigen::Vector2d(0, kStep))) / (2 * kStep);
+    jacobian.col(0) =
+        (distort(k, n + Eigen::Vector2d(kStep, 0)) - distort(k, n - Eigen::Vector2d(kStep, 0))) / (2 * kStep);
+    jacobian.col(1) =
+        (distort(k, n + Eigen::Vector2d(0, kStep)) - distort(k, n - Eigen::Vector2d(0, kStep))) / (2 * kStep);
     n -= jacobian.inverse() * residual;
   }
   return n;

@@ -146,8 +146,8 @@ Box rasterise(std::span<const ScanPoint> in, const GridSpec& spec, double cx, do
 // box-filtered mask (Sobel), averaged as the vector (cos 4 phi, sin 4 phi) weighted by the gradient magnitude. A
 // turned rectangle's four edge families all map onto 4 alpha; round holes average out. The cell staircase biases
 // the estimate toward the grid axes by up to ~15 %: the caller iterates on the turned-back mask.
-double edge_turn(const std::vector<std::uint8_t>& mask, std::vector<std::uint8_t>& rows, std::vector<std::uint8_t>& smooth,
-                 int nx, int ny, const Box& box) {
+double edge_turn(const std::vector<std::uint8_t>& mask, std::vector<std::uint8_t>& rows,
+                 std::vector<std::uint8_t>& smooth, int nx, int ny, const Box& box) {
   constexpr int kMargin = 3;  // box filter + Sobel reach two cells beyond the part; one more for the loop bounds
   const auto at = [nx](int ix, int iy) {
     return static_cast<std::size_t>(iy) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(ix);
@@ -205,7 +205,8 @@ CanonicalStatus canonicalise(std::span<const ScanPoint> in, const GridSpec& spec
   pose.centroid_y_m = spec.origin_m.y() + (sum_iy / cells + 0.5) * spec.resolution_m;
   double turn = 0.0;
   for (int pass = 0; pass < kTurnPasses; ++pass) {
-    if (pass > 0) box = rasterise(in, spec, pose.centroid_x_m, pose.centroid_y_m, turn, scratch.mask_, cells, sum_ix, sum_iy);
+    if (pass > 0)
+      box = rasterise(in, spec, pose.centroid_x_m, pose.centroid_y_m, turn, scratch.mask_, cells, sum_ix, sum_iy);
     turn += edge_turn(scratch.mask_, scratch.rows_, scratch.smooth_, spec.nx, spec.ny, box);
   }
   pose.measured_turn_rad = std::remainder(turn, 0.5 * std::numbers::pi);  // back into (-45, 45] deg
@@ -213,12 +214,13 @@ CanonicalStatus canonicalise(std::span<const ScanPoint> in, const GridSpec& spec
 
   // The sheet plane on an even subsample of the points.
   scratch.sample_.clear();
-  const std::size_t capacity = std::min(scratch.sample_.capacity(), std::max<std::size_t>(params.level_sample_points, 3));
+  const std::size_t capacity =
+      std::min(scratch.sample_.capacity(), std::max<std::size_t>(params.level_sample_points, 3));
   const std::size_t stride = std::max<std::size_t>(1, (in.size() + capacity - 1) / capacity);
   for (std::size_t i = 0; i < in.size() && scratch.sample_.size() < capacity; i += stride)
     scratch.sample_.push_back(static_cast<std::uint32_t>(i));  // within the reserved capacity: no allocation
-  const PlaneFit sheet = fit_sheet(in, scratch.sample_, pose.centroid_x_m, pose.centroid_y_m, params,
-                                   pose.sheet_inlier_fraction);
+  const PlaneFit sheet =
+      fit_sheet(in, scratch.sample_, pose.centroid_x_m, pose.centroid_y_m, params, pose.sheet_inlier_fraction);
   pose.slope_x = sheet.a;
   pose.slope_y = sheet.b;
   pose.offset_m = sheet.c - sheet.a * pose.centroid_x_m - sheet.b * pose.centroid_y_m;

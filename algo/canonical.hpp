@@ -31,17 +31,17 @@ struct CanonicalParams {
 
 // What the mapping found and undid (carrier frame).
 struct CanonicalPose {
-  double centroid_x_m = 0.0, centroid_y_m = 0.0;  // of the occupied x-y cells
-  double turn_rad = 0.0;                          // in-plane turn undone (counter-clockwise seen from +z)
-  double measured_turn_rad = 0.0;                 // before the clip to max_turn_rad
+  double centroid_x_m = 0.0, centroid_y_m = 0.0;        // of the occupied x-y cells
+  double turn_rad = 0.0;                                // in-plane turn undone (counter-clockwise seen from +z)
+  double measured_turn_rad = 0.0;                       // before the clip to max_turn_rad
   double slope_x = 0.0, slope_y = 0.0, offset_m = 0.0;  // the sheet plane z = slope_x x + slope_y y + offset
   double sheet_inlier_fraction = 0.0;                   // of the fit's subsample within level_band_m
 };
 
 enum class CanonicalStatus : std::uint8_t {
   kOk,
-  kEmpty,          // no point inside the grid's x-y extent
-  kOutputTooSmall, // out.size() < in.size()
+  kEmpty,           // no point inside the grid's x-y extent
+  kOutputTooSmall,  // out.size() < in.size()
 };
 [[nodiscard]] std::string_view to_string(CanonicalStatus status);
 
@@ -57,9 +57,9 @@ class CanonicalScratch {
  private:
   friend CanonicalStatus canonicalise(std::span<const ScanPoint>, const GridSpec&, const CanonicalParams&,
                                       CanonicalScratch&, std::span<ScanPoint>, CanonicalPose&);
-  std::vector<std::uint8_t> mask_;  // x-y occupancy, nx x ny, row iy
-  std::vector<std::uint8_t> rows_;    // 3 x 1 box sums of the mask
-  std::vector<std::uint8_t> smooth_;  // 3 x 3 box sums of the mask (0 .. 9)
+  std::vector<std::uint8_t> mask_;     // x-y occupancy, nx x ny, row iy
+  std::vector<std::uint8_t> rows_;     // 3 x 1 box sums of the mask
+  std::vector<std::uint8_t> smooth_;   // 3 x 3 box sums of the mask (0 .. 9)
   std::vector<std::uint32_t> sample_;  // indices of the plane fit's subsample
 };
 

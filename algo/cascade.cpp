@@ -19,8 +19,8 @@ constexpr float kEmptyLo = std::numeric_limits<float>::infinity();
 constexpr float kEmptyHi = -std::numeric_limits<float>::infinity();
 constexpr std::uint8_t kMissing = 1;
 constexpr std::uint8_t kExtra = 2;
-constexpr std::uint8_t kVisited = 4;  // blob_evidence: the cell belongs to the blob being filled
-constexpr std::uint8_t kLost = 8;     // mark_lost_data: a missing cell in a region of lost data (glare residue)
+constexpr std::uint8_t kVisited = 4;   // blob_evidence: the cell belongs to the blob being filled
+constexpr std::uint8_t kLost = 8;      // mark_lost_data: a missing cell in a region of lost data (glare residue)
 constexpr std::uint8_t kGrouped = 16;  // mark_lost_data: the cell belongs to the group being filled
 constexpr std::uint8_t kResidue = 32;  // mark_lost_data: a template cell the scan holds, in a sparse window (glare)
 constexpr std::uint8_t kShadow = 64;   // covered_hole_cells: extra scan material in the template's laser shadow
@@ -135,15 +135,9 @@ struct OutlineField {
 // The field over the raster box [x0, x1) x [y0, y1) (cells) of a raster with the given resolution and origin.
 [[nodiscard]] OutlineField outline_field(const float* edt, int x0, int y0, int x1, int y1, double resolution_m,
                                          const Eigen::Vector2d& origin_m) {
-  return OutlineField{edt,
-                      x1 - x0,
-                      y1 - y0,
-                      static_cast<double>(x0),
-                      static_cast<double>(y0),
-                      1.0 / resolution_m,
-                      resolution_m,
-                      origin_m.x(),
-                      origin_m.y()};
+  return OutlineField{
+      edt,          x1 - x0,      y1 - y0,     static_cast<double>(x0), static_cast<double>(y0), 1.0 / resolution_m,
+      resolution_m, origin_m.x(), origin_m.y()};
 }
 
 [[nodiscard]] double ms_since(Clock::time_point start) {
@@ -162,8 +156,8 @@ namespace {
 constexpr int kFigures = 6;
 constexpr int kSizeFigure = 5;
 [[nodiscard]] std::array<double, kFigures> figures_of(const MatchReport& r, const TemplateThresholds& t) {
-  return {r.pm.error,        r.missing_area_m2, r.extra_area_m2, 1.0 - r.coverage, r.scan_outliers,
-          t.size_deviation(r.size_dx_m, r.size_dy_m)};
+  return {r.pm.error,       r.missing_area_m2, r.extra_area_m2,
+          1.0 - r.coverage, r.scan_outliers,   t.size_deviation(r.size_dx_m, r.size_dy_m)};
 }
 [[nodiscard]] std::array<double, kFigures> limits_of(const TemplateThresholds& t) {
   return {t.max_error, t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered, t.max_outliers, t.max_size_dev_m};
@@ -285,7 +279,8 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
     const auto x = figures_of(own_class[i], centres);
     for (int f = 0; f < kFigures; ++f) {
       if (std::isfinite(x[static_cast<std::size_t>(f)])) {
-        own_max[static_cast<std::size_t>(f)] = std::max(own_max[static_cast<std::size_t>(f)], x[static_cast<std::size_t>(f)]);
+        own_max[static_cast<std::size_t>(f)] =
+            std::max(own_max[static_cast<std::size_t>(f)], x[static_cast<std::size_t>(f)]);
       }
     }
   }
@@ -361,9 +356,8 @@ Cascade::Cascade(const CascadeParams& params, const PerfectMatchParams& pm_param
   for (int dy = -fine; dy <= fine; ++dy) {
     for (int dx = -fine; dx <= fine; ++dx) window_offsets_.push_back({dx, dy});
   }
-  std::stable_sort(window_offsets_.begin(), window_offsets_.end(), [](const auto& a, const auto& b) {
-    return a[0] * a[0] + a[1] * a[1] < b[0] * b[0] + b[1] * b[1];
-  });
+  std::stable_sort(window_offsets_.begin(), window_offsets_.end(),
+                   [](const auto& a, const auto& b) { return a[0] * a[0] + a[1] * a[1] < b[0] * b[0] + b[1] * b[1]; });
   const auto cells = static_cast<std::size_t>(width_) * static_cast<std::size_t>(height_);
   t_lo_.assign(cells, kEmptyLo);
   t_hi_.assign(cells, kEmptyHi);
@@ -751,11 +745,10 @@ MatchReport Cascade::check_prepared(const TemplateModel& model, std::span<const 
   // Passing at Perfect Match's pose already answers "is there an alignment at which they agree".
   // So does failing it by far: a few millimetres of pose do not turn a missing louvre field into a match (the
   // outline alignment would only double the cost of rejecting an unrelated candidate).
-  const bool gross = thresholds != nullptr &&
-                     (best.missing_area_m2 > kGrossFailure * thresholds->max_missing_area_m2 ||
-                      best.extra_area_m2 > kGrossFailure * thresholds->max_extra_area_m2 ||
-                      1.0 - best.coverage > kGrossFailure * thresholds->max_uncovered ||
-                      best.scan_outliers > kGrossFailure * thresholds->max_outliers);
+  const bool gross = thresholds != nullptr && (best.missing_area_m2 > kGrossFailure * thresholds->max_missing_area_m2 ||
+                                               best.extra_area_m2 > kGrossFailure * thresholds->max_extra_area_m2 ||
+                                               1.0 - best.coverage > kGrossFailure * thresholds->max_uncovered ||
+                                               best.scan_outliers > kGrossFailure * thresholds->max_outliers);
   const bool settled = thresholds != nullptr && (gross || best.check_passes(*thresholds));
   if (!settled && params_.refine_iterations > 0 && !outline_valid_) {
     prepare_scan_outline(scan);
@@ -991,7 +984,7 @@ bool Cascade::prepare_template_outline(const Roi& template_box) {
 double Cascade::outline_cost(const Eigen::Vector2d& centre_m, const PlanarPose& pose, double cutoff_m,
                              int* inliers) const {
   const OutlineField field = outline_field(edt_out_.data(), edt_box_.x0, edt_box_.y0, edt_box_.x1, edt_box_.y1,
-                                             resolution_m_, raster_origin_m_);
+                                           resolution_m_, raster_origin_m_);
   const double cos_t = std::cos(pose.theta_rad);
   const double sin_t = std::sin(pose.theta_rad);
   const Eigen::Vector2d o = centre_m + Eigen::Vector2d(pose.x_m, pose.y_m);
@@ -1018,7 +1011,7 @@ PlanarPose Cascade::refine_on_outline(const Eigen::Vector2d& centre_m, const Pla
   // pose and point mapping as Perfect Match (p_t = c + R(-theta)(p - c - t)): Gauss-Newton with a cutoff that
   // shrinks from refine_cutoff_m to refine_final_cutoff_m over the first half of the iterations.
   const OutlineField field = outline_field(edt_out_.data(), edt_box_.x0, edt_box_.y0, edt_box_.x1, edt_box_.y1,
-                                             resolution_m_, raster_origin_m_);
+                                           resolution_m_, raster_origin_m_);
   const int iterations = params_.refine_iterations;
   const double first = std::max(params_.refine_cutoff_m, params_.refine_final_cutoff_m);
   const double last = params_.refine_final_cutoff_m;
@@ -1216,7 +1209,8 @@ bool Cascade::depth_contradicted(int x, int y, float lo, float hi, const std::ve
   for (const auto& [dx, dy] : window_offsets_) {
     const int xx = x + dx, yy = y + dy;
     if (xx < 0 || yy < 0 || xx >= width_ || yy >= height_) continue;
-    const std::size_t j = static_cast<std::size_t>(yy) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(xx);
+    const std::size_t j =
+        static_cast<std::size_t>(yy) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(xx);
     if (!(other_lo[j] <= other_hi[j])) continue;
     if (hi >= other_lo[j] - tol && lo <= other_hi[j] + tol) return false;
     any = true;
@@ -1274,8 +1268,8 @@ double Cascade::covered_hole_cells(const Roi& roi) {
   // and kMinCoveredShare of its cells is covered and weighs its whole area (a glare band over where plate_5h has its
   // fifth hole tells a plate_4h scan from it, issue 10). Only holes at least kMinHoleThickness cells thick
   // (2 area / perimeter: a disc's radius, a slot's width) whose rim lies in one plane count: the shadows a rib's
-  // walls leave in a template are no holes, and a scan at another pose sees the wall there. The holes are the cells outside the template's
-  // closed mask that mark_lost_data's flood from the box's edge did not reach (mask_b_).
+  // walls leave in a template are no holes, and a scan at another pose sees the wall there. The holes are the cells
+  // outside the template's closed mask that mark_lost_data's flood from the box's edge did not reach (mask_b_).
   constexpr double kMinCoveredShare = 0.03;
   constexpr std::size_t kMinHoleCells = 20;  // ~100 mm2
   constexpr double kMinHoleThickness = 4.0;
@@ -1373,8 +1367,8 @@ Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, b
       stack_[top++] = seed;
       CellMoments moments;
       int boundary = 0, contact = 0;
-      std::size_t lost = 0;  // missing cells mark_lost_data found in a region of lost data
-      std::size_t shadow = 0;  // extra cells covered_hole_cells found in the template's laser shadow
+      std::size_t lost = 0;      // missing cells mark_lost_data found in a region of lost data
+      std::size_t shadow = 0;    // extra cells covered_hole_cells found in the template's laser shadow
       std::size_t conflict = 0;  // cells both surfaces cover, at depths that disagree
       while (top > 0) {
         const std::int32_t c = stack_[--top];

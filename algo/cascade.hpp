@@ -208,9 +208,9 @@ struct MatchReport {
 // the own class is lowered to halfway between them (a margin to the runner-up). An empty span gives the floors.
 struct ThresholdLearning {
   TemplateThresholds thresholds;
-  std::vector<int> flagged;          // indices into own_class of scans that disagree with the others
-  int other_scans_rejected = 0;      // other-class scans the thresholds reject
-  int other_scans_inseparable = 0;   // other-class scans no figure tells from the own class
+  std::vector<int> flagged;         // indices into own_class of scans that disagree with the others
+  int other_scans_rejected = 0;     // other-class scans the thresholds reject
+  int other_scans_inseparable = 0;  // other-class scans no figure tells from the own class
 };
 [[nodiscard]] ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class,
                                                  std::span<const MatchReport> other_classes,
@@ -331,7 +331,7 @@ class Cascade {
   void window_range(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi);
   // Whether `other` has occupied cells within fine_window_m of (x, y) but none with depths within tol of [lo, hi].
   [[nodiscard]] bool depth_contradicted(int x, int y, float lo, float hi, const std::vector<float>& other_lo,
-                                const std::vector<float>& other_hi, float tol) const;
+                                        const std::vector<float>& other_hi, float tol) const;
   // MatchReport::size_dx_m / size_dy_m from the rasters (see the definition).
   void measure_size(const Roi& roi, MatchReport& r);
   // Marks the missing cells that lie in a region of lost data (kLost): see the definition.
@@ -369,12 +369,12 @@ class Cascade {
   Eigen::Vector2d raster_origin_m_ = Eigen::Vector2d::Zero();
   int window_cells_ = 1;
   std::vector<std::array<int, 2>> window_offsets_;  // (dx, dy) of the window's cells, nearest first
-  std::vector<float> t_lo_, t_hi_;      // template depth range per cell (+inf / -inf when empty)
-  std::vector<float> s_lo_, s_hi_;      // scan depth range per cell, template frame
-  std::vector<float> w_lo_, w_hi_;      // window min / max of one of them
-  std::vector<float> tmp_lo_, tmp_hi_;  // separable-filter intermediate
-  std::vector<std::uint8_t> flags_;     // kMissing | kExtra per cell
-  std::vector<std::int32_t> stack_;     // flood fill, one entry per cell at most
+  std::vector<float> t_lo_, t_hi_;                  // template depth range per cell (+inf / -inf when empty)
+  std::vector<float> s_lo_, s_hi_;                  // scan depth range per cell, template frame
+  std::vector<float> w_lo_, w_hi_;                  // window min / max of one of them
+  std::vector<float> tmp_lo_, tmp_hi_;              // separable-filter intermediate
+  std::vector<std::uint8_t> flags_;                 // kMissing | kExtra per cell
+  std::vector<std::int32_t> stack_;                 // flood fill, one entry per cell at most
   // Outline refinement: masks, the template outline's distance transform over a box, the scan's outline points.
   std::vector<std::uint8_t> mask_a_, mask_b_;
   std::vector<std::uint8_t> mask_s_;  // two-way check: the scan's closed mask
@@ -388,8 +388,8 @@ class Cascade {
   Roi edt_box_{0, 0, 0, 0};
   std::vector<Eigen::Vector2d> outline_;  // scan points in the outline cells of its closed x-y mask, scan frame
   std::size_t outline_count_ = 0;
-  bool outline_valid_ = false;         // outline_ belongs to the current scan
-  std::vector<Candidate> candidates_;  // the pm_candidates most probable classes of a decision
+  bool outline_valid_ = false;            // outline_ belongs to the current scan
+  std::vector<Candidate> candidates_;     // the pm_candidates most probable classes of a decision
   std::vector<std::int32_t> blob_cells_;  // cells of the blob being weighed
 };
 

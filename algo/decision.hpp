@@ -49,16 +49,16 @@ struct PlanarPose {
 
 // Why a candidate was not accepted (classify --json "rejected_by", eval's reasons, the run loop's log line).
 enum class RejectReason : std::uint8_t {
-  kNone,          // accepted, or not looked at
-  kNoTemplate,    // the class has no usable template (missing or refused file)
-  kPmError,       // Perfect Match error per point over its threshold: an unrelated shape
-  kMissingArea,   // the scan lacks a compact piece of the template (a hole the template does not have)
-  kExtraArea,     // the scan has material where the template has none (a template hole covered)
-  kUncovered,     // too much of the template unseen, all places together
-  kOutliers,      // too much of the scan off the template, all places together
-  kSize,          // outer size (width or height) off the template's by more than its own scans vary (5 mm taller)
-  kAmbiguous,     // passed, but another candidate passed as well without a clear margin
-  kNotVerified,   // ranked too low: the verification budget or the candidate limit ended first
+  kNone,         // accepted, or not looked at
+  kNoTemplate,   // the class has no usable template (missing or refused file)
+  kPmError,      // Perfect Match error per point over its threshold: an unrelated shape
+  kMissingArea,  // the scan lacks a compact piece of the template (a hole the template does not have)
+  kExtraArea,    // the scan has material where the template has none (a template hole covered)
+  kUncovered,    // too much of the template unseen, all places together
+  kOutliers,     // too much of the scan off the template, all places together
+  kSize,         // outer size (width or height) off the template's by more than its own scans vary (5 mm taller)
+  kAmbiguous,    // passed, but another candidate passed as well without a clear margin
+  kNotVerified,  // ranked too low: the verification budget or the candidate limit ended first
 };
 
 [[nodiscard]] constexpr std::string_view to_string(RejectReason reason) {
@@ -100,9 +100,9 @@ struct CandidateOutcome {
   double missing_area_m2 = std::numeric_limits<double>::quiet_NaN();
   double extra_area_m2 = std::numeric_limits<double>::quiet_NaN();
   double evidence_m2 = std::numeric_limits<double>::quiet_NaN();  // weighted evidence against it (ties, margins)
-  double coverage = std::numeric_limits<double>::quiet_NaN();      // share of its template the scan covers
-  double outliers = std::numeric_limits<double>::quiet_NaN();      // share of the scan its template does not explain
-  double size_dev_m = std::numeric_limits<double>::quiet_NaN();    // outer size off its template's (TemplateThresholds)
+  double coverage = std::numeric_limits<double>::quiet_NaN();     // share of its template the scan covers
+  double outliers = std::numeric_limits<double>::quiet_NaN();     // share of the scan its template does not explain
+  double size_dev_m = std::numeric_limits<double>::quiet_NaN();   // outer size off its template's (TemplateThresholds)
   double ms = 0.0;
 };
 
@@ -121,7 +121,7 @@ struct Decision {
   double scan_outliers = std::numeric_limits<double>::quiet_NaN();      // two-way check: scan off the template
   double missing_area_m2 = std::numeric_limits<double>::quiet_NaN();    // two-way check: largest blob the scan lacks
   double extra_area_m2 = std::numeric_limits<double>::quiet_NaN();      // ... and largest the template lacks
-  int second_class_index = -1;  // runner-up (for logs and the eval report)
+  int second_class_index = -1;                                          // runner-up (for logs and the eval report)
   // The candidates in the SVM's rank order as far as the cascade went (verified or not), at most
   // kMaxReportedCandidates; verified_count = how many ran Perfect Match.
   std::array<CandidateOutcome, kMaxReportedCandidates> candidates{};

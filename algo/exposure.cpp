@@ -17,8 +17,8 @@ constexpr float kSaturationReleaseShare = 0.5f;
 
 Status validate(const ExposureParams& p) {
   if (!(p.width_min_px > 0.0f) || !(p.width_max_px > p.width_min_px)) {
-    return make_error("exposure: need 0 < width_min_px < width_max_px (got " + std::to_string(p.width_min_px) +
-                      ", " + std::to_string(p.width_max_px) + ")");
+    return make_error("exposure: need 0 < width_min_px < width_max_px (got " + std::to_string(p.width_min_px) + ", " +
+                      std::to_string(p.width_max_px) + ")");
   }
   if (!(p.dead_band_fraction >= 0.0f && p.dead_band_fraction < 1.0f)) {
     return make_error("exposure: dead_band_fraction must be in [0, 1) (got " + std::to_string(p.dead_band_fraction) +

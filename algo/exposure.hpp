@@ -43,24 +43,31 @@ struct ExposureParams {
 [[nodiscard]] Status validate(const ExposureParams& params);
 
 enum class ExposureAction : std::uint8_t {
-  kHold = 0,            // width inside the dead band (saturation-limited: from the band bottom to its centre)
-  kIncrease,            // width below the dead band
-  kDecrease,            // width above the dead band
-  kSaturationDecrease,  // width fine but too many saturated rows
-  kNoStripeHold,        // no stripe: holding
-  kProbe,               // no stripe for a while: probing upward
-  kOverExposedDecrease, // no usable stripe but many over-wide blobs: grossly over-exposed
+  kHold = 0,             // width inside the dead band (saturation-limited: from the band bottom to its centre)
+  kIncrease,             // width below the dead band
+  kDecrease,             // width above the dead band
+  kSaturationDecrease,   // width fine but too many saturated rows
+  kNoStripeHold,         // no stripe: holding
+  kProbe,                // no stripe for a while: probing upward
+  kOverExposedDecrease,  // no usable stripe but many over-wide blobs: grossly over-exposed
 };
 
 [[nodiscard]] constexpr const char* to_string(ExposureAction action) {
   switch (action) {
-    case ExposureAction::kHold: return "hold";
-    case ExposureAction::kIncrease: return "increase";
-    case ExposureAction::kDecrease: return "decrease";
-    case ExposureAction::kSaturationDecrease: return "saturation decrease";
-    case ExposureAction::kNoStripeHold: return "no stripe: hold";
-    case ExposureAction::kProbe: return "no stripe: probe";
-    case ExposureAction::kOverExposedDecrease: return "over-exposed: decrease";
+    case ExposureAction::kHold:
+      return "hold";
+    case ExposureAction::kIncrease:
+      return "increase";
+    case ExposureAction::kDecrease:
+      return "decrease";
+    case ExposureAction::kSaturationDecrease:
+      return "saturation decrease";
+    case ExposureAction::kNoStripeHold:
+      return "no stripe: hold";
+    case ExposureAction::kProbe:
+      return "no stripe: probe";
+    case ExposureAction::kOverExposedDecrease:
+      return "over-exposed: decrease";
   }
   return "unknown";
 }

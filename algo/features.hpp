@@ -17,7 +17,7 @@ namespace cellsight::algo {
 inline constexpr int kFeatureCount = 74;
 // Bump whenever a feature's definition, order or units change: a model trained on another version is refused.
 inline constexpr std::uint32_t kFeatureVersion = 2;  // 2: computed in the part's own frame (algo/canonical)
-inline constexpr int kCutsPerDirection = 15;  // thesis 6.4.1.2: 15 horizontal and 15 vertical cuts
+inline constexpr int kCutsPerDirection = 15;         // thesis 6.4.1.2: 15 horizontal and 15 vertical cuts
 
 using FeatureVector = std::array<float, kFeatureCount>;
 using FeatureMask = std::bitset<kFeatureCount>;  // bit i set: feature i is active (thesis 2.6.1, vector s)

@@ -17,8 +17,9 @@ void line_pass(const std::vector<std::uint8_t>& src, std::vector<std::uint8_t>& 
       bool v = !dilate;
       for (int d = -r; d <= r; ++d) {
         const int xx = along_x ? x + d : x, yy = along_x ? y : y + d;
-        const bool s = xx >= b.x0 && xx <= b.x1 && yy >= b.y0 && yy <= b.y1 &&
-                       src[static_cast<std::size_t>(yy) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(xx)] != 0;
+        const bool s =
+            xx >= b.x0 && xx <= b.x1 && yy >= b.y0 && yy <= b.y1 &&
+            src[static_cast<std::size_t>(yy) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(xx)] != 0;
         v = dilate ? (v || s) : (v && s);
       }
       dst[static_cast<std::size_t>(y) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(x)] = v ? 1 : 0;
@@ -97,7 +98,9 @@ IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, dou
   const int r = std::max(0, params_.bridge_cells);
   const int bx0 = std::max(0, x_lo - r), bx1 = std::min(nx - 1, x_hi + r);
   const int by0 = std::max(0, y_lo - r), by1 = std::min(ny - 1, y_hi + r);
-  auto at = [nx](int x, int y) { return static_cast<std::size_t>(y) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(x); };
+  auto at = [nx](int x, int y) {
+    return static_cast<std::size_t>(y) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(x);
+  };
   const CellBox b{bx0, bx1, by0, by1};
   for (int y = by0; y <= by1; ++y) {
     for (int x = bx0; x <= bx1; ++x) {
@@ -178,8 +181,10 @@ HangerReport PartIsolator::remove_hanger(ScanBuffer& part, double scanned_y1_m) 
   // A square of 2 r + 1 cells does not fit in a hanger up to hanger_max_width_m wide.
   const int r = std::max(1, static_cast<int>(std::ceil(0.5 * params_.hanger_max_width_m / grid_.resolution_m)));
   const CellBox b{std::max(0, x_lo - r - 2), std::min(nx - 1, x_hi + r + 2), std::max(0, y_lo - r - 2),
-              std::min(ny - 1, y_hi + r + 2)};
-  auto at = [nx](int x, int y) { return static_cast<std::size_t>(y) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(x); };
+                  std::min(ny - 1, y_hi + r + 2)};
+  auto at = [nx](int x, int y) {
+    return static_cast<std::size_t>(y) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(x);
+  };
   for (int y = b.y0; y <= b.y1; ++y) {
     for (int x = b.x0; x <= b.x1; ++x) mask_[at(x, y)] = 0;
   }

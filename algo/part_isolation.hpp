@@ -27,9 +27,9 @@ struct IsolationParams {
 };
 
 struct IsolationReport {
-  int pieces = 0;               // connected pieces found (before dropping)
+  int pieces = 0;  // connected pieces found (before dropping)
   int dropped_pieces = 0;
-  int edge_pieces = 0;          // of the dropped: large enough, dropped only for reaching the field's edge
+  int edge_pieces = 0;  // of the dropped: large enough, dropped only for reaching the field's edge
   std::size_t dropped_points = 0;
 };
 
@@ -49,9 +49,9 @@ struct HangerReport {
 };
 
 // Connected pieces of the part points' x-y occupancy on the grid's raster: the largest always stays; another piece
-// is dropped when it touches an end of the scanned x range or is tiny. Points outside the grid are left alone (the caller's
-// outside-the-grid check judges them). A glare band that cuts the part in two leaves two large inner pieces: both
-// stay.
+// is dropped when it touches an end of the scanned x range or is tiny. Points outside the grid are left alone (the
+// caller's outside-the-grid check judges them). A glare band that cuts the part in two leaves two large inner pieces:
+// both stay.
 class PartIsolator {
  public:
   PartIsolator(const GridSpec& grid, const IsolationParams& params);  // allocates

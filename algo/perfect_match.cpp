@@ -92,8 +92,9 @@ bool spans_part(const Eigen::Matrix3d& fit, const Eigen::Matrix3d& all) {
 double largest_change(const Eigen::Vector3d& p, const Eigen::Matrix3d& all) {
   const double mx = all(0, 1) / all(0, 0);
   const double my = all(0, 2) / all(0, 0);
-  return std::abs(p[0] + p[1] * mx + p[2] * my) + 2.0 * (std::abs(p[1]) * std::sqrt(std::max(variance_of(all, 1), 0.0)) +
-                                                          std::abs(p[2]) * std::sqrt(std::max(variance_of(all, 2), 0.0)));
+  return std::abs(p[0] + p[1] * mx + p[2] * my) +
+         2.0 * (std::abs(p[1]) * std::sqrt(std::max(variance_of(all, 1), 0.0)) +
+                std::abs(p[2]) * std::sqrt(std::max(variance_of(all, 2), 0.0)));
 }
 
 }  // namespace
@@ -389,7 +390,7 @@ DepthPlane PerfectMatcher::depth_plane(const DistanceMapView& map, const Eigen::
       const double up = map.sample(cx + rx, cy + ry, z + reach).distance_m;
       const double down = map.sample(cx + rx, cy + ry, z - reach).distance_m;
       if (!(up + down >= 2.0 * reach * kLevelMinDepthGradient)) continue;  // cos(alpha): a surface above or below
-      const double e = reach * (up - down) / (up + down);                   // > 0: the scan point lies above it
+      const double e = reach * (up - down) / (up + down);                  // > 0: the scan point lies above it
       if (have_fit && !(std::abs(e - (fit[0] + fit[1] * rx + fit[2] * ry)) <= clip)) continue;
       a += v * v.transpose();
       b += v * e;
@@ -451,14 +452,15 @@ PerfectMatchResult PerfectMatcher::match(const DistanceMapView& map, const Eigen
     const std::size_t count = fine ? used_ : coarse_used_;
     // The fine passes share what the coarse level left; the last takes the rest.
     const int remaining = params_.max_iterations - evaluations;
-    const int budget = fine ? (level == fine_passes ? remaining : remaining / (fine_passes - level + 1)) : coarse_budget;
+    const int budget =
+        fine ? (level == fine_passes ? remaining : remaining / (fine_passes - level + 1)) : coarse_budget;
     // The coarse level's wide bowl (lc_m) for capture, the fine level's robust one (fit_lc_m) for the pose.
     const double fit_lc = fine ? params_.fit_lc_m : params_.lc_m;
     if (fine && budget <= 0 && have_best) break;  // the cap is spent: keep the last pass's best
     if (fine && params_.level_passes > 0) {
       // Levelled at the best pose so far; the pass's costs are another function, so the best restarts with it.
-      const PlanarPose at = have_best ? PlanarPose{best_pose[0], best_pose[1], best_pose[2]}
-                                      : PlanarPose{pose[0], pose[1], pose[2]};
+      const PlanarPose at =
+          have_best ? PlanarPose{best_pose[0], best_pose[1], best_pose[2]} : PlanarPose{pose[0], pose[1], pose[2]};
       depth = depth_plane(map, template_centroid_m, at, depth);
       if (have_best) std::copy(best_pose, best_pose + 3, pose);
       have_best = false;

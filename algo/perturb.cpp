@@ -12,7 +12,7 @@ namespace cellsight::algo {
 namespace {
 
 constexpr std::array<std::string_view, kPerturbKinds> kNames = {"swing", "stray_edge", "stray_points", "glare",
-                                                                 "thin",  "dropout",    "noise"};
+                                                                "thin",  "dropout",    "noise"};
 constexpr std::string_view kValidKinds = "noise, dropout, glare, stray_edge, stray_points, thin, swing, mixed, none";
 constexpr double kMaxStrength = 10.0;
 
@@ -41,7 +41,9 @@ constexpr double kPointSpacingY_m = 0.001;
 // Salts of the random streams: one per kind, one for the share draw.
 constexpr std::uint64_t kShareSalt = 0x5A4E;
 
-Eigen::Vector3d as_vector(const ScanPoint& p) { return {p.x, p.y, p.z}; }
+Eigen::Vector3d as_vector(const ScanPoint& p) {
+  return {p.x, p.y, p.z};
+}
 
 // The point at (x, y) whose signed distance from the plane is depth_m (the carrier faces the camera: normal ~ +z).
 ScanPoint point_at_depth(const Plane& plane, double x, double y, double depth_m) {
@@ -62,11 +64,11 @@ struct Layout {
   std::vector<std::vector<std::size_t>> profiles;  // indices by x, each sorted by y
   std::vector<double> profile_x;                   // mean x of each profile
   double profile_spacing_m = kProfileSpacing_m;
-  double point_spacing_y_m = kPointSpacingY_m;     // along y between neighbouring part points of a profile
+  double point_spacing_y_m = kPointSpacingY_m;  // along y between neighbouring part points of a profile
   Eigen::Vector3d lo = Eigen::Vector3d::Zero(), hi = Eigen::Vector3d::Zero();  // the scanned volume
   std::vector<char> is_part;
   std::size_t part_points = 0;
-  double part_depth_m = 0.0;                       // median signed distance of the part's points
+  double part_depth_m = 0.0;  // median signed distance of the part's points
   double part_max_depth_m = 0.0;
 };
 
@@ -143,10 +145,9 @@ PerturbReport::Strip add_strip(std::vector<ScanPoint>& points, const Layout& l, 
   std::vector<char> hidden(points.size(), 0);
   for (std::size_t i = 0; i < points.size(); ++i) {
     const ScanPoint& p = points[i];
-    hidden[i] = p.x >= x0 && p.x <= x1 && p.y >= y0 && p.y <= y1 &&
-                        support.signed_distance(as_vector(p)) < carrier_band_m
-                    ? 1
-                    : 0;
+    hidden[i] =
+        p.x >= x0 && p.x <= x1 && p.y >= y0 && p.y <= y1 && support.signed_distance(as_vector(p)) < carrier_band_m ? 1
+                                                                                                                   : 0;
   }
   erase_flagged(points, hidden);
   const double phase = rng.uniform() * l.point_spacing_y_m;
@@ -202,8 +203,8 @@ bool apply_stray_edge(std::vector<ScanPoint>& points, const Layout& l, const Pla
   return r.stray_edge.points > 0;
 }
 
-void apply_stray_points(std::vector<ScanPoint>& points, const Layout& l, const Plane& support,
-                        double carrier_band_m, double strength, Rng& rng, PerturbReport& r) {
+void apply_stray_points(std::vector<ScanPoint>& points, const Layout& l, const Plane& support, double carrier_band_m,
+                        double strength, Rng& rng, PerturbReport& r) {
   const std::size_t n_in = points.size();
   // The hook is above the part's x centroid: the chain starts at the highest part point within kHookReach_m of it
   // in x (a part with a notch there: at the part point nearest to that line).
@@ -308,7 +309,8 @@ void apply_dropout(std::vector<ScanPoint>& points, double strength, Rng& rng, Pe
     const std::size_t start = static_cast<std::size_t>(rng.below(points.size()));
     const bool run = rng.uniform() < kDropoutRunShare;
     const std::size_t length =
-        run ? static_cast<std::size_t>(kDropoutRunMin + static_cast<int>(rng.below(kDropoutRunMax - kDropoutRunMin + 1)))
+        run ? static_cast<std::size_t>(kDropoutRunMin +
+                                       static_cast<int>(rng.below(kDropoutRunMax - kDropoutRunMin + 1)))
             : 1;
     const auto& profile = profiles[profile_of[start]];
     for (std::size_t k = position[start]; k < profile.size() && k < position[start] + length && count < target; ++k) {
@@ -343,14 +345,17 @@ bool PerturbSpec::empty() const {
   return std::none_of(kinds.begin(), kinds.end(), [](const PerturbSetting& s) { return s.on; });
 }
 
-std::string_view to_string(PerturbKind kind) { return kNames[static_cast<std::size_t>(kind)]; }
+std::string_view to_string(PerturbKind kind) {
+  return kNames[static_cast<std::size_t>(kind)];
+}
 
 Expected<PerturbSpec> parse_perturb(std::string_view text) {
   PerturbSpec spec;
   spec.text = text.empty() ? "none" : std::string(text);
   const auto set = [&](PerturbKind kind, double strength, double share) -> Status {
     PerturbSetting& s = spec[kind];
-    if (s.on) return make_error("perturb: '" + std::string(to_string(kind)) + "' is given twice in '" + spec.text + "'");
+    if (s.on)
+      return make_error("perturb: '" + std::string(to_string(kind)) + "' is given twice in '" + spec.text + "'");
     s = {true, strength, share};
     return {};
   };
@@ -387,9 +392,9 @@ Expected<PerturbSpec> parse_perturb(std::string_view text) {
     if (name == "none") continue;
     if (name == "mixed") {
       if (at != std::string_view::npos) return make_error("perturb: 'mixed' sets its own shares; give it no @SHARE");
-      for (const auto& [kind, kind_share] : {std::pair{PerturbKind::kNoise, 1.0}, std::pair{PerturbKind::kDropout, 1.0},
-                                             std::pair{PerturbKind::kGlare, kMixedShare},
-                                             std::pair{PerturbKind::kStrayEdge, kMixedShare}}) {
+      for (const auto& [kind, kind_share] :
+           {std::pair{PerturbKind::kNoise, 1.0}, std::pair{PerturbKind::kDropout, 1.0},
+            std::pair{PerturbKind::kGlare, kMixedShare}, std::pair{PerturbKind::kStrayEdge, kMixedShare}}) {
         if (auto ok = set(kind, strength, kind_share); !ok) return ok.error();
       }
       continue;
@@ -413,7 +418,8 @@ std::vector<std::vector<std::size_t>> profiles_by_x(const std::vector<ScanPoint>
     profiles.back().push_back(order[k]);
   }
   for (auto& profile : profiles) {
-    std::stable_sort(profile.begin(), profile.end(), [&](std::size_t a, std::size_t b) { return points[a].y < points[b].y; });
+    std::stable_sort(profile.begin(), profile.end(),
+                     [&](std::size_t a, std::size_t b) { return points[a].y < points[b].y; });
   }
   return profiles;
 }
@@ -428,9 +434,9 @@ std::string describe(const PerturbReport& r) {
   };
   constexpr double kMm = 1e3;
   add(PerturbKind::kSwing, "%.3f deg", r.swing_rad * 180.0 / std::numbers::pi);
-  add(PerturbKind::kStrayEdge, "%s, x %.0f..%.0f mm, y %.0f..%.0f mm, %zu points", r.stray_edge_from_left ? "left" : "right",
-      r.stray_edge.x_min_m * kMm, r.stray_edge.x_max_m * kMm, r.stray_edge.y_min_m * kMm, r.stray_edge.y_max_m * kMm,
-      r.stray_edge.points);
+  add(PerturbKind::kStrayEdge, "%s, x %.0f..%.0f mm, y %.0f..%.0f mm, %zu points",
+      r.stray_edge_from_left ? "left" : "right", r.stray_edge.x_min_m * kMm, r.stray_edge.x_max_m * kMm,
+      r.stray_edge.y_min_m * kMm, r.stray_edge.y_max_m * kMm, r.stray_edge.points);
   add(PerturbKind::kStrayPoints, "chain %.1f mm wide from y %.0f mm, %zu points; %zu outliers",
       (r.chain.x_max_m - r.chain.x_min_m) * kMm, r.chain.y_min_m * kMm, r.chain.points, r.outliers);
   add(PerturbKind::kGlare, "%.0f mm band, normal %.2f %.2f, %zu points lost", r.glare_width_m * kMm,
@@ -460,17 +466,27 @@ PerturbReport perturb_scan(std::vector<ScanPoint>& points, const PerturbSpec& sp
     if (needs_part && l.part_points == 0) continue;
     bool applied = true;
     switch (kind) {
-      case PerturbKind::kSwing: apply_swing(points, l, setting.strength, rng, r); break;
+      case PerturbKind::kSwing:
+        apply_swing(points, l, setting.strength, rng, r);
+        break;
       case PerturbKind::kStrayEdge:
         applied = apply_stray_edge(points, l, support, spec.carrier_band_m, setting.strength, rng, r);
         break;
       case PerturbKind::kStrayPoints:
         apply_stray_points(points, l, support, spec.carrier_band_m, setting.strength, rng, r);
         break;
-      case PerturbKind::kGlare: apply_glare(points, l, setting.strength, rng, r); break;
-      case PerturbKind::kThin: apply_thin(points, setting.strength, r); break;
-      case PerturbKind::kDropout: apply_dropout(points, setting.strength, rng, r); break;
-      case PerturbKind::kNoise: apply_noise(points, setting.strength, rng, r); break;
+      case PerturbKind::kGlare:
+        apply_glare(points, l, setting.strength, rng, r);
+        break;
+      case PerturbKind::kThin:
+        apply_thin(points, setting.strength, r);
+        break;
+      case PerturbKind::kDropout:
+        apply_dropout(points, setting.strength, rng, r);
+        break;
+      case PerturbKind::kNoise:
+        apply_noise(points, setting.strength, rng, r);
+        break;
     }
     r.applied[k] = applied;
   }

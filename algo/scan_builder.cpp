@@ -51,8 +51,9 @@ FrameOutcome ScanBuilder::add_frame(const std::uint8_t* pixels, int width, int h
   };
   int run_start = -1;
   for (int v = 0; v <= profile_.rows(); ++v) {
-    const bool continues = v < profile_.rows() && usable(v) && run_start >= 0 &&
-                           std::abs(profile_.row(v).centre_px - profile_.row(v - 1).centre_px) <= params_.run_continuity_px;
+    const bool continues =
+        v < profile_.rows() && usable(v) && run_start >= 0 &&
+        std::abs(profile_.row(v).centre_px - profile_.row(v - 1).centre_px) <= params_.run_continuity_px;
     if (continues) continue;
     if (run_start >= 0) emit_run(run_start, v - 1, travel_m, out);
     run_start = v < profile_.rows() && usable(v) ? v : -1;

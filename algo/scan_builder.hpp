@@ -17,7 +17,7 @@ struct ScanBuilderParams {
   StripeParams stripe{};
   ExposureParams exposure{};
   double carrier_start_offset_m = 0.65;  // carrier x under the laser at the pass's first encoder count
-  std::size_t max_points = 1'000'000;     // scan buffer capacity (a pass is ~0.2-0.5 M points)
+  std::size_t max_points = 1'000'000;    // scan buffer capacity (a pass is ~0.2-0.5 M points)
   // A stripe piece must run over at least this many consecutive rows (centres within run_continuity_px of the
   // row above) to become points: glints span up to ~5 rows, real surfaces more (6 rows ~ 10 mm).
   int min_run_rows = 6;
@@ -28,9 +28,9 @@ struct ScanBuilderParams {
   // Surfaces nearly edge-on to the rows (a flange toward the camera) make the stripe run along the rows, where one
   // point per row samples it sparsely or not at all. Rows the row pass left wide, broken into short runs, or
   // bright but empty are re-read column by column: each column's vertical centre of gravity gives one point.
-  float wide_row_px = 8.0F;           // a row stripe wider than this is looked at column by column too
-  int min_column_run = 6;             // consecutive columns in a row-wise piece, like min_run_rows
-  int max_column_extent_rows = 6;     // half-maximum extent of one column's peak: a line crossing, not a blob
+  float wide_row_px = 8.0F;        // a row stripe wider than this is looked at column by column too
+  int min_column_run = 6;          // consecutive columns in a row-wise piece, like min_run_rows
+  int max_column_extent_rows = 6;  // half-maximum extent of one column's peak: a line crossing, not a blob
 };
 
 struct FrameOutcome {
@@ -87,8 +87,8 @@ class ScanBuilder {
   ScanBuffer scan_;
   PassStats stats_{};
   std::int64_t start_counts_ = 0;
-  std::vector<float> column_v_;         // column pass: sub-pixel row per column (NaN: none)
-  std::vector<std::uint8_t> candidate_;  // rows the column pass re-reads
+  std::vector<float> column_v_;                // column pass: sub-pixel row per column (NaN: none)
+  std::vector<std::uint8_t> candidate_;        // rows the column pass re-reads
   std::vector<std::int16_t> row_lo_, row_hi_;  // and the columns it re-reads there
 };
 

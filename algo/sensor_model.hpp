@@ -10,10 +10,10 @@ namespace cellsight::algo {
 // Produced by `cellsight calibrate` (config/calibration.yaml); never the simulator's true parameters.
 struct SensorCalibration {
   Intrinsics intrinsics{};
-  CameraPose camera_pose{};                          // cell (world) frame -> camera
+  CameraPose camera_pose{};                                 // cell (world) frame -> camera
   Eigen::Vector3d laser_normal = Eigen::Vector3d::UnitX();  // laser plane: normal . p = laser_offset_m (cell frame)
   double laser_offset_m = 0.0;
-  double mm_per_count = 0.1;                         // conveyor encoder scale
+  double mm_per_count = 0.1;  // conveyor encoder scale
   // Quality figures recorded when calibrating (for reports and refusal thresholds).
   double reprojection_rms_px = 0.0;
   double laser_residual_mm = 0.0;

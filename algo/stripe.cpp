@@ -234,13 +234,13 @@ void chunk_thresholds_sse2(const std::int16_t* padded, int chunks, int threshold
 
 // One stripe candidate of a row, measured.
 struct Candidate {
-  int lo = 0, hi = 0;         // pixels strictly above background + threshold
-  int peak = 0, peak_x = 0;   // brightest pixel (the first one of a saturated plateau)
+  int lo = 0, hi = 0;        // pixels strictly above background + threshold
+  int peak = 0, peak_x = 0;  // brightest pixel (the first one of a saturated plateau)
   float background_dn = 0.0f;
   float left_px = 0.0f, right_px = 0.0f;  // sub-pixel threshold crossings
-  float width_px = 0.0f;      // right - left
-  float fwhm_px = 0.0f;       // width at half (peak - background), for the shape test only
-  float mid_px = 0.0f;        // (left + right) / 2: good enough to compare candidates
+  float width_px = 0.0f;                  // right - left
+  float fwhm_px = 0.0f;                   // width at half (peak - background), for the shape test only
+  float mid_px = 0.0f;                    // (left + right) / 2: good enough to compare candidates
   bool usable = false;
   bool too_wide = false;
 };
@@ -254,7 +254,9 @@ inline float log_crossing(float inner_dn, float outer_dn, float log_level) {
 }
 
 // Linear crossing at an absolute level between an inner pixel (above) and an outer one (at or below).
-inline float linear_crossing(float inner, float outer, float level) { return (inner - level) / (inner - outer); }
+inline float linear_crossing(float inner, float outer, float level) {
+  return (inner - level) / (inner - outer);
+}
 
 // Centre of gravity of (pixel - background) over a window [c - h, c + h], h = width / 2 + 1 px, centred on the
 // current estimate, pixels cut by the window edge weighted by their covered fraction, iterated to its fixed
@@ -321,8 +323,9 @@ class StripeExtractor {
  public:
   StripeExtractor(const StripeParams& params, StripeProfile& out, StripeKernel kernel)
       : params_(params), out_(out), kernel_(kernel) {
-    threshold_dn_ = std::isnan(params_.threshold_dn) ? kMinThresholdDn
-                                                     : std::clamp(params_.threshold_dn, kMinThresholdDn, kMaxThresholdDn);
+    threshold_dn_ = std::isnan(params_.threshold_dn)
+                        ? kMinThresholdDn
+                        : std::clamp(params_.threshold_dn, kMinThresholdDn, kMaxThresholdDn);
     threshold_sixteenths_ = int(std::lround(threshold_dn_ * float(kChunkPx)));
     log_threshold_ = std::log(threshold_dn_);
   }
@@ -642,7 +645,9 @@ class StripeExtractor {
     return -1;
   }
 
-  static float strength(const Candidate& c) { return float(c.peak) - c.background_dn; }
+  static float strength(const Candidate& c) {
+    return float(c.peak) - c.background_dn;
+  }
 
   StripeStatus saturation_status(int peak) const {
     return peak >= params_.saturation_dn ? StripeStatus::kSaturated : StripeStatus::kValid;
@@ -766,7 +771,7 @@ class StripeExtractor {
   std::array<Candidate, kMaxRuns> candidates_{};
   int candidate_count_ = 0;
   int too_wide_rows_ = 0;
-  int ref_row_ = -1;          // forward continuity: last decided row and its centre
+  int ref_row_ = -1;  // forward continuity: last decided row and its centre
   float ref_centre_ = 0.0f;
 };
 

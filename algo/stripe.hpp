@@ -45,20 +45,24 @@ struct StripeParams {
 };
 
 enum class StripeStatus : std::uint8_t {
-  kValid = 0,      // one stripe, measured
-  kNoStripe,       // nothing above threshold, only spikes / over-wide blobs / a touch of the image border, or
-                   // far weaker than the frame's stripes (min_relative_strength); centre is NaN
-  kSaturated,      // measured, but the stripe reached saturation_dn: usable, centre less precise (<= 0.2 px)
-  kAmbiguous,      // two comparable stripes that continuity could not settle (centre = the stronger, alt_* =
-                   // the other), or a row too cluttered to trust (more than 32 runs above threshold)
+  kValid = 0,  // one stripe, measured
+  kNoStripe,   // nothing above threshold, only spikes / over-wide blobs / a touch of the image border, or
+               // far weaker than the frame's stripes (min_relative_strength); centre is NaN
+  kSaturated,  // measured, but the stripe reached saturation_dn: usable, centre less precise (<= 0.2 px)
+  kAmbiguous,  // two comparable stripes that continuity could not settle (centre = the stronger, alt_* =
+               // the other), or a row too cluttered to trust (more than 32 runs above threshold)
 };
 
 [[nodiscard]] constexpr const char* to_string(StripeStatus status) {
   switch (status) {
-    case StripeStatus::kValid: return "valid";
-    case StripeStatus::kNoStripe: return "no_stripe";
-    case StripeStatus::kSaturated: return "saturated";
-    case StripeStatus::kAmbiguous: return "ambiguous";
+    case StripeStatus::kValid:
+      return "valid";
+    case StripeStatus::kNoStripe:
+      return "no_stripe";
+    case StripeStatus::kSaturated:
+      return "saturated";
+    case StripeStatus::kAmbiguous:
+      return "ambiguous";
   }
   return "unknown";
 }
@@ -87,10 +91,10 @@ struct StripeRow {
 // Per-frame summary; what the exposure controller consumes.
 struct StripeSummary {
   int rows = 0;
-  int valid_rows = 0;          // usable rows: status valid OR saturated
-  int saturated_rows = 0;      // subset of valid_rows
+  int valid_rows = 0;      // usable rows: status valid OR saturated
+  int saturated_rows = 0;  // subset of valid_rows
   int ambiguous_rows = 0;
-  int too_wide_rows = 0;       // rows with no stripe whose brightest rejected candidate was wider than max_width
+  int too_wide_rows = 0;         // rows with no stripe whose brightest rejected candidate was wider than max_width
   float median_width_px = 0.0f;  // median width_px over valid_rows (mean of the two middle values); 0 if none
 
   [[nodiscard]] float valid_fraction() const { return rows > 0 ? float(valid_rows) / float(rows) : 0.0f; }
@@ -129,17 +133,20 @@ class StripeProfile {
   StripeSummary summary_{};
 };
 
-enum class [[nodiscard]] StripeResult : std::uint8_t {
-  kOk = 0,
-  kInvalidImage,      // null pixels, width < 3 or > kStripeMaxWidthPx, height < 0, stride < width
-  kCapacityExceeded,  // height > out.capacity(): reserve at start-up with the camera's height
+enum class [[nodiscard]] StripeResult : std::uint8_t{
+    kOk = 0,
+    kInvalidImage,      // null pixels, width < 3 or > kStripeMaxWidthPx, height < 0, stride < width
+    kCapacityExceeded,  // height > out.capacity(): reserve at start-up with the camera's height
 };
 
 [[nodiscard]] constexpr const char* to_string(StripeResult result) {
   switch (result) {
-    case StripeResult::kOk: return "ok";
-    case StripeResult::kInvalidImage: return "invalid image";
-    case StripeResult::kCapacityExceeded: return "profile capacity exceeded";
+    case StripeResult::kOk:
+      return "ok";
+    case StripeResult::kInvalidImage:
+      return "invalid image";
+    case StripeResult::kCapacityExceeded:
+      return "profile capacity exceeded";
   }
   return "unknown";
 }

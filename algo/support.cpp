@@ -10,7 +10,9 @@
 namespace cellsight::algo {
 namespace {
 
-Eigen::Vector3d as_vector(const ScanPoint& p) { return {p.x, p.y, p.z}; }
+Eigen::Vector3d as_vector(const ScanPoint& p) {
+  return {p.x, p.y, p.z};
+}
 
 }  // namespace
 
@@ -57,7 +59,8 @@ Expected<SupportFit> fit_support_plane(std::span<const ScanPoint> points, const 
   Eigen::Matrix3d scatter = Eigen::Matrix3d::Zero();
   for (const ScanPoint& p : points) {
     const Eigen::Vector3d v = as_vector(p);
-    if (std::abs(best.signed_distance(v)) < params.inlier_threshold_m) scatter += (v - centroid) * (v - centroid).transpose();
+    if (std::abs(best.signed_distance(v)) < params.inlier_threshold_m)
+      scatter += (v - centroid) * (v - centroid).transpose();
   }
   Eigen::JacobiSVD<Eigen::Matrix3d> svd(scatter, Eigen::ComputeFullU);
   Eigen::Vector3d normal = svd.matrixU().col(2);

@@ -457,8 +457,12 @@ namespace {
 
 constexpr const char* kRefused = "SVM model refused: ";
 
-Error refused(const std::string& why) { return make_error(kRefused + why); }
-Error truncated() { return refused("truncated or malformed content"); }
+Error refused(const std::string& why) {
+  return make_error(kRefused + why);
+}
+Error truncated() {
+  return refused("truncated or malformed content");
+}
 
 // Magic and checksum; `body` is what the checksum covers.
 Status check_envelope(std::string_view blob, std::string_view& body) {

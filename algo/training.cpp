@@ -43,7 +43,7 @@ int largest(const std::vector<int>& v) {
 struct Context {
   const Dataset* train = nullptr;
   int n = 0, classes = 0, folds = 0, threads = 1;
-  std::vector<int> fold;       // per sample
+  std::vector<int> fold;  // per sample
   // Per sample: 1 when its prediction counts toward the CV accuracy. Only taught scans count: a synthetic variant
   // helps train the other folds' models but does not score, so CV accuracy measures real scans.
   std::vector<std::uint8_t> scored;
@@ -235,7 +235,6 @@ std::string layout_text(const std::vector<int>& hidden) {
   }
   return s;
 }
-
 
 class MlpEvaluator final : public Evaluator {
  public:
@@ -478,8 +477,8 @@ void score_calibration(const Dataset& test, SvmModel& model, ClassifierReport& r
     const bool hit = probabilities[0].class_index == test.labels[i];
     top2 += hit || (probabilities.size() > 1 && probabilities[1].class_index == test.labels[i]) ? 1 : 0;
     const double p1 = probabilities[0].probability;
-    CalibrationBin& b = bins[static_cast<std::size_t>(std::clamp(static_cast<int>(p1 * kCalibrationBins), 0,
-                                                                 kCalibrationBins - 1))];
+    CalibrationBin& b =
+        bins[static_cast<std::size_t>(std::clamp(static_cast<int>(p1 * kCalibrationBins), 0, kCalibrationBins - 1))];
     ++b.scans;
     b.mean_probability += p1;
     b.accuracy += hit ? 1.0 : 0.0;

@@ -127,10 +127,10 @@ struct AnnealingStep {
 
 inline constexpr int kCalibrationBins = 10;
 struct CalibrationBin {
-  double lo = 0.0, hi = 0.0;        // top probability range
+  double lo = 0.0, hi = 0.0;  // top probability range
   int scans = 0;
-  double mean_probability = 0.0;    // mean top probability of its scans
-  double accuracy = 0.0;            // share of them classified right
+  double mean_probability = 0.0;  // mean top probability of its scans
+  double accuracy = 0.0;          // share of them classified right
 };
 
 struct ClassifierReport {

@@ -17,7 +17,8 @@ Eigen::Vector3d intersect_laser(const SensorCalibration& c, const Eigen::Vector2
 }
 
 Triangulator::Triangulator(const SensorCalibration& calibration)
-    : width_(calibration.intrinsics.width_px), height_(calibration.intrinsics.height_px),
+    : width_(calibration.intrinsics.width_px),
+      height_(calibration.intrinsics.height_px),
       mm_per_count_(calibration.mm_per_count) {
   SensorCalibration c = calibration;
   c.laser_offset_m /= c.laser_normal.norm();

@@ -10,33 +10,39 @@
 
 namespace cellsight::app {
 
-enum class [[nodiscard]] AcquireResult : std::uint8_t {
-  kOk = 0,
-  kNoPart,          // no rising edge within the wait
-  kCameraTimeout,   // the camera stopped delivering frames mid-part
-  kCameraFault,     // I/O error or the camera vanished
-  kIoFault,         // digital I/O or encoder failed
-  kTooManyFrames,   // the falling edge never came (photo-eye blocked?)
+enum class [[nodiscard]] AcquireResult : std::uint8_t{
+    kOk = 0,
+    kNoPart,         // no rising edge within the wait
+    kCameraTimeout,  // the camera stopped delivering frames mid-part
+    kCameraFault,    // I/O error or the camera vanished
+    kIoFault,        // digital I/O or encoder failed
+    kTooManyFrames,  // the falling edge never came (photo-eye blocked?)
 };
 
 constexpr const char* to_string(AcquireResult r) {
   switch (r) {
-    case AcquireResult::kOk: return "ok";
-    case AcquireResult::kNoPart: return "no part";
-    case AcquireResult::kCameraTimeout: return "camera stopped delivering frames";
-    case AcquireResult::kCameraFault: return "camera fault";
-    case AcquireResult::kIoFault: return "digital I/O or encoder fault";
-    case AcquireResult::kTooManyFrames: return "part-present never fell";
+    case AcquireResult::kOk:
+      return "ok";
+    case AcquireResult::kNoPart:
+      return "no part";
+    case AcquireResult::kCameraTimeout:
+      return "camera stopped delivering frames";
+    case AcquireResult::kCameraFault:
+      return "camera fault";
+    case AcquireResult::kIoFault:
+      return "digital I/O or encoder fault";
+    case AcquireResult::kTooManyFrames:
+      return "part-present never fell";
   }
   return "unknown";
 }
 
 struct AcquireParams {
-  int edge_wait_ms = 1000;     // for the rising edge
+  int edge_wait_ms = 1000;  // for the rising edge
   int frame_timeout_ms = 1000;
-  int max_frames = 4000;       // more frames than this is a stuck photo-eye
+  int max_frames = 4000;  // more frames than this is a stuck photo-eye
   std::int32_t start_exposure_us = 1500;
-  int poll_slice_ms = 10;      // one PassAcquirer::step()
+  int poll_slice_ms = 10;  // one PassAcquirer::step()
 };
 
 struct AcquireReport {

@@ -149,7 +149,9 @@ void read_header(YamlSection& root, const std::string& step, algo::BoardSpec& bo
   read_board(root.section("board"), board);
 }
 
-fs::path picture_path(const fs::path& dir, const std::string& name) { return dir / name; }
+fs::path picture_path(const fs::path& dir, const std::string& name) {
+  return dir / name;
+}
 
 Expected<cv::Mat> read_picture(const fs::path& file) {
   std::error_code ec;
@@ -162,7 +164,8 @@ Expected<cv::Mat> read_picture(const fs::path& file) {
   } catch (const cv::Exception&) {  // some decoders throw on damaged files; treated like an unreadable one
     image.release();
   }
-  if (image.empty()) return make_error(file.string() + ": cannot read it as an image (PNG expected): take the picture again");
+  if (image.empty())
+    return make_error(file.string() + ": cannot read it as an image (PNG expected): take the picture again");
   return image;
 }
 
@@ -174,7 +177,8 @@ Status check_size(const fs::path& file, const cv::Mat& image, int width_px, int 
   return make_error(file.string() + buf);
 }
 
-Expected<std::vector<Eigen::Vector2d>> find_board(const fs::path& file, const cv::Mat& image, const algo::BoardSpec& board) {
+Expected<std::vector<Eigen::Vector2d>> find_board(const fs::path& file, const cv::Mat& image,
+                                                  const algo::BoardSpec& board) {
   auto dots = algo::detect_board(image, board);
   if (!dots) return make_error(file.string() + ": " + dots.error().message);
   return dots;
@@ -409,7 +413,8 @@ std::string board_yaml(const algo::BoardSpec& b) {
 
 Status write_sim_calibration_views(const Config& config, const std::string& step, const std::string& out_dir,
                                    std::uint64_t seed) {
-  if (step != "camera" && step != "laser" && step != "conveyor") return make_error("unknown calibration step '" + step + "'");
+  if (step != "camera" && step != "laser" && step != "conveyor")
+    return make_error("unknown calibration step '" + step + "'");
   auto staged = StagedDirectory::create(out_dir);
   if (!staged) return staged.error();
   const fs::path dir = staged->path();
@@ -433,9 +438,11 @@ Status write_sim_calibration_views(const Config& config, const std::string& step
     renderer.render(board, algo::fixture_board_to_cell(dot0), sim::mix_seed(seed, ++shot), image);
     if (auto ok = write_png(dir / "reference.png", image); !ok) return ok;
     yaml += "reference:\n  file: reference.png\n";
-    yaml += fmt("  dot0_cell_m: [%.6f, %.6f, %.6f]   # dot 0 in the fixture (cell frame)\n", dot0.x(), dot0.y(), dot0.z());
+    yaml +=
+        fmt("  dot0_cell_m: [%.6f, %.6f, %.6f]   # dot 0 in the fixture (cell frame)\n", dot0.x(), dot0.y(), dot0.z());
   } else if (step == "laser") {
-    const double exposure_us = kSimStripePeakDn / (config.rig.sensor.gain_dn_per_us * sim::BoardLook{}.plate_reflectance);
+    const double exposure_us =
+        kSimStripePeakDn / (config.rig.sensor.gain_dn_per_us * sim::BoardLook{}.plate_reflectance);
     yaml += fmt("exposure_us: %.0f   # laser pictures (information only)\n", exposure_us);
     yaml += "views:\n";
     int index = 0;
@@ -510,7 +517,7 @@ int run_calibrate(const std::vector<std::string>& args, const Config& config, st
     dir = o.out;
   }
 
-  Expected<std::string> summary = o.step == "camera" ? camera_step(dir, record)
+  Expected<std::string> summary = o.step == "camera"  ? camera_step(dir, record)
                                   : o.step == "laser" ? laser_step(dir, record)
                                                       : conveyor_step(dir, record);
   if (!summary) return refuse(kExitUsage, summary.error().message);

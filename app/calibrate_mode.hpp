@@ -26,7 +26,7 @@ extern const char* const kCalibrateUsage;
 
 // Renders one step's board pictures on the simulated cell (config.rig), as a technician would take them, into
 // the new folder out_dir: PNG files and the views.yaml that `calibrate STEP --images out_dir` reads.
-[[nodiscard]] Status write_sim_calibration_views(const Config& config, const std::string& step, const std::string& out_dir,
-                                                 std::uint64_t seed);
+[[nodiscard]] Status write_sim_calibration_views(const Config& config, const std::string& step,
+                                                 const std::string& out_dir, std::uint64_t seed);
 
 }  // namespace cellsight::app

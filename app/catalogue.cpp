@@ -18,14 +18,15 @@ constexpr double kMaxMm = 5000.0;
 constexpr struct {
   const char* name;
   sim::FeatureKind kind;
-} kKinds[] = {{"hole", sim::FeatureKind::kHole},         {"slot", sim::FeatureKind::kSlot},
-              {"window", sim::FeatureKind::kWindow},     {"hole_array", sim::FeatureKind::kHoleArray},
-              {"rib", sim::FeatureKind::kRib},           {"louvre", sim::FeatureKind::kLouvre},
+} kKinds[] = {{"hole", sim::FeatureKind::kHole},     {"slot", sim::FeatureKind::kSlot},
+              {"window", sim::FeatureKind::kWindow}, {"hole_array", sim::FeatureKind::kHoleArray},
+              {"rib", sim::FeatureKind::kRib},       {"louvre", sim::FeatureKind::kLouvre},
               {"flange", sim::FeatureKind::kFlange}};
 constexpr struct {
   const char* name;
   sim::Edge edge;
-} kEdges[] = {{"left", sim::Edge::kLeft}, {"right", sim::Edge::kRight}, {"top", sim::Edge::kTop}, {"bottom", sim::Edge::kBottom}};
+} kEdges[] = {
+    {"left", sim::Edge::kLeft}, {"right", sim::Edge::kRight}, {"top", sim::Edge::kTop}, {"bottom", sim::Edge::kBottom}};
 
 bool read_feature(YamlSection& f, sim::FeatureSpec& out) {
   std::string type;
@@ -125,7 +126,8 @@ std::string catalogue_yaml(const std::vector<sim::PartSpec>& parts, const std::s
     if (!p.outline_mm.empty()) {
       out += "    outline_mm: [";
       for (std::size_t i = 0; i < p.outline_mm.size(); ++i) {
-        out += (i == 0 ? "[" : ", [") + number_text(p.outline_mm[i].x()) + ", " + number_text(p.outline_mm[i].y()) + "]";
+        out +=
+            (i == 0 ? "[" : ", [") + number_text(p.outline_mm[i].x()) + ", " + number_text(p.outline_mm[i].y()) + "]";
       }
       out += "]\n";
     }
@@ -156,7 +158,9 @@ Expected<std::vector<sim::PartSpec>> load_catalogue(const std::string& path) {
     p.text("family", spec.family);
     std::string role;
     p.choice("role", role, {"taught", "untaught"});
-    spec.role = role == "taught" ? sim::PartRole::kTaught : role == "untaught" ? sim::PartRole::kUntaught : sim::PartRole::kUnspecified;
+    spec.role = role == "taught"     ? sim::PartRole::kTaught
+                : role == "untaught" ? sim::PartRole::kUntaught
+                                     : sim::PartRole::kUnspecified;
     p.number("width_mm", spec.width_mm, 1.0, kMaxMm, "mm");
     p.number("height_mm", spec.height_mm, 1.0, kMaxMm, "mm");
     p.points2("outline_mm", spec.outline_mm, -kMaxMm, kMaxMm, "mm");

@@ -70,10 +70,11 @@ using ClassNames = std::function<std::string(int)>;
 std::string decision_json(const std::string& scan, const algo::Decision& d, std::string_view class_name,
                           const ClassNames& names) {
   std::ostringstream o;
-  o << "{\"scan\": " << json_string(scan) << ", \"class\": "
-    << (d.class_index >= 0 ? json_string(std::string(class_name)) : "null") << ", \"id\": " << d.part_id
-    << ", \"status\": \"" << algo::to_string(d.source) << "\", \"probability\": " << json_number(d.probability)
-    << ", \"pm_error\": " << json_number(d.pm_error) << ", \"pose\": ";
+  o << "{\"scan\": " << json_string(scan)
+    << ", \"class\": " << (d.class_index >= 0 ? json_string(std::string(class_name)) : "null")
+    << ", \"id\": " << d.part_id << ", \"status\": \"" << algo::to_string(d.source)
+    << "\", \"probability\": " << json_number(d.probability) << ", \"pm_error\": " << json_number(d.pm_error)
+    << ", \"pose\": ";
   if (d.pose_valid) {
     o << "{\"x\": " << json_number(d.pose.x_m) << ", \"y\": " << json_number(d.pose.y_m)
       << ", \"theta_deg\": " << json_number(d.pose.theta_rad * kRadToDeg) << "}";
@@ -92,9 +93,9 @@ std::string decision_json(const std::string& scan, const algo::Decision& d, std:
     if (i > 0) o << ", ";
     o << "{\"class\": " << json_string(names(c.class_index)) << ", \"p\": " << json_number(c.probability)
       << ", \"verified\": " << (c.verified ? "true" : "false") << ", \"passed\": " << (c.passed ? "true" : "false")
-      << ", \"rejected_by\": " << (c.rejected_by == algo::RejectReason::kNone
-                                        ? std::string("null")
-                                        : "\"" + std::string(algo::to_string(c.rejected_by)) + "\"")
+      << ", \"rejected_by\": "
+      << (c.rejected_by == algo::RejectReason::kNone ? std::string("null")
+                                                     : "\"" + std::string(algo::to_string(c.rejected_by)) + "\"")
       << ", \"value\": " << json_number(c.value) << ", \"limit\": " << json_number(c.limit)
       << ", \"pm_error\": " << json_number(c.pm_error) << ", \"missing_mm2\": " << json_number(c.missing_area_m2 * 1e6)
       << ", \"extra_mm2\": " << json_number(c.extra_area_m2 * 1e6) << ", \"coverage\": " << json_number(c.coverage)
@@ -116,7 +117,7 @@ std::string unknown_reason_text(const algo::Decision& d, const ClassNames& names
       std::snprintf(buf, sizeof buf, "; %s (p %.2f): size %.1f > %.1f mm", names(c.class_index).c_str(), c.probability,
                     c.value * 1e3, c.limit * 1e3);
     } else if (c.rejected_by == algo::RejectReason::kPmError || c.rejected_by == algo::RejectReason::kUncovered ||
-        c.rejected_by == algo::RejectReason::kOutliers) {
+               c.rejected_by == algo::RejectReason::kOutliers) {
       std::snprintf(buf, sizeof buf, "; %s (p %.2f): %s %.3g > %.3g", names(c.class_index).c_str(), c.probability,
                     std::string(algo::to_string(c.rejected_by)).c_str(), c.value, c.limit);
     } else if (c.rejected_by == algo::RejectReason::kMissingArea || c.rejected_by == algo::RejectReason::kExtraArea) {
@@ -223,8 +224,8 @@ algo::PlanarPose relative_pose(const sim::PartPose& scan, const sim::PartPose& t
                                const Eigen::Vector2d& c) {
   const double theta = scan.theta_rad - tmpl.theta_rad;
   const Eigen::Rotation2Dd r(theta);
-  const Eigen::Vector2d d = (c0 + Eigen::Vector2d(scan.x_m, scan.y_m)) - c -
-                            (r * (c0 + Eigen::Vector2d(tmpl.x_m, tmpl.y_m) - c));
+  const Eigen::Vector2d d =
+      (c0 + Eigen::Vector2d(scan.x_m, scan.y_m)) - c - (r * (c0 + Eigen::Vector2d(tmpl.x_m, tmpl.y_m) - c));
   return {d.x(), d.y(), theta};
 }
 
@@ -262,13 +263,13 @@ Status generate_sim_scans(const Config& config, const ModelDb& db, const std::ve
         config, part, count, first_seed, calibration_path, "generated " + part,
         [&](int index, std::uint64_t seed, std::vector<algo::ScanPoint>&& points) -> Status {
           const std::string rel = part + "/s" + std::to_string(seed) + ".ply";
-          if (auto written = write_file_atomic(dir + "/" + rel, algo::write_ply_binary(points)); !written) return written;
+          if (auto written = write_file_atomic(dir + "/" + rel, algo::write_ply_binary(points)); !written)
+            return written;
           if (template_pose) {
             const algo::PlanarPose p =
                 relative_pose(cell->random_pass(part, seed)->pose, *template_pose, c0.head<2>(), centroid);
             char line[256];
-            std::snprintf(line, sizeof line, "%s,%.9f,%.9f,%.9f\n", rel.c_str(), p.x_m, p.y_m,
-                          p.theta_rad * kRadToDeg);
+            std::snprintf(line, sizeof line, "%s,%.9f,%.9f,%.9f\n", rel.c_str(), p.x_m, p.y_m, p.theta_rad * kRadToDeg);
             lines[static_cast<std::size_t>(index)] = line;
           }
           return {};
@@ -320,8 +321,8 @@ int run_classify(const std::vector<std::string>& words, const Config& config, co
       std::printf("%s\n", decision_json(path, d, name, class_names(**recogniser)).c_str());
     } else {
       std::printf("%s: %s (%s, p %.3f, PM error %.3g", path.c_str(),
-                  d.class_index >= 0 ? std::string(name).c_str() : "unknown", std::string(algo::to_string(d.source)).c_str(),
-                  d.probability, d.pm_error);
+                  d.class_index >= 0 ? std::string(name).c_str() : "unknown",
+                  std::string(algo::to_string(d.source)).c_str(), d.probability, d.pm_error);
       if (d.pose_valid) {
         std::printf(", pose x %.2f mm y %.2f mm theta %.3f deg", d.pose.x_m * 1e3, d.pose.y_m * 1e3,
                     d.pose.theta_rad * kRadToDeg);

@@ -8,7 +8,8 @@
 
 namespace cellsight::app {
 
-[[nodiscard]] int run_classify(const std::vector<std::string>& args, const Config& config, const std::string& models_dir);
+[[nodiscard]] int run_classify(const std::vector<std::string>& args, const Config& config,
+                               const std::string& models_dir);
 [[nodiscard]] int run_eval(const std::vector<std::string>& args, const Config& config, const std::string& models_dir);
 
 }  // namespace cellsight::app

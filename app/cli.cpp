@@ -11,16 +11,16 @@
 #include <string>
 #include <vector>
 
-#include "app/config.hpp"
 #include "app/calibrate_mode.hpp"
 #include "app/classify_mode.hpp"
+#include "app/config.hpp"
+#include "app/mode_args.hpp"
 #include "app/perturb_mode.hpp"
 #include "app/run_mode.hpp"
+#include "app/scan_mode.hpp"
+#include "app/sim_mode.hpp"
 #include "app/teach_mode.hpp"
 #include "app/train_mode.hpp"
-#include "app/scan_mode.hpp"
-#include "app/mode_args.hpp"
-#include "app/sim_mode.hpp"
 #include "drivers/log.hpp"
 #include "drivers/sim/random_catalogue.hpp"
 
@@ -69,8 +69,9 @@ constexpr const char* kUsageGlobals =
     "exit codes: 0 done, 1 failed while running, 2 bad input (arguments, configuration, data)\n";
 
 // Options that take a value; everything else starting with "--" is a flag.
-const std::set<std::string> kValueOptions = {"--config", "--log-level", "--models", "--part", "--seed", "--pose",
-                                             "--out", "--calibration", "--random-catalogue"};
+const std::set<std::string> kValueOptions = {"--config", "--log-level",   "--models",
+                                             "--part",   "--seed",        "--pose",
+                                             "--out",    "--calibration", "--random-catalogue"};
 
 struct Args {
   std::string mode;
@@ -153,7 +154,8 @@ int run_random_catalogue(const Args& args, const Config& config) {
   const std::string& count_text = args.values.at("--random-catalogue");
   if (!parse_whole(count_text, sim::kRandomCatalogueMinParts, sim::kRandomCatalogueMaxParts, count)) {
     return usage_error("--random-catalogue '" + count_text + "': expected a whole number of parts from " +
-                       std::to_string(sim::kRandomCatalogueMinParts) + " to " + std::to_string(sim::kRandomCatalogueMaxParts));
+                       std::to_string(sim::kRandomCatalogueMinParts) + " to " +
+                       std::to_string(sim::kRandomCatalogueMaxParts));
   }
   std::uint64_t seed = 1;
   if (const auto s = args.values.find("--seed"); s != args.values.end() && !parse_seed(s->second, seed)) {
@@ -188,7 +190,9 @@ int run_sim(const Args& args, const Config& config) {
     }
     for (const auto& p : parts) {
       if (roles) {
-        const char* role = p.role == sim::PartRole::kTaught ? "taught" : p.role == sim::PartRole::kUntaught ? "untaught" : "-";
+        const char* role = p.role == sim::PartRole::kTaught     ? "taught"
+                           : p.role == sim::PartRole::kUntaught ? "untaught"
+                                                                : "-";
         std::printf("%-20s %9.0f %9.0f  %-8s %-20s %s\n", p.name.c_str(), p.width_mm, p.height_mm, role,
                     p.family.empty() ? "-" : p.family.c_str(), p.description.c_str());
       } else {
@@ -217,7 +221,8 @@ int run_sim(const Args& args, const Config& config) {
 
 int run_scan_mode(const Args& args, const Config& config) {
   std::string error;
-  if (!check_known(args, {"--part", "--seed", "--pose", "--out", "--calibration"}, {"--sim", "--empty", "--ascii"}, error)) {
+  if (!check_known(args, {"--part", "--seed", "--pose", "--out", "--calibration"}, {"--sim", "--empty", "--ascii"},
+                   error)) {
     return usage_error(error);
   }
   ScanOptions options;
@@ -230,7 +235,8 @@ int run_scan_mode(const Args& args, const Config& config) {
   if (const auto c = args.values.find("--calibration"); c != args.values.end()) options.calibration_path = c->second;
   if (options.sim && !options.empty_carrier) {
     const auto part = args.values.find("--part");
-    if (part == args.values.end()) return usage_error("scan --sim needs --part NAME or --empty (see 'cellsight sim --list')");
+    if (part == args.values.end())
+      return usage_error("scan --sim needs --part NAME or --empty (see 'cellsight sim --list')");
     options.part = part->second;
   }
   if (!options.sim && (args.values.count("--part") != 0 || options.empty_carrier)) {
@@ -327,11 +333,13 @@ int run_cli(int argc, char** argv) {
     }
     if (const auto level = globals.values.find("--log-level"); level != globals.values.end()) {
       log::Level parsed{};
-      if (!log::parse_level(level->second.c_str(), parsed)) return usage_error("--log-level '" + level->second + "': expected debug|info|warn|error|off");
+      if (!log::parse_level(level->second.c_str(), parsed))
+        return usage_error("--log-level '" + level->second + "': expected debug|info|warn|error|off");
       log::set_level(parsed);
     }
     const std::vector<std::string> rest(argv + i + 1, argv + argc);
-    if (!rest.empty() && rest.front() == "support") return run_calibrate_support({rest.begin() + 1, rest.end()}, *config);
+    if (!rest.empty() && rest.front() == "support")
+      return run_calibrate_support({rest.begin() + 1, rest.end()}, *config);
     return run_calibrate(rest, *config);
   }
   if (!parse_args(argc, argv, args, error)) return usage_error(error);
@@ -351,7 +359,8 @@ int run_cli(int argc, char** argv) {
   std::string level_text = config->log_level;
   if (const auto level = args.values.find("--log-level"); level != args.values.end()) level_text = level->second;
   log::Level level{};
-  if (!log::parse_level(level_text.c_str(), level)) return usage_error("--log-level '" + level_text + "': expected debug|info|warn|error|off");
+  if (!log::parse_level(level_text.c_str(), level))
+    return usage_error("--log-level '" + level_text + "': expected debug|info|warn|error|off");
   log::set_level(level);
   CS_LOG_DEBUG("config", "using %s", config->source.c_str());
 

@@ -135,7 +135,8 @@ void read_camera_section(YamlSection c, Config& cfg) {
 void read_exposure_section(YamlSection e, Config& cfg) {
   e.number("width_min_px", cfg.exposure.width_min_px, 0.5, 100.0, "px");
   e.number("width_max_px", cfg.exposure.width_max_px, 0.5, 100.0, "px");
-  if (cfg.exposure.width_min_px >= cfg.exposure.width_max_px) e.error("width_min_px", "must be below exposure.width_max_px");
+  if (cfg.exposure.width_min_px >= cfg.exposure.width_max_px)
+    e.error("width_min_px", "must be below exposure.width_max_px");
   e.number("max_step_ratio", cfg.exposure.max_step_ratio, 1.01, 10.0, "");
   e.finish();
 }
@@ -304,7 +305,8 @@ Expected<Config> config_from_yaml(const YAML::Node& doc, const std::string& path
   root.finish();
   if (!errors.empty()) return make_error(errors.joined());
   const fs::path catalogue(cfg.catalogue_path);
-  if (catalogue.is_relative()) cfg.catalogue_path = (fs::path(path).parent_path() / catalogue).lexically_normal().string();
+  if (catalogue.is_relative())
+    cfg.catalogue_path = (fs::path(path).parent_path() / catalogue).lexically_normal().string();
   return cfg;
 }
 

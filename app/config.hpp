@@ -26,9 +26,9 @@ struct CameraConfig {
   double exposure_us = 1500.0;  // start value; the exposure loop moves it inside the limits
   double exposure_min_us = 20.0;
   double exposure_max_us = 20000.0;
-  bool external_trigger = false;      // v4l2: the camera waits for the trigger line (driver-private control)
+  bool external_trigger = false;        // v4l2: the camera waits for the trigger line (driver-private control)
   std::int64_t trigger_control_id = 0;  // 0: the first control whose name contains "trigger"
-  int trigger_control_value = 1;      // value of that control that selects external trigger
+  int trigger_control_value = 1;        // value of that control that selects external trigger
 };
 
 struct ExposureConfig {

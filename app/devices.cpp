@@ -40,10 +40,12 @@ Expected<Devices> make_devices(const Config& config, sim::SimLine* line, bool fo
   Devices d;
   const bool sim_camera = force_sim || config.camera.backend == "sim";
   const bool sim_gpio = force_sim || config.gpio.backend == "sim";
-  if ((sim_camera || sim_gpio) && line == nullptr) return make_error("the simulated cell is not set up (internal error)");
+  if ((sim_camera || sim_gpio) && line == nullptr)
+    return make_error("the simulated cell is not set up (internal error)");
   auto seams = std::make_shared<RealSeams>();
   if (sim_camera) {
-    d.camera = std::make_unique<sim::SimCamera>(*line, config.camera.buffers, static_cast<std::int32_t>(config.camera.exposure_us));
+    d.camera = std::make_unique<sim::SimCamera>(*line, config.camera.buffers,
+                                                static_cast<std::int32_t>(config.camera.exposure_us));
   } else {
     drivers::V4L2CameraConfig c;
     c.device = config.camera.device;

@@ -1,4 +1,6 @@
 // cellsight executable entry point.
 #include "app/cli.hpp"
 
-int main(int argc, char** argv) { return cellsight::app::run_cli(argc, argv); }
+int main(int argc, char** argv) {
+  return cellsight::app::run_cli(argc, argv);
+}

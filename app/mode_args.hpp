@@ -26,8 +26,10 @@ struct ModeArgs {
 
 // `value_options` take the next word; `flag_options` stand alone; anything else starting with "--" is an error,
 // as is a missing value. Words not starting with "--" are positional.
-[[nodiscard]] inline bool parse_mode_args(const std::vector<std::string>& words, const std::set<std::string>& value_options,
-                                          const std::set<std::string>& flag_options, ModeArgs& out, std::string& error) {
+[[nodiscard]] inline bool parse_mode_args(const std::vector<std::string>& words,
+                                          const std::set<std::string>& value_options,
+                                          const std::set<std::string>& flag_options, ModeArgs& out,
+                                          std::string& error) {
   for (std::size_t i = 0; i < words.size(); ++i) {
     const std::string& w = words[i];
     if (w.rfind("--", 0) == 0) {

@@ -128,8 +128,7 @@ std::string ModelDb::svm_stale_reason() const {
            ", this cellsight computes version " + std::to_string(algo::kFeatureVersion) + ": run 'cellsight train'";
   }
   if (manifest_.svm.parts_fingerprint != parts_fingerprint()) {
-    return "parts or scans changed since the last training (" + manifest_.svm.trained_at +
-           "): run 'cellsight train'";
+    return "parts or scans changed since the last training (" + manifest_.svm.trained_at + "): run 'cellsight train'";
   }
   for (const PartEntry& p : manifest_.parts) {
     if (!p.thresholds.learnt) return "part '" + p.name + "' has no learnt thresholds: run 'cellsight train'";
@@ -158,8 +157,9 @@ Status ModelDb::delete_part(std::string_view name) {
   std::filesystem::remove(path_of(removed.template_file), ec);
   for (const ScanEntry& s : removed.scans) std::filesystem::remove(path_of(s.file), ec);
   std::filesystem::remove(path_of("scans/" + removed.name), ec);
-  if (ec) return make_error("part '" + removed.name + "' removed from the manifest; some of its files remain: " +
-                            ec.message());
+  if (ec)
+    return make_error("part '" + removed.name +
+                      "' removed from the manifest; some of its files remain: " + ec.message());
   return {};
 }
 

@@ -29,8 +29,8 @@ struct PassPerturbation {
 // The --perturb SPEC option of a mode (nullopt when absent or "none"), with the carrier plane from the calibration
 // file and the carrier band from the configuration.
 [[nodiscard]] Expected<std::optional<PassPerturbation>> perturbation_option(const ModeArgs& args, const Config& config,
-                                                                          const std::string& calibration_path,
-                                                                          std::uint64_t purpose);
+                                                                            const std::string& calibration_path,
+                                                                            std::uint64_t purpose);
 
 // `cellsight perturb --kind SPEC [--seed S] [--calibration FILE] IN.ply OUT.ply`
 [[nodiscard]] int run_perturb(const std::vector<std::string>& args, const Config& config);

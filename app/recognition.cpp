@@ -136,9 +136,13 @@ PrepareReport ScanPreparer::describe_part(PrepareReport r) {
   return r;
 }
 
-algo::PerfectMatchParams perfect_match_params(const Config& config) { return config.pm; }
+algo::PerfectMatchParams perfect_match_params(const Config& config) {
+  return config.pm;
+}
 
-algo::CascadeParams cascade_params(const Config& config) { return config.cascade; }
+algo::CascadeParams cascade_params(const Config& config) {
+  return config.cascade;
+}
 
 LoadedTemplates open_templates(const Config& config, const ModelDb& db) {
   LoadedTemplates out;
@@ -150,9 +154,9 @@ LoadedTemplates open_templates(const Config& config, const ModelDb& db) {
     algo::TemplateModel model;
     model.class_index = static_cast<int>(c);
     model.part_id = p.id;
-    model.thresholds = {p.thresholds.max_error,         p.thresholds.max_missing_area_m2, p.thresholds.max_extra_area_m2,
-                        p.thresholds.max_uncovered,     p.thresholds.max_outliers,        p.thresholds.size_centre_x_m,
-                        p.thresholds.size_centre_y_m,   p.thresholds.max_size_dev_m};
+    model.thresholds = {p.thresholds.max_error,       p.thresholds.max_missing_area_m2, p.thresholds.max_extra_area_m2,
+                        p.thresholds.max_uncovered,   p.thresholds.max_outliers,        p.thresholds.size_centre_x_m,
+                        p.thresholds.size_centre_y_m, p.thresholds.max_size_dev_m};
     auto file = TemplateFile::open(db.path_of(p.template_file), grid);
     if (!file) {
       out.problems.push_back("part '" + p.name + "' disabled: " + file.error().message);
@@ -186,8 +190,9 @@ Expected<algo::SvmModel> load_svm(const ModelDb& db) {
   auto blob = base::read_file(svm_path, kMaxSvmModelBytes);
   if (!blob) return blob.error();
   if (base::crc32(*blob) != m.svm.crc32) {
-    return make_error(svm_path + ": checksum differs from the manifest: the model was changed or damaged; run "
-                                 "'cellsight train' again");
+    return make_error(svm_path +
+                      ": checksum differs from the manifest: the model was changed or damaged; run "
+                      "'cellsight train' again");
   }
   auto svm = algo::SvmModel::deserialize(*blob);
   if (!svm) return make_error(svm_path + ": " + svm.error().message + "; run 'cellsight train' again");
@@ -227,7 +232,8 @@ class ModelRecogniser final : public Recogniser {
   ModelRecogniser(const Config& config, const algo::Plane& support, LoadedModels models, RecogniserMode mode)
       : preparer_(config, support, scan_builder_params_max_points(config)),
         models_(std::move(models)),
-        cascade_(mode_params(config, mode, models_.class_names.size()), perfect_match_params(config), grid_spec(config)),
+        cascade_(mode_params(config, mode, models_.class_names.size()), perfect_match_params(config),
+                 grid_spec(config)),
         mode_(mode) {}
 
   algo::Decision recognise(std::span<const algo::ScanPoint> points,
@@ -241,8 +247,9 @@ class ModelRecogniser final : public Recogniser {
     const PrepareReport r = preparer_.prepare(points);
     d.features_ms = ms_since(t0);
     if (r.status != PrepareStatus::kOk) {
-      d.source = r.status == PrepareStatus::kNoPart || r.status == PrepareStatus::kEmpty ? algo::DecisionSource::kNoPart
-                                                                                         : algo::DecisionSource::kBadScan;
+      d.source = r.status == PrepareStatus::kNoPart || r.status == PrepareStatus::kEmpty
+                     ? algo::DecisionSource::kNoPart
+                     : algo::DecisionSource::kBadScan;
       d.total_ms = ms_since(t0);
       return d;
     }
@@ -283,7 +290,8 @@ class ModelRecogniser final : public Recogniser {
                              std::chrono::steady_clock::time_point deadline) {
     if (preparer_.prepare(points, true).status != PrepareStatus::kOk) return first;
     const std::span<const algo::ClassProbability> probabilities = models_.svm.predict(preparer_.features());
-    const algo::Decision d = cascade_.decide(probabilities, models_.templates.models, preparer_.part_points(), deadline);
+    const algo::Decision d =
+        cascade_.decide(probabilities, models_.templates.models, preparer_.part_points(), deadline);
     return d.class_index >= 0 ? d : first;
   }
 
@@ -314,7 +322,8 @@ class ModelRecogniser final : public Recogniser {
 Expected<std::unique_ptr<Recogniser>> make_recogniser(const Config& config, const std::string& models_dir,
                                                       const std::string& calibration_path, RecogniserMode mode) {
   auto record = load_calibration(calibration_path);
-  if (!record) return make_error(record.error().message + "\n(run scripts/calibrate.sh, or cellsight calibrate, first)");
+  if (!record)
+    return make_error(record.error().message + "\n(run scripts/calibrate.sh, or cellsight calibrate, first)");
   if (!record->has_support) {
     return make_error(calibration_path + ": no support section: run 'cellsight calibrate support' first");
   }
@@ -323,7 +332,8 @@ Expected<std::unique_ptr<Recogniser>> make_recogniser(const Config& config, cons
   auto models = load_models(config, *db);
   if (!models) return models.error();
   for (const std::string& p : models->templates.problems) CS_LOG_ERROR("models", "%s", p.c_str());
-  return std::unique_ptr<Recogniser>(std::make_unique<ModelRecogniser>(config, record->support, std::move(*models), mode));
+  return std::unique_ptr<Recogniser>(
+      std::make_unique<ModelRecogniser>(config, record->support, std::move(*models), mode));
 }
 
 }  // namespace cellsight::app

@@ -32,10 +32,10 @@ namespace cellsight::app {
 // What became of one scan on its way to the features.
 enum class PrepareStatus : std::uint8_t {
   kOk,
-  kEmpty,        // no point at all
-  kNoPart,       // nothing left in front of the carrier
-  kOutsideGrid,  // too much of the part lies outside the grid (it would be cut off)
-  kTooFewPoints, // a few stray points, not a part
+  kEmpty,         // no point at all
+  kNoPart,        // nothing left in front of the carrier
+  kOutsideGrid,   // too much of the part lies outside the grid (it would be cut off)
+  kTooFewPoints,  // a few stray points, not a part
 };
 [[nodiscard]] std::string_view to_string(PrepareStatus status);
 
@@ -45,7 +45,7 @@ struct PrepareReport {
   std::size_t stray_points = 0;  // not connected to the part (a neighbour's part at the field's edge, clutter)
   int stray_pieces = 0;
   int edge_pieces = 0;  // of stray_pieces: large ones dropped for reaching the field's edge (a neighbour's part?)
-  std::size_t hanger_points = 0;  // the chain or hook above the part, cut off where it meets the part
+  std::size_t hanger_points = 0;               // the chain or hook above the part, cut off where it meets the part
   [[nodiscard]] std::string describe() const;  // "12345 points, 2345 carrier, 0 outside the grid"
 };
 
@@ -67,9 +67,7 @@ class ScanPreparer {
   // canonical_points() are the same points in the part's own frame (algo/canonical), what the grid, the depth
   // image and the features see.
   [[nodiscard]] std::span<const algo::ScanPoint> part_points() const { return part_.points(); }
-  [[nodiscard]] std::span<const algo::ScanPoint> canonical_points() const {
-    return {canonical_.data(), part_.size()};
-  }
+  [[nodiscard]] std::span<const algo::ScanPoint> canonical_points() const { return {canonical_.data(), part_.size()}; }
   [[nodiscard]] const algo::CanonicalPose& canonical_pose() const { return canonical_pose_; }
   [[nodiscard]] const algo::FeatureVector& features() const { return features_; }
   [[nodiscard]] const algo::OccupancyGrid& grid() const { return grid_; }
@@ -130,7 +128,7 @@ enum class RecogniserMode : std::uint8_t {
 // Opens the model database at `models_dir` (manifest, SVM model, templates, calibration's support plane) and builds
 // the recogniser. A missing, stale or corrupt database is a clear error that says what to run.
 [[nodiscard]] Expected<std::unique_ptr<Recogniser>> make_recogniser(const Config& config, const std::string& models_dir,
-                                                                   const std::string& calibration_path,
-                                                                   RecogniserMode mode = RecogniserMode::kCascade);
+                                                                    const std::string& calibration_path,
+                                                                    RecogniserMode mode = RecogniserMode::kCascade);
 
 }  // namespace cellsight::app

@@ -33,8 +33,8 @@ algo::ScanBuilderParams scan_builder_params(const Config& config) {
   p.exposure.exposure_max_us = static_cast<std::int32_t>(config.camera.exposure_max_us);
   p.carrier_start_offset_m = config.rig.carrier.start_offset_m;
   // Room for two stripes in every row of every frame of a pass, plus margin.
-  const double frames = config.rig.carrier.length_m * 1e3 * config.rig.conveyor.counts_per_mm /
-                        config.rig.conveyor.trigger_every_counts;
+  const double frames =
+      config.rig.carrier.length_m * 1e3 * config.rig.conveyor.counts_per_mm / config.rig.conveyor.trigger_every_counts;
   p.max_points = static_cast<std::size_t>((frames + 16.0) * config.rig.camera.intrinsics.height_px * 2.0);
   return p;
 }
@@ -125,7 +125,8 @@ int run_calibrate_support(const std::vector<std::string>& args, const Config& co
     } else if (a == "--config" || a == "--log-level") {
       ++i;  // handled by the front end
     } else {
-      return fail("unexpected '" + a + "' (usage: calibrate support (--scan EMPTY.ply | --sim [--seed S]) [--calibration FILE])");
+      return fail("unexpected '" + a +
+                  "' (usage: calibrate support (--scan EMPTY.ply | --sim [--seed S]) [--calibration FILE])");
     }
   }
   if (options.sim == !scan_path.empty()) return fail("give either --scan EMPTY.ply (an empty-carrier scan) or --sim");

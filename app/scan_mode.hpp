@@ -3,16 +3,15 @@
 
 #include <cstdint>
 #include <functional>
+#include <optional>
 #include <string>
 #include <vector>
-#include <optional>
-
-#include "drivers/sim/sim_cell.hpp"
 
 #include "algo/result.hpp"
 #include "algo/scan.hpp"
 #include "algo/scan_builder.hpp"
 #include "app/config.hpp"
+#include "drivers/sim/sim_cell.hpp"
 
 namespace cellsight::app {
 
@@ -21,7 +20,7 @@ namespace cellsight::app {
 
 struct ScanOptions {
   bool sim = false;
-  std::string part;                   // --sim: which catalogue part passes
+  std::string part;  // --sim: which catalogue part passes
   std::uint64_t seed = 1;
   std::optional<sim::PartPose> pose;  // --sim: overrides the seeded pose
   bool empty_carrier = false;         // --sim --empty: the carrier alone (support calibration)

@@ -35,7 +35,8 @@ Expected<sim::PartPose> parse_pose(const std::string& text) {
     char* end = nullptr;
     const double v = std::strtod(item.c_str(), &end);
     if (item.empty() || end == item.c_str() || *end != '\0' || !std::isfinite(v)) {
-      return make_error("--pose '" + text + "': '" + item + "' is not a number; expected x_m,y_m,theta_deg[,swing_deg]");
+      return make_error("--pose '" + text + "': '" + item +
+                        "' is not a number; expected x_m,y_m,theta_deg[,swing_deg]");
     }
     values.push_back(v);
   }
@@ -65,7 +66,8 @@ Expected<sim::SimCell> make_sim_cell(const Config& config) {
 
 Status check_catalogue_fits_grid(const Config& config, const std::vector<sim::PartSpec>& parts) {
   const Eigen::Vector3d lo = config.grid.origin_m;
-  const Eigen::Vector3d hi = lo + config.grid.resolution_m * Eigen::Vector3d(config.grid.nx, config.grid.ny, config.grid.nz);
+  const Eigen::Vector3d hi =
+      lo + config.grid.resolution_m * Eigen::Vector3d(config.grid.nx, config.grid.ny, config.grid.nz);
   const double xy = config.sim.pose_xy_range_m;
   const double theta = config.sim.pose_theta_range_deg / kRadToDeg;
   const double swing = config.sim.swing_range_deg / kRadToDeg;
@@ -96,13 +98,14 @@ Status write_random_catalogue(const Config& config, int count, std::uint64_t see
     return make_error("the generated catalogue does not fit this configuration's grid: " + ok.error().message);
   }
   std::ostringstream header;
-  header << "Random part catalogue of the simulated cell (nobody tuned recognition for these parts).\n"
-         << "generator: cellsight sim --random-catalogue " << count << " --seed " << seed
-         << " (drivers/sim/random_catalogue.cpp); the same N and seed give this file byte for byte.\n"
-         << "N: " << count << ", seed: " << seed << "\n"
-         << "Keys as in config/parts.yaml; family is shared by near twins, role says whether an evaluation teaches the\n"
-         << "part (taught) or keeps it back as one that must come out unknown (untaught).\n"
-         << "near-twin pairs:" << (catalogue.twins.empty() ? " none" : "") << "\n";
+  header
+      << "Random part catalogue of the simulated cell (nobody tuned recognition for these parts).\n"
+      << "generator: cellsight sim --random-catalogue " << count << " --seed " << seed
+      << " (drivers/sim/random_catalogue.cpp); the same N and seed give this file byte for byte.\n"
+      << "N: " << count << ", seed: " << seed << "\n"
+      << "Keys as in config/parts.yaml; family is shared by near twins, role says whether an evaluation teaches the\n"
+      << "part (taught) or keeps it back as one that must come out unknown (untaught).\n"
+      << "near-twin pairs:" << (catalogue.twins.empty() ? " none" : "") << "\n";
   for (const auto& t : catalogue.twins) {
     header << "  " << catalogue.parts[t.base].name << " / " << catalogue.parts[t.twin].name << ": "
            << sim::twin_relation_text(t.relation)
@@ -126,7 +129,8 @@ std::string truth_yaml(const Config& config, const sim::SimCell& cell, const std
   const sim::PassSpec& pass = cell.pass();
   YAML::Emitter out;
   out.SetDoublePrecision(12);
-  out << YAML::Comment("Ground truth of one simulated pass (cellsight sim). Metres, degrees; carrier frame of DESIGN.md.");
+  out << YAML::Comment(
+      "Ground truth of one simulated pass (cellsight sim). Metres, degrees; carrier frame of DESIGN.md.");
   out << YAML::BeginMap;
   out << YAML::Key << "format_version" << YAML::Value << 1;
   out << YAML::Key << "part" << YAML::Value << pass.part;
@@ -186,8 +190,8 @@ std::string truth_yaml(const Config& config, const sim::SimCell& cell, const std
   out << YAML::Key << "trigger_every_counts" << YAML::Value << rig.params.conveyor.trigger_every_counts;
   out << YAML::EndMap;
   out << YAML::Key << "carrier_start_offset_m" << YAML::Value << rig.params.carrier.start_offset_m;
-  out << YAML::Key << "world_from_carrier"
-      << YAML::Value << "p_world = p_carrier + (travel_m - carrier_start_offset_m) * [1, 0, 0]";
+  out << YAML::Key << "world_from_carrier" << YAML::Value
+      << "p_world = p_carrier + (travel_m - carrier_start_offset_m) * [1, 0, 0]";
   out << YAML::EndMap;
 
   out << YAML::Key << "frames" << YAML::Value << YAML::BeginSeq;
@@ -223,7 +227,8 @@ Status write_sim_pass(const Config& config, sim::SimCell& cell, const SimOptions
 
   cv::Mat image;
   std::vector<double> exposures_us;
-  const std::vector<int> png_params = {cv::IMWRITE_PNG_COMPRESSION, kPngCompression, cv::IMWRITE_PNG_STRATEGY, cv::IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY};
+  const std::vector<int> png_params = {cv::IMWRITE_PNG_COMPRESSION, kPngCompression, cv::IMWRITE_PNG_STRATEGY,
+                                       cv::IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY};
   for (int i = 0; i < cell.frame_count(); ++i) {
     const double exposure_us = config.camera.exposure_us;  // fixed here; the exposure loop runs in `scan`
     cell.render_frame(i, exposure_us, image);
@@ -243,9 +248,9 @@ Status write_sim_pass(const Config& config, sim::SimCell& cell, const SimOptions
   }
   if (auto ok = staged->commit(); !ok) return ok.error();
   CS_LOG_INFO("sim", "part %s seed %llu: %d frames -> %s (pose x %.4f m, y %.4f m, theta %.3f deg, swing %.3f deg, %s)",
-              pass->part.c_str(), static_cast<unsigned long long>(pass->seed), cell.frame_count(), options.out_dir.c_str(),
-              pass->pose.x_m, pass->pose.y_m, pass->pose.theta_rad * kRadToDeg, pass->pose.swing_rad * kRadToDeg,
-              pass->coating_a.name.c_str());
+              pass->part.c_str(), static_cast<unsigned long long>(pass->seed), cell.frame_count(),
+              options.out_dir.c_str(), pass->pose.x_m, pass->pose.y_m, pass->pose.theta_rad * kRadToDeg,
+              pass->pose.swing_rad * kRadToDeg, pass->coating_a.name.c_str());
   return {};
 }
 

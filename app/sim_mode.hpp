@@ -33,9 +33,11 @@ struct SimOptions {
 
 // `sim --random-catalogue N --seed S --out FILE`: a generated catalogue (drivers/sim/random_catalogue.hpp), checked
 // against the configured grid, written atomically to a new file (an existing file is never replaced).
-[[nodiscard]] Status write_random_catalogue(const Config& config, int count, std::uint64_t seed, const std::string& out_path);
+[[nodiscard]] Status write_random_catalogue(const Config& config, int count, std::uint64_t seed,
+                                            const std::string& out_path);
 
 // The truth.yaml text of the current pass (deterministic: no wall-clock data).
-[[nodiscard]] std::string truth_yaml(const Config& config, const sim::SimCell& cell, const std::vector<double>& exposures_us);
+[[nodiscard]] std::string truth_yaml(const Config& config, const sim::SimCell& cell,
+                                     const std::vector<double>& exposures_us);
 
 }  // namespace cellsight::app

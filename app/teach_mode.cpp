@@ -53,13 +53,13 @@ Expected<std::vector<TaughtScan>> acquire_sim_scans(const Config& config, const 
                                                     std::uint64_t first_seed, const std::string& calibration_path,
                                                     const PassPerturbation* perturb) {
   std::vector<TaughtScan> scans(static_cast<std::size_t>(count));
-  auto ok = acquire_sim_passes(config, part, count, first_seed, calibration_path, "scanned",
-                               [&](int index, std::uint64_t seed, std::vector<algo::ScanPoint>&& points) -> Status {
-                                 scans[static_cast<std::size_t>(index)] = {std::move(points),
-                                                                           "sim seed " + std::to_string(seed)};
-                                 return {};
-                               },
-                               perturb);
+  auto ok = acquire_sim_passes(
+      config, part, count, first_seed, calibration_path, "scanned",
+      [&](int index, std::uint64_t seed, std::vector<algo::ScanPoint>&& points) -> Status {
+        scans[static_cast<std::size_t>(index)] = {std::move(points), "sim seed " + std::to_string(seed)};
+        return {};
+      },
+      perturb);
   if (!ok) return ok.error();
   return scans;
 }
@@ -216,7 +216,8 @@ Expected<TemplateChoice> choose_template(const Config& config, ScanPreparer& pre
   std::vector<std::size_t> order(scans.size());
   for (std::size_t i = 0; i < order.size(); ++i) order[i] = i;
   std::stable_sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) {
-    return std::abs(static_cast<double>(counts[a]) - median_count) < std::abs(static_cast<double>(counts[b]) - median_count);
+    return std::abs(static_cast<double>(counts[a]) - median_count) <
+           std::abs(static_cast<double>(counts[b]) - median_count);
   });
   const algo::CascadeParams cp = cascade_params(config);
   algo::Cascade cascade(cp, perfect_match_params(config), grid_spec(config));
@@ -262,10 +263,11 @@ Expected<TemplateChoice> choose_template(const Config& config, ScanPreparer& pre
     if (merged.added_points > 0) {
       auto model = build_template(merged.points, grid_spec(config));
       if (model) {
-        std::printf("template: completed from the other scans where at least half of them agree and it has none "
-                    "(%zu cells, %.0f mm2: glare, dropouts, shadows of that pass)\n",
-                    merged.added_cells, static_cast<double>(merged.added_cells) * config.grid.resolution_m *
-                                            config.grid.resolution_m * 1e6);
+        std::printf(
+            "template: completed from the other scans where at least half of them agree and it has none "
+            "(%zu cells, %.0f mm2: glare, dropouts, shadows of that pass)\n",
+            merged.added_cells,
+            static_cast<double>(merged.added_cells) * config.grid.resolution_m * config.grid.resolution_m * 1e6);
         best->model = std::move(*model);
         const algo::TemplateModel view = view_of(best->model);
         std::vector<double> others;
@@ -274,8 +276,7 @@ Expected<TemplateChoice> choose_template(const Config& config, ScanPreparer& pre
           best_evidence[j] = cascade.evaluate(view, preparer.part_points()).evidence_m2;
           if (j != best->index) others.push_back(best_evidence[j]);
         }
-        std::nth_element(others.begin(), others.begin() + static_cast<std::ptrdiff_t>(others.size() / 2),
-                         others.end());
+        std::nth_element(others.begin(), others.begin() + static_cast<std::ptrdiff_t>(others.size() / 2), others.end());
         best_median = others[others.size() / 2];
       }
     }
@@ -283,10 +284,11 @@ Expected<TemplateChoice> choose_template(const Config& config, ScanPreparer& pre
   const double disagree = std::max(kDisagreeFactor * best_median, cp.area_floor_m2);
   for (std::size_t j = 0; j < scans.size(); ++j) {
     if (j != best->index && best_evidence[j] > disagree) {
-      std::printf("warning: %s disagrees with the other taught scans (%.0f mm2 of evidence against the template, "
-                  "typical %.0f mm2): glare, a stray part or the wrong part? It is stored; training does not let it "
-                  "widen the acceptance thresholds\n",
-                  scans[j].source.c_str(), best_evidence[j] * 1e6, best_median * 1e6);
+      std::printf(
+          "warning: %s disagrees with the other taught scans (%.0f mm2 of evidence against the template, "
+          "typical %.0f mm2): glare, a stray part or the wrong part? It is stored; training does not let it "
+          "widen the acceptance thresholds\n",
+          scans[j].source.c_str(), best_evidence[j] * 1e6, best_median * 1e6);
     }
   }
   return std::move(*best);
@@ -314,10 +316,12 @@ void print_part(const ModelDb& db, const PartEntry& p, bool detail) {
     std::printf("  look-alikes  %s (verified with it)\n", list.c_str());
   }
   if (p.thresholds.learnt) {
-    std::printf("  accepts      PM error <= %.3g, missing <= %.0f mm2 (%.2f %% in all), extra <= %.0f mm2 (%.2f %% in all)\n",
-                p.thresholds.max_error, p.thresholds.max_missing_area_m2 * 1e6, p.thresholds.max_uncovered * 100.0,
-                p.thresholds.max_extra_area_m2 * 1e6, p.thresholds.max_outliers * 100.0);
-    std::printf("  size         width and height within %.1f mm of its own scans'\n", p.thresholds.max_size_dev_m * 1e3);
+    std::printf(
+        "  accepts      PM error <= %.3g, missing <= %.0f mm2 (%.2f %% in all), extra <= %.0f mm2 (%.2f %% in all)\n",
+        p.thresholds.max_error, p.thresholds.max_missing_area_m2 * 1e6, p.thresholds.max_uncovered * 100.0,
+        p.thresholds.max_extra_area_m2 * 1e6, p.thresholds.max_outliers * 100.0);
+    std::printf("  size         width and height within %.1f mm of its own scans'\n",
+                p.thresholds.max_size_dev_m * 1e3);
   }
   for (const ScanEntry& s : p.scans) {
     const bool flagged = std::find(p.flagged.begin(), p.flagged.end(), s.file) != p.flagged.end();
@@ -549,8 +553,8 @@ int run_parts(const std::vector<std::string>& words, const Config& config, const
     if (damaged > 0) {
       std::fflush(stdout);  // the listing before the summary line on stderr
       const std::string files = damaged == 1 ? " damaged file" : " damaged files";
-      return fail(kExitUsage, "parts list: " + std::to_string(damaged) + files + " in " + db->dir() +
-                                  " (marked DAMAGED above)");
+      return fail(kExitUsage,
+                  "parts list: " + std::to_string(damaged) + files + " in " + db->dir() + " (marked DAMAGED above)");
     }
     return kExitOk;
   }

@@ -30,7 +30,9 @@ namespace {
 
 std::atomic<bool> g_stop{false};  // set by SIGINT/SIGTERM while training: keep the best so far
 
-extern "C" void on_train_stop_signal(int /*signal*/) { g_stop.store(true); }
+extern "C" void on_train_stop_signal(int /*signal*/) {
+  g_stop.store(true);
+}
 
 // SIGINT/SIGTERM -> g_stop for the lifetime of the object; the previous handlers come back afterwards.
 class StopOnSignal {
@@ -55,12 +57,14 @@ class StopOnSignal {
   struct sigaction old_term_ {};
 };
 
-std::size_t max_scan_points(const Config& config) { return scan_builder_params(config).max_points; }
+std::size_t max_scan_points(const Config& config) {
+  return scan_builder_params(config).max_points;
+}
 
 // Seed of variant v of taught scan `scan`: reproducible for svm.seed, different for every scan and variant.
 std::uint64_t augment_seed(const Config& config, std::size_t scan, int variant) {
   return algo::stream_seed(algo::stream_seed(static_cast<std::uint64_t>(config.svm.seed), scan),
-                        static_cast<std::uint64_t>(variant));
+                           static_cast<std::uint64_t>(variant));
 }
 
 // What a thread of build_dataset keeps from one scan to the next (built on that thread, at its first scan).
@@ -87,7 +91,8 @@ struct MatchWorker {
 
 Expected<algo::Plane> load_support_plane(const std::string& calibration_path) {
   auto record = load_calibration(calibration_path);
-  if (!record) return make_error(record.error().message + "\n(run scripts/calibrate.sh, or cellsight calibrate, first)");
+  if (!record)
+    return make_error(record.error().message + "\n(run scripts/calibrate.sh, or cellsight calibrate, first)");
   if (!record->has_support) {
     return make_error(calibration_path +
                       ": no support section: scan the empty carrier and run 'cellsight calibrate support' first");
@@ -101,8 +106,9 @@ Expected<std::vector<algo::ScanPoint>> load_taught_scan(const ModelDb& db, const
   if (!bytes) return bytes.error();
   const std::uint32_t crc = base::crc32(*bytes);
   if (crc != scan.crc32) {
-    return make_error(path + ": checksum differs from the manifest: the scan was changed or damaged; delete the "
-                             "part ('cellsight parts delete') and teach it again");
+    return make_error(path +
+                      ": checksum differs from the manifest: the scan was changed or damaged; delete the "
+                      "part ('cellsight parts delete') and teach it again");
   }
   auto points = algo::parse_ply(*bytes);
   if (!points) return make_error(path + ": " + points.error().message);
@@ -142,8 +148,8 @@ Expected<TaughtData> build_dataset(const Config& config, const ModelDb& db, cons
         } else {
           const PrepareReport r = w.preparer.prepare(*points);
           if (r.status != PrepareStatus::kOk) {
-            error = db.path_of(jobs[i].scan->file) + ": " + std::string(to_string(r.status)) + " (" + r.describe() +
-                    ")";
+            error =
+                db.path_of(jobs[i].scan->file) + ": " + std::string(to_string(r.status)) + " (" + r.describe() + ")";
           } else {
             job_features[i].push_back(w.preparer.features());
             if (w.cascade) {

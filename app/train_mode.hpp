@@ -7,9 +7,9 @@
 #include <string>
 #include <vector>
 
+#include "algo/cascade.hpp"
 #include "algo/scan.hpp"
 #include "algo/sensor_model.hpp"
-#include "algo/cascade.hpp"
 #include "algo/training.hpp"
 #include "app/config.hpp"
 #include "app/model_db.hpp"

@@ -344,8 +344,9 @@ void append_comparison(std::string& s, const algo::TrainingReport& report) {
     s += "  classifier  test      CV        features  time\n";
     for (const algo::ClassifierReport* r : report_classifiers(report)) {
       s += string_printf("  %-10s  %-8s  %-8s  %8d  %s%s\n", classifier_display_name(r->classifier).c_str(),
-                         percent_text(r->test_accuracy).c_str(), percent_text(r->cv_accuracy).c_str(), active_feature_count(*r),
-                         human_duration(r->seconds).c_str(), r->stopped ? "  (stopped early)" : "");
+                         percent_text(r->test_accuracy).c_str(), percent_text(r->cv_accuracy).c_str(),
+                         active_feature_count(*r), human_duration(r->seconds).c_str(),
+                         r->stopped ? "  (stopped early)" : "");
     }
     s += "  parameters chosen by cross-validation:\n";
     for (const algo::ClassifierReport* r : report_classifiers(report)) {
@@ -479,7 +480,8 @@ Expected<std::string> write_training_report(const std::string& dir, const algo::
     if (!confusion) return confusion.error();
     if (Status s = put("confusion_" + stem + ".png", *confusion); !s) return s.error();
     const std::string curve_title = who + " feature selection by simulated annealing - best CV " +
-                                    percent_text(r->cv_accuracy) + string_printf(" with %d features", active_feature_count(*r));
+                                    percent_text(r->cv_accuracy) +
+                                    string_printf(" with %d features", active_feature_count(*r));
     auto curve = encode_png(render_annealing_image(*r, curve_title), "annealing_" + stem + ".png");
     if (!curve) return curve.error();
     if (Status s = put("annealing_" + stem + ".png", *curve); !s) return s.error();

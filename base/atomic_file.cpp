@@ -20,7 +20,9 @@ namespace fs = std::filesystem;
 constexpr std::string_view kTempSuffix = ".tmp-";
 constexpr std::size_t kTempRandomChars = 6;
 
-std::string errno_text() { return std::strerror(errno); }
+std::string errno_text() {
+  return std::strerror(errno);
+}
 
 Status fsync_path(const std::string& path, int flags) {
   const int fd = ::open(path.c_str(), flags | O_CLOEXEC);

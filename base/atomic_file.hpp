@@ -31,8 +31,8 @@ enum class Overwrite { kReplace, kRefuse };
 
 // Removes, below `dir`, the regular files (a link is never followed nor removed) for which `chosen(path relative to
 // dir)` is true. Only for a folder that no other process is writing into. Returns the paths removed.
-[[nodiscard]] std::vector<std::string> remove_files_below(const std::string& dir,
-                                                          const std::function<bool(const std::filesystem::path&)>& chosen);
+[[nodiscard]] std::vector<std::string> remove_files_below(
+    const std::string& dir, const std::function<bool(const std::filesystem::path&)>& chosen);
 
 // remove_files_below the files whose name is_atomic_temp_name: what a write killed before its rename left behind.
 [[nodiscard]] std::vector<std::string> remove_orphaned_temp_files(const std::string& dir);

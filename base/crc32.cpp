@@ -12,6 +12,8 @@ std::uint32_t crc32_update(std::uint32_t crc, const void* data, std::size_t byte
   return static_cast<std::uint32_t>(crc32_z(crc, static_cast<const Bytef*>(data), bytes));
 }
 
-std::uint32_t crc32(std::string_view bytes) { return crc32_update(kCrc32Empty, bytes.data(), bytes.size()); }
+std::uint32_t crc32(std::string_view bytes) {
+  return crc32_update(kCrc32Empty, bytes.data(), bytes.size());
+}
 
 }  // namespace cellsight::base

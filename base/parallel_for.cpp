@@ -8,7 +8,9 @@
 
 namespace cellsight::base {
 
-int hardware_threads() { return std::max(1, static_cast<int>(std::thread::hardware_concurrency())); }
+int hardware_threads() {
+  return std::max(1, static_cast<int>(std::thread::hardware_concurrency()));
+}
 
 bool parallel_for(int count, int threads, const std::function<bool(int index, int worker)>& task,
                   const std::atomic<bool>* stop) {

@@ -16,7 +16,7 @@ struct Error {
 template <class T>
 class [[nodiscard]] Expected {
  public:
-  Expected(T value) : v_(std::move(value)) {}  // NOLINT(google-explicit-constructor): value-or-error sugar
+  Expected(T value) : v_(std::move(value)) {}      // NOLINT(google-explicit-constructor): value-or-error sugar
   Expected(Error error) : v_(std::move(error)) {}  // NOLINT(google-explicit-constructor)
 
   [[nodiscard]] bool ok() const { return v_.index() == 0; }
@@ -50,6 +50,8 @@ class [[nodiscard]] Expected<void> {
 
 using Status = Expected<void>;
 
-inline Error make_error(std::string message) { return Error{std::move(message)}; }
+inline Error make_error(std::string message) {
+  return Error{std::move(message)};
+}
 
 }  // namespace cellsight

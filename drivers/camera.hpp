@@ -14,10 +14,10 @@ struct Frame {
   int width_px = 0;
   int height_px = 0;
   int stride_bytes = 0;
-  std::uint64_t sequence = 0;        // driver frame counter, +1 per delivered frame
-  std::int64_t timestamp_ns = 0;     // CLOCK_MONOTONIC (the simulated cell: simulated time)
-  std::int32_t exposure_us = 0;      // exposure this frame was taken with
-  std::int32_t buffer_index = -1;    // which pool buffer to hand back with release()
+  std::uint64_t sequence = 0;      // driver frame counter, +1 per delivered frame
+  std::int64_t timestamp_ns = 0;   // CLOCK_MONOTONIC (the simulated cell: simulated time)
+  std::int32_t exposure_us = 0;    // exposure this frame was taken with
+  std::int32_t buffer_index = -1;  // which pool buffer to hand back with release()
 };
 
 class Camera {

@@ -15,15 +15,22 @@ constexpr const char* kNames[] = {"DEBUG", "INFO", "WARN", "ERROR"};
 constexpr std::size_t kLineBytes = 1024;
 }  // namespace
 
-void set_level(Level level) { g_level.store(static_cast<int>(level), std::memory_order_relaxed); }
-Level level() { return static_cast<Level>(g_level.load(std::memory_order_relaxed)); }
+void set_level(Level level) {
+  g_level.store(static_cast<int>(level), std::memory_order_relaxed);
+}
+Level level() {
+  return static_cast<Level>(g_level.load(std::memory_order_relaxed));
+}
 
 bool parse_level(const char* text, Level& out) {
   static constexpr struct {
     const char* name;
     Level level;
-  } kTable[] = {{"debug", Level::kDebug}, {"info", Level::kInfo}, {"warn", Level::kWarn},
-                {"error", Level::kError}, {"off", Level::kOff}};
+  } kTable[] = {{"debug", Level::kDebug},
+                {"info", Level::kInfo},
+                {"warn", Level::kWarn},
+                {"error", Level::kError},
+                {"off", Level::kOff}};
   for (const auto& entry : kTable) {
     if (std::strcmp(text, entry.name) == 0) {
       out = entry.level;

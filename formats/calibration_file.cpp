@@ -43,9 +43,9 @@ std::string vec(const Eigen::Vector3d& v) {
 }
 
 void read_camera(YamlSection s, CalibrationRecord& r) {
-  for (const char* key : {"calibrated_at", "views", "width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2",
-                          "p1", "p2", "k3", "reprojection_rms_px", "reference_rms_px", "x_axis", "y_axis", "z_axis",
-                          "translation_m"}) {
+  for (const char* key :
+       {"calibrated_at", "views", "width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2",
+        "k3", "reprojection_rms_px", "reference_rms_px", "x_axis", "y_axis", "z_axis", "translation_m"}) {
     s.require(key);
   }
   auto& k = r.sensor.intrinsics;
@@ -74,7 +74,8 @@ void read_camera(YamlSection s, CalibrationRecord& r) {
     s.vec3(axes[i], axis, -1.0, 1.0, "");
     rot.row(i) = axis.transpose();
   }
-  if (!(rot * rot.transpose() - Eigen::Matrix3d::Identity()).isZero(kOrthonormalTolerance) || rot.determinant() <= 0.0) {
+  if (!(rot * rot.transpose() - Eigen::Matrix3d::Identity()).isZero(kOrthonormalTolerance) ||
+      rot.determinant() <= 0.0) {
     s.error("x_axis", "the camera axes are not a right-handed orthonormal set (x_axis, y_axis, z_axis)");
   }
   Eigen::Vector3d translation = Eigen::Vector3d::Zero();
@@ -157,7 +158,8 @@ std::string calibration_yaml(const CalibrationRecord& r) {
     t += "  translation_m: " + vec(pose.t_cam_world) + "   # cell -> camera: p_cam = R p_cell + translation\n";
     const Eigen::Vector3d centre = pose.centre_world();
     char note[128];
-    std::snprintf(note, sizeof note, "  # camera centre in the cell frame: [%.4f, %.4f, %.4f] m\n", centre.x(), centre.y(), centre.z());
+    std::snprintf(note, sizeof note, "  # camera centre in the cell frame: [%.4f, %.4f, %.4f] m\n", centre.x(),
+                  centre.y(), centre.z());
     t += note;
   }
   if (r.has_laser) {
@@ -198,7 +200,8 @@ Expected<CalibrationRecord> load_calibration(const std::string& path) {
     std::snprintf(buf, sizeof buf, ":%ld:1", static_cast<long>(lines) + 1);
     return make_error(path + buf + ": " + kChecksumKey +
                       ": missing: the file is truncated or was not written by cellsight; copy a backup "
-                      "(" + fs::path(path).filename().string() + ".*.bak) over it or calibrate again");
+                      "(" +
+                      fs::path(path).filename().string() + ".*.bak) over it or calibrate again");
   }
   auto doc = load_yaml_file(path);
   if (!doc) return doc.error();
@@ -211,8 +214,9 @@ Expected<CalibrationRecord> load_calibration(const std::string& path) {
   constexpr int kMaxVersion = 1000;
   root.integer("format_version", version, 1, kMaxVersion, "");
   if (version != kCalibrationFormatVersion) {
-    root.error("format_version", "version " + std::to_string(version) + " is not supported (this cellsight reads version " +
-                                     std::to_string(kCalibrationFormatVersion) + "): calibrate again with this version");
+    root.error("format_version",
+               "version " + std::to_string(version) + " is not supported (this cellsight reads version " +
+                   std::to_string(kCalibrationFormatVersion) + "): calibrate again with this version");
   }
   std::string stored_checksum;
   root.text(kChecksumKey, stored_checksum);
@@ -225,14 +229,17 @@ Expected<CalibrationRecord> load_calibration(const std::string& path) {
   if (record.has_camera) read_camera(root.section("camera"), record);
   if (record.has_laser) read_laser(root.section("laser"), record);
   if (record.has_conveyor) read_conveyor(root.section("conveyor"), record);
-  for (const char* key : {"camera", "laser", "conveyor", "support"}) (void)root.section(key);  // known keys, even when empty
+  for (const char* key : {"camera", "laser", "conveyor", "support"})
+    (void)root.section(key);  // known keys, even when empty
   root.finish();
 
   char expected[20];
   std::snprintf(expected, sizeof expected, "%016" PRIx64, fnv1a64(std::string_view(*bytes).substr(0, at)));
   if (errors.empty() && stored_checksum != expected) {
-    root.error(kChecksumKey, "does not match the content: the file was changed or damaged after cellsight wrote it; copy "
-                             "a backup (" + fs::path(path).filename().string() + ".*.bak) over it or calibrate again");
+    root.error(kChecksumKey,
+               "does not match the content: the file was changed or damaged after cellsight wrote it; copy "
+               "a backup (" +
+                   fs::path(path).filename().string() + ".*.bak) over it or calibrate again");
   }
   if (!errors.empty()) return make_error(errors.joined());
   return record;

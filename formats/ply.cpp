@@ -30,26 +30,68 @@ Type parse_type(std::string_view t) {
 
 std::size_t type_size(Type t) {
   switch (t) {
-    case Type::kInt8: case Type::kUint8: return 1;
-    case Type::kInt16: case Type::kUint16: return 2;
-    case Type::kInt32: case Type::kUint32: case Type::kFloat32: return 4;
-    case Type::kFloat64: return 8;
-    case Type::kInvalid: return 0;
+    case Type::kInt8:
+    case Type::kUint8:
+      return 1;
+    case Type::kInt16:
+    case Type::kUint16:
+      return 2;
+    case Type::kInt32:
+    case Type::kUint32:
+    case Type::kFloat32:
+      return 4;
+    case Type::kFloat64:
+      return 8;
+    case Type::kInvalid:
+      return 0;
   }
   return 0;
 }
 
 double read_binary(const char* p, Type t) {
   switch (t) {
-    case Type::kInt8: { std::int8_t v; std::memcpy(&v, p, 1); return v; }
-    case Type::kUint8: { std::uint8_t v; std::memcpy(&v, p, 1); return v; }
-    case Type::kInt16: { std::int16_t v; std::memcpy(&v, p, 2); return v; }
-    case Type::kUint16: { std::uint16_t v; std::memcpy(&v, p, 2); return v; }
-    case Type::kInt32: { std::int32_t v; std::memcpy(&v, p, 4); return v; }
-    case Type::kUint32: { std::uint32_t v; std::memcpy(&v, p, 4); return v; }
-    case Type::kFloat32: { float v; std::memcpy(&v, p, 4); return v; }
-    case Type::kFloat64: { double v; std::memcpy(&v, p, 8); return v; }
-    case Type::kInvalid: break;
+    case Type::kInt8: {
+      std::int8_t v;
+      std::memcpy(&v, p, 1);
+      return v;
+    }
+    case Type::kUint8: {
+      std::uint8_t v;
+      std::memcpy(&v, p, 1);
+      return v;
+    }
+    case Type::kInt16: {
+      std::int16_t v;
+      std::memcpy(&v, p, 2);
+      return v;
+    }
+    case Type::kUint16: {
+      std::uint16_t v;
+      std::memcpy(&v, p, 2);
+      return v;
+    }
+    case Type::kInt32: {
+      std::int32_t v;
+      std::memcpy(&v, p, 4);
+      return v;
+    }
+    case Type::kUint32: {
+      std::uint32_t v;
+      std::memcpy(&v, p, 4);
+      return v;
+    }
+    case Type::kFloat32: {
+      float v;
+      std::memcpy(&v, p, 4);
+      return v;
+    }
+    case Type::kFloat64: {
+      double v;
+      std::memcpy(&v, p, 8);
+      return v;
+    }
+    case Type::kInvalid:
+      break;
   }
   return 0.0;
 }
@@ -79,7 +121,9 @@ std::vector<std::string_view> split_words(std::string_view line) {
   return words;
 }
 
-Error fail(const std::string& what) { return make_error("PLY: " + what); }
+Error fail(const std::string& what) {
+  return make_error("PLY: " + what);
+}
 
 // Cursor over ASCII data: whitespace-separated numbers.
 struct AsciiCursor {
@@ -125,7 +169,8 @@ Status parse_header_line(const std::vector<std::string_view>& words, const std::
     Element e;
     e.name = std::string(words[1]);
     const auto [ptr, ec] = std::from_chars(words[2].data(), words[2].data() + words[2].size(), e.count);
-    if (ec != std::errc() || ptr != words[2].data() + words[2].size()) return fail(where + "element count is not a number");
+    if (ec != std::errc() || ptr != words[2].data() + words[2].size())
+      return fail(where + "element count is not a number");
     elements.push_back(std::move(e));
   } else if (words[0] == "property") {
     if (elements.empty()) return fail(where + "property before any element");
@@ -324,7 +369,8 @@ Expected<std::vector<ScanPoint>> parse_ply(std::string_view bytes, const PlyLimi
           continue;
         }
         const std::size_t size = type_size(p.type);
-        if (pos + size > data.size()) return fail("data truncated at vertex " + std::to_string(r) + " of " + std::to_string(vertex->count));
+        if (pos + size > data.size())
+          return fail("data truncated at vertex " + std::to_string(r) + " of " + std::to_string(vertex->count));
         values[i] = read_binary(data.data() + pos, p.type);
         pos += size;
       }
@@ -375,7 +421,8 @@ namespace {
 std::string header(std::size_t count, const char* format) {
   std::ostringstream h;
   h << "ply\nformat " << format << " 1.0\ncomment cellsight scan, carrier frame, metres\nelement vertex " << count
-    << "\nproperty float x\nproperty float y\nproperty float z\nproperty ushort frame\nproperty ushort row\nend_header\n";
+    << "\nproperty float x\nproperty float y\nproperty float z\nproperty ushort frame\nproperty ushort "
+       "row\nend_header\n";
   return h.str();
 }
 }  // namespace

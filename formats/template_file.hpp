@@ -29,7 +29,7 @@ inline constexpr std::uint32_t kTemplateFormatVersion = 1;
 inline constexpr std::size_t kTemplateHeaderBytes = 256;
 inline constexpr std::size_t kTemplateSectionAlignment = 4096;
 inline constexpr std::size_t kTemplatePartNameCapacity = 64;  // bytes in the header, NUL included
-inline constexpr std::size_t kTemplateBodyCrcOffset = 172;     // of the body CRC (uint32) in the header
+inline constexpr std::size_t kTemplateBodyCrcOffset = 172;    // of the body CRC (uint32) in the header
 
 struct TemplateBuildParams {
   // Sobel averaged over z (thesis eq. 2.47-2.53) by default: per algo/distance_map.hpp it is 20-35 % closer to the

@@ -109,12 +109,15 @@ std::string YamlErrors::joined() const {
 YamlSection::YamlSection(YAML::Node node, std::string path, YamlErrors* errors)
     : node_(std::move(node)), path_(std::move(path)), errors_(errors) {
   if (node_.IsDefined() && !node_.IsNull() && !node_.IsMap()) {
-    errors_->add(node_.Mark(), path_.empty() ? "(top level)" : path_, "expected a mapping of keys, found " + scalar_text(node_));
+    errors_->add(node_.Mark(), path_.empty() ? "(top level)" : path_,
+                 "expected a mapping of keys, found " + scalar_text(node_));
     node_ = YAML::Node(YAML::NodeType::Map);
   }
 }
 
-std::string YamlSection::key_path(const char* key) const { return path_.empty() ? key : path_ + "." + key; }
+std::string YamlSection::key_path(const char* key) const {
+  return path_.empty() ? key : path_ + "." + key;
+}
 
 bool YamlSection::has(const char* key) const {
   if (!node_.IsMap()) return false;
@@ -209,7 +212,8 @@ void YamlSection::vec3(const char* key, Eigen::Vector3d& value, double min, doub
   if (!get(key, n)) return;
   Eigen::Vector3d v;
   bool ok = n.IsSequence() && n.size() == 3;
-  for (std::size_t i = 0; ok && i < 3; ++i) ok = parse_double(n[i], v[static_cast<int>(i)]) && v[static_cast<int>(i)] >= min && v[static_cast<int>(i)] <= max;
+  for (std::size_t i = 0; ok && i < 3; ++i)
+    ok = parse_double(n[i], v[static_cast<int>(i)]) && v[static_cast<int>(i)] >= min && v[static_cast<int>(i)] <= max;
   if (!ok) {
     errors_->add(n.Mark(), key_path(key), "is not valid, expected [x, y, z] with each " + format_range(min, max, unit));
     return;
@@ -217,7 +221,8 @@ void YamlSection::vec3(const char* key, Eigen::Vector3d& value, double min, doub
   value = v;
 }
 
-void YamlSection::points2(const char* key, std::vector<Eigen::Vector2d>& value, double min, double max, const char* unit) {
+void YamlSection::points2(const char* key, std::vector<Eigen::Vector2d>& value, double min, double max,
+                          const char* unit) {
   YAML::Node n;
   if (!get(key, n)) return;
   std::vector<Eigen::Vector2d> out;
@@ -230,7 +235,8 @@ void YamlSection::points2(const char* key, std::vector<Eigen::Vector2d>& value, 
     out.emplace_back(x, y);
   }
   if (!ok) {
-    errors_->add(n.Mark(), key_path(key), "is not valid, expected a list of [x, y] with each " + format_range(min, max, unit));
+    errors_->add(n.Mark(), key_path(key),
+                 "is not valid, expected a list of [x, y] with each " + format_range(min, max, unit));
     return;
   }
   value = std::move(out);
@@ -261,7 +267,8 @@ void YamlSection::finish() {
   for (const auto& kv : node_) {
     const std::string key = kv.first.as<std::string>("");
     if (used_.count(key) == 0) {
-      errors_->add(kv.first.Mark(), key_path(key.c_str()), "unknown key (misspelt? see the commented defaults in config/)");
+      errors_->add(kv.first.Mark(), key_path(key.c_str()),
+                   "unknown key (misspelt? see the commented defaults in config/)");
     }
   }
 }

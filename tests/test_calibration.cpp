@@ -44,7 +44,8 @@ app::Config truth_config() {
   cfg.rig.laser.offset_m = 0.0023;
   const Eigen::Vector3d& n = cfg.rig.laser.normal_world;
   const Eigen::Vector3d emitter(0.0, 0.55, 1.5);
-  cfg.rig.laser.emitter_world_m = emitter + (cfg.rig.laser.offset_m - n.dot(emitter)) * n;  // the emitter lies in its plane
+  cfg.rig.laser.emitter_world_m =
+      emitter + (cfg.rig.laser.offset_m - n.dot(emitter)) * n;  // the emitter lies in its plane
   cfg.rig.conveyor.counts_per_mm = 9.87;
   cfg.sim.camera_noise_seed = 5;
   return cfg;
@@ -153,7 +154,7 @@ Eigen::Isometry3d board_in_camera(const algo::BoardSpec& board, const Eigen::Vec
   t.linear() = (Eigen::AngleAxisd(tilt_x_deg * kDeg, Eigen::Vector3d::UnitX()) *
                 Eigen::AngleAxisd(tilt_y_deg * kDeg, Eigen::Vector3d::UnitY()) *
                 Eigen::AngleAxisd(roll_deg * kDeg, Eigen::Vector3d::UnitZ()))
-                    .toRotationMatrix();
+                   .toRotationMatrix();
   const Eigen::Vector2d half = 0.5 * board.field_size_m();
   t.translation() = centre - t.linear() * Eigen::Vector3d(half.x(), half.y(), 0.0);
   return t;
@@ -224,20 +225,21 @@ TEST_CASE("The technician procedure on the simulated cell recovers camera, laser
   const double cx_err = k.cx_px - k_true.cx_px, cy_err = k.cy_px - k_true.cy_px;
   const Eigen::Vector3d centre_err_mm = 1e3 * (c.camera_pose.centre_world() - truth.camera_centre_world);
   const double rotation_err_deg =
-      std::acos(std::clamp(0.5 * ((c.camera_pose.r_cam_world * truth.camera_pose.r_cam_world.transpose()).trace() - 1.0),
-                           -1.0, 1.0)) /
+      std::acos(std::clamp(
+          0.5 * ((c.camera_pose.r_cam_world * truth.camera_pose.r_cam_world.transpose()).trace() - 1.0), -1.0, 1.0)) /
       kDeg;
   const double normal_err_deg = angle_deg(c.laser_normal, truth.laser_normal_world);
   const double offset_err_mm = 1e3 * (c.laser_offset_m - truth.laser_offset_m);
   const double mm_per_count_true = 1.0 / config.rig.conveyor.counts_per_mm;
   const double scale_err_pct = 100.0 * (c.mm_per_count / mm_per_count_true - 1.0);
-  std::printf("calibration accuracy on the simulated cell:\n"
-              "  fx %+.4f %%  fy %+.4f %%  cx %+.3f px  cy %+.3f px  (reprojection RMS %.4f px)\n"
-              "  camera centre error %.3f mm, rotation error %.4f deg\n"
-              "  laser normal %.5f deg, offset %+.4f mm (residual %.4f mm)\n"
-              "  mm per count %+.4f %%\n",
-              fx_err_pct, fy_err_pct, cx_err, cy_err, c.reprojection_rms_px, centre_err_mm.norm(), rotation_err_deg,
-              normal_err_deg, offset_err_mm, c.laser_residual_mm, scale_err_pct);
+  std::printf(
+      "calibration accuracy on the simulated cell:\n"
+      "  fx %+.4f %%  fy %+.4f %%  cx %+.3f px  cy %+.3f px  (reprojection RMS %.4f px)\n"
+      "  camera centre error %.3f mm, rotation error %.4f deg\n"
+      "  laser normal %.5f deg, offset %+.4f mm (residual %.4f mm)\n"
+      "  mm per count %+.4f %%\n",
+      fx_err_pct, fy_err_pct, cx_err, cy_err, c.reprojection_rms_px, centre_err_mm.norm(), rotation_err_deg,
+      normal_err_deg, offset_err_mm, c.laser_residual_mm, scale_err_pct);
   CHECK(std::abs(fx_err_pct) < 0.2);
   CHECK(std::abs(fy_err_pct) < 0.2);
   CHECK(std::abs(cx_err) < 1.0);
@@ -273,7 +275,8 @@ TEST_CASE("The technician procedure on the simulated cell recovers camera, laser
 
 // --- Board rendering and detection ---------------------------------------------------------------------------
 
-TEST_CASE("A rendered board is detected with its dots at their projected centres, in board order", "[calibration][board]") {
+TEST_CASE("A rendered board is detected with its dots at their projected centres, in board order",
+          "[calibration][board]") {
   // GIVEN a board held tilted in front of the simulated camera
   const app::Config config = truth_config();
   const sim::Rig rig = sim::make_rig(config.rig);
@@ -309,7 +312,8 @@ TEST_CASE("A rendered board is detected with its dots at their projected centres
   CHECK_THAT(missing.error().message, Catch::Contains("no 11 x 6 dot board found") && Catch::Contains("rows/cols"));
 }
 
-TEST_CASE("Laser line centres are found to a small fraction of a pixel on an analytic Gaussian stripe", "[calibration][stripe]") {
+TEST_CASE("Laser line centres are found to a small fraction of a pixel on an analytic Gaussian stripe",
+          "[calibration][stripe]") {
   // GIVEN a stripe whose centre moves sub-pixel from row to row, on a dim background, and a hot pixel elsewhere
   constexpr int kWidth = 200, kHeight = 60;
   constexpr double kSigmaPx = 1.2, kPeakDn = 150.0, kBackgroundDn = 10.0;
@@ -370,7 +374,8 @@ TEST_CASE("Intrinsic calibration recovers the camera from exact views and refuse
   }
   SECTION("parallel views are refused, saying to tilt the board") {
     views.clear();
-    for (const View& s : specs) views.push_back(project_dots(truth, board_in_camera(board, {s.x, s.y, s.z}, 0, 0, 0), board));
+    for (const View& s : specs)
+      views.push_back(project_dots(truth, board_in_camera(board, {s.x, s.y, s.z}, 0, 0, 0), board));
     auto result = algo::calibrate_intrinsics(views, board, truth.width_px, truth.height_px);
     REQUIRE_FALSE(result.ok());
     CHECK_THAT(result.error().message, Catch::Contains("tilt the board"));
@@ -390,7 +395,8 @@ TEST_CASE("The laser plane is recovered from exact stripe points and a degenerat
   auto make_view = [&](const Eigen::Isometry3d& board_to_cell) {
     algo::LaserView v;
     v.dots = project_dots(k, to_camera * board_to_cell, board);
-    const Eigen::Vector3d o = board_to_cell.translation(), u = board_to_cell.linear().col(0), w = board_to_cell.linear().col(1);
+    const Eigen::Vector3d o = board_to_cell.translation(), u = board_to_cell.linear().col(0),
+                          w = board_to_cell.linear().col(1);
     std::vector<Eigen::Vector3d> cut;
     for (double vv = board.plate_min_m().y(); vv <= board.plate_max_m().y(); vv += 0.002) {
       // n . (o + s u + vv w) = d  ->  s
@@ -404,7 +410,8 @@ TEST_CASE("The laser plane is recovered from exact stripe points and a degenerat
   REQUIRE(poses.size() == 3);
 
   SECTION("three poses give the plane back") {
-    auto result = algo::calibrate_laser_plane(k, rig.camera_pose, board, {make_view(poses[0]), make_view(poses[1]), make_view(poses[2])});
+    auto result = algo::calibrate_laser_plane(k, rig.camera_pose, board,
+                                              {make_view(poses[0]), make_view(poses[1]), make_view(poses[2])});
     REQUIRE(result.ok());
     CHECK(angle_deg(result->normal, n) < 1e-4);
     CHECK(result->offset_m == Approx(d).margin(1e-6));
@@ -445,7 +452,8 @@ TEST_CASE("The conveyor scale is the board's travel per count, and backward coun
   };
 
   SECTION("exact views along x give the scale back, without warnings") {
-    auto result = algo::calibrate_conveyor(k, rig.camera_pose, board, views_along(Eigen::Vector3d::UnitX(), 0.0987, {0, 1013, 2026}));
+    auto result = algo::calibrate_conveyor(k, rig.camera_pose, board,
+                                           views_along(Eigen::Vector3d::UnitX(), 0.0987, {0, 1013, 2026}));
     REQUIRE(result.ok());
     CHECK(result->mm_per_count == Approx(0.0987).epsilon(1e-6));
     CHECK(result->angle_to_x_deg < 1e-3);
@@ -460,12 +468,14 @@ TEST_CASE("The conveyor scale is the board's travel per count, and backward coun
     CHECK_THAT(result->warnings[0], Catch::Contains("away from the cell x axis"));
   }
   SECTION("counts that fall while the carrier moves downstream are refused") {
-    auto result = algo::calibrate_conveyor(k, rig.camera_pose, board, views_along(Eigen::Vector3d::UnitX(), -0.1, {0, 2000}));
+    auto result =
+        algo::calibrate_conveyor(k, rig.camera_pose, board, views_along(Eigen::Vector3d::UnitX(), -0.1, {0, 2000}));
     REQUIRE_FALSE(result.ok());
     CHECK_THAT(result.error().message, Catch::Contains("swap the encoder A and B"));
   }
   SECTION("a 10 mm move is refused") {
-    auto result = algo::calibrate_conveyor(k, rig.camera_pose, board, views_along(Eigen::Vector3d::UnitX(), 0.1, {0, 100}));
+    auto result =
+        algo::calibrate_conveyor(k, rig.camera_pose, board, views_along(Eigen::Vector3d::UnitX(), 0.1, {0, 100}));
     REQUIRE_FALSE(result.ok());
     CHECK_THAT(result.error().message, Catch::Contains("about 200 mm"));
   }
@@ -473,7 +483,8 @@ TEST_CASE("The conveyor scale is the board's travel per count, and backward coun
 
 // --- calibration.yaml ----------------------------------------------------------------------------------------
 
-TEST_CASE("calibration.yaml round-trips exactly and refuses truncated, corrupt and edited files", "[calibration][file]") {
+TEST_CASE("calibration.yaml round-trips exactly and refuses truncated, corrupt and edited files",
+          "[calibration][file]") {
   TempDir tmp;
   const std::string file = tmp.file("calibration.yaml");
   const app::CalibrationRecord record = sample_record();
@@ -520,8 +531,8 @@ TEST_CASE("calibration.yaml round-trips exactly and refuses truncated, corrupt a
     auto loaded = app::load_calibration(file);
     REQUIRE_FALSE(loaded.ok());
     const auto line = std::count(bad.begin(), bad.begin() + static_cast<std::ptrdiff_t>(at), '\n') + 1;
-    CHECK_THAT(loaded.error().message, Catch::Contains(file + ":" + std::to_string(line) + ":") &&
-                                           Catch::Contains("camera.fx_px"));
+    CHECK_THAT(loaded.error().message,
+               Catch::Contains(file + ":" + std::to_string(line) + ":") && Catch::Contains("camera.fx_px"));
   }
   SECTION("a laser or support normal that is not a unit vector is refused, even in a well-sealed file") {
     // Triangulation and support removal read n . p = offset as metres only when |n| = 1.
@@ -536,8 +547,8 @@ TEST_CASE("calibration.yaml round-trips exactly and refuses truncated, corrupt a
       REQUIRE(app::save_calibration(file, bad).ok());
       auto loaded = app::load_calibration(file);
       REQUIRE_FALSE(loaded.ok());
-      CHECK_THAT(loaded.error().message, Catch::Contains(file + ":") &&
-                                             Catch::Contains(std::string(key) + ": must be a unit vector"));
+      CHECK_THAT(loaded.error().message,
+                 Catch::Contains(file + ":") && Catch::Contains(std::string(key) + ": must be a unit vector"));
     }
   }
   SECTION("an edited number that stays in range fails the checksum") {

@@ -23,7 +23,9 @@ constexpr double kDeg = std::numbers::pi / 180.0;
 constexpr double kPitch = 0.001;  // sample spacing of the synthetic surface (finer than a 2.2 mm cell)
 constexpr double kRibHeight = 0.012;
 
-algo::GridSpec shipped_grid() { return algo::GridSpec{}; }  // 296 x 500 x 182 at 2.2 mm, origin 0
+algo::GridSpec shipped_grid() {
+  return algo::GridSpec{};
+}  // 296 x 500 x 182 at 2.2 mm, origin 0
 
 // A 400 x 600 mm plate without symmetry: a rectangular, a square and a round hole and a raised rib, sheet at z = 0,
 // centred on the origin (part frame). Each point knows whether it lies on the sheet.
@@ -119,8 +121,9 @@ const std::vector<Pose>& moved_poses() {
 
 }  // namespace
 
-TEST_CASE("Given a part shifted, turned and swung by a known transform, when it is mapped into its own frame, then "
-          "the turn and swing are recovered and its depth image matches the unmoved part's within a cell") {
+TEST_CASE(
+    "Given a part shifted, turned and swung by a known transform, when it is mapped into its own frame, then "
+    "the turn and swing are recovered and its depth image matches the unmoved part's within a cell") {
   const std::vector<PartPoint> part = synthetic_part();
   const Mapped reference = map_and_image(place(part, {}));
   CHECK(std::abs(reference.pose.turn_rad) < 0.1 * kDeg);
@@ -147,15 +150,18 @@ TEST_CASE("Given a swung part, when it is levelled, then its sheet lies at one d
   double worst_sheet = 0.0, worst_rib = 0.0;
   for (std::size_t i = 0; i < part.size(); ++i) {
     const double dz = moved.points[i].z - sheet_z;
-    if (part[i].sheet) worst_sheet = std::max(worst_sheet, std::abs(dz));
-    else worst_rib = std::max(worst_rib, std::abs(dz - kRibHeight * std::cos(2.0 * kDeg)));
+    if (part[i].sheet)
+      worst_sheet = std::max(worst_sheet, std::abs(dz));
+    else
+      worst_rib = std::max(worst_rib, std::abs(dz - kRibHeight * std::cos(2.0 * kDeg)));
   }
   CHECK(worst_sheet < 2e-4);  // float coordinates and the 2 deg swing's cosine: well below a 2.2 mm cell
   CHECK(worst_rib < 3e-4);
 }
 
-TEST_CASE("Given a moved part, when its features are computed in its own frame, then they match the unmoved part's "
-          "within the tolerance of one cell of outline") {
+TEST_CASE(
+    "Given a moved part, when its features are computed in its own frame, then they match the unmoved part's "
+    "within the tolerance of one cell of outline") {
   const std::vector<PartPoint> part = synthetic_part();
   const algo::FeatureVector ref = features_of(map_and_image(place(part, {})).depth);
   for (const Pose& pose : moved_poses()) {
@@ -198,8 +204,9 @@ TEST_CASE("Given a turn beyond the limit, when a part is mapped, then only the l
   CHECK(moved.pose.turn_rad == Approx(algo::CanonicalParams{}.max_turn_rad));
 }
 
-TEST_CASE("Given a scan, when synthetic variants are made, then they are reproducible, differ from each other and "
-          "stay within the pose range") {
+TEST_CASE(
+    "Given a scan, when synthetic variants are made, then they are reproducible, differ from each other and "
+    "stay within the pose range") {
   const std::vector<algo::ScanPoint> in = place(synthetic_part(), {});
   std::vector<algo::ScanPoint> a, b, c;
   algo::augment_scan(in, {}, 7, a);
@@ -207,9 +214,8 @@ TEST_CASE("Given a scan, when synthetic variants are made, then they are reprodu
   algo::augment_scan(in, {}, 8, c);
   REQUIRE(!a.empty());
   CHECK(a.size() == b.size());
-  CHECK(std::equal(a.begin(), a.end(), b.begin(), [](const auto& p, const auto& q) {
-    return p.x == q.x && p.y == q.y && p.z == q.z;
-  }));
+  CHECK(std::equal(a.begin(), a.end(), b.begin(),
+                   [](const auto& p, const auto& q) { return p.x == q.x && p.y == q.y && p.z == q.z; }));
   CHECK(a.size() != c.size());
   CHECK(a.size() >= static_cast<std::size_t>(0.5 * static_cast<double>(in.size())));
   double mx = 0.0, my = 0.0;
@@ -247,8 +253,9 @@ algo::Dataset grouped_dataset() {
 
 }  // namespace
 
-TEST_CASE("Given taught scans with synthetic variants, when the folds are assigned, then every group stays in one "
-          "fold and every class is in every fold") {
+TEST_CASE(
+    "Given taught scans with synthetic variants, when the folds are assigned, then every group stays in one "
+    "fold and every class is in every fold") {
   const algo::Dataset d = grouped_dataset();
   auto folds = algo::stratified_folds(d, 5, 11);
   REQUIRE(folds);
@@ -263,8 +270,9 @@ TEST_CASE("Given taught scans with synthetic variants, when the folds are assign
   for (const auto& [fold, classes] : classes_in_fold) CHECK(classes.size() == 3);
 }
 
-TEST_CASE("Given taught scans with synthetic variants, when they are split, then a training scan takes its variants "
-          "along and a held-back scan goes alone") {
+TEST_CASE(
+    "Given taught scans with synthetic variants, when they are split, then a training scan takes its variants "
+    "along and a held-back scan goes alone") {
   const algo::Dataset d = grouped_dataset();
   auto split = algo::split_per_class(d, 4, 3);
   REQUIRE(split);

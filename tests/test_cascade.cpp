@@ -7,8 +7,8 @@
 #include <catch2/catch.hpp>
 #include <chrono>
 #include <cmath>
-#include <limits>
 #include <cstdlib>
+#include <limits>
 #include <map>
 #include <memory>
 #include <numbers>
@@ -467,8 +467,8 @@ SCENARIO("The two-way check sees one pressed rib more or less, which a flat x-y 
       }
     }
     WHEN("the template was taught in a pose that hid the foot of each rib's +x wall, and the scan sees it") {
-      static const auto shadowed = teach_from("ribbed_v4", kTaughtPose,
-                                              without_wall_foot(sample_part(part("ribbed_v4"), kTaughtPose, 47), 0.28F, 16));
+      static const auto shadowed = teach_from(
+          "ribbed_v4", kTaughtPose, without_wall_foot(sample_part(part("ribbed_v4"), kTaughtPose, 47), 0.28F, 16));
       // The control: a template with a 24 mm hole beside the +45 mm rib's foot that the scan does not have (the
       // one-hole-more twin), which a rim stepping into the rib must not excuse.
       static const auto holed = [] {
@@ -479,8 +479,10 @@ SCENARIO("The two-way check sees one pressed rib more or less, which a flat x-y 
         return teach_from("ribbed_v4", kTaughtPose, std::move(scan));
       }();
       const auto scan = sample_part(part("ribbed_v4"), kTestPose, 49);
-      const MatchReport seen = cascade.two_way_check(model_of(*shadowed, 0, 1), scan, true_relative_pose(*shadowed, kTestPose));
-      const MatchReport covered = cascade.two_way_check(model_of(*holed, 0, 1), scan, true_relative_pose(*holed, kTestPose));
+      const MatchReport seen =
+          cascade.two_way_check(model_of(*shadowed, 0, 1), scan, true_relative_pose(*shadowed, kTestPose));
+      const MatchReport covered =
+          cascade.two_way_check(model_of(*holed, 0, 1), scan, true_relative_pose(*holed, kTestPose));
       THEN("the wall and its foot in the template's shadow weigh nothing; the covered hole beside the rib counts") {
         INFO("shadowed template: extra " << seen.extra_area_m2 * 1e6 << " missing " << seen.missing_area_m2 * 1e6
                                          << " mm^2, outliers " << seen.scan_outliers << "; holed template: extra "
@@ -1028,8 +1030,8 @@ SCENARIO("Evidence is judged by its shape: data loss and hangers weigh little, a
     }
     WHEN("the scan is of plate_5h and a glare band that leaves 3 % of the points crosses it beside the hole") {
       // (A band over the hole itself would hide it: what no point shows cannot be told; the README says so.)
-      const auto scan = with_glare_residue(sample_part(part("plate_5h"), kTestPose, 807), cx - 0.1, cx - 0.07, 0.03,
-                                           808);
+      const auto scan =
+          with_glare_residue(sample_part(part("plate_5h"), kTestPose, 807), cx - 0.1, cx - 0.07, 0.03, 808);
       const MatchReport r = cat.cascade().evaluate(m, scan);
       THEN("it is not taken for plate_4h: the empty hole next to lost data is still a hole") {
         INFO("missing " << r.missing_area_m2 * 1e6 << " mm2, coverage " << r.coverage);
@@ -1066,15 +1068,17 @@ SCENARIO("Evidence is judged by its shape: data loss and hangers weigh little, a
       THEN("the outer size rejects it, which no area can: the fit splits the 5 mm into 2.5 mm at either edge") {
         INFO("size dx " << r.size_dx_m * 1e3 << " dy " << r.size_dy_m * 1e3 << " mm; centres "
                         << m.thresholds.size_centre_x_m * 1e3 << ", " << m.thresholds.size_centre_y_m * 1e3
-                        << "; limit " << m.thresholds.max_size_dev_m * 1e3 << " mm; missing "
-                        << r.missing_area_m2 * 1e6 << " extra " << r.extra_area_m2 * 1e6 << " mm2");
+                        << "; limit " << m.thresholds.max_size_dev_m * 1e3 << " mm; missing " << r.missing_area_m2 * 1e6
+                        << " extra " << r.extra_area_m2 * 1e6 << " mm2");
         CHECK(reason == algo::RejectReason::kSize);
         CHECK(r.size_dy_m - m.thresholds.size_centre_y_m == Approx(0.005).margin(0.0017));
       }
     }
     WHEN("5 % of the points drop out") {
       const MatchReport r = cat.cascade().evaluate(m, with_dropouts(clean, 0.05, 802));
-      THEN("it is accepted") { CHECK(r.passes(m.thresholds)); }
+      THEN("it is accepted") {
+        CHECK(r.passes(m.thresholds));
+      }
     }
     WHEN("a 9 mm chain hangs 60 mm above it") {
       const MatchReport r = cat.cascade().evaluate(m, with_chain(clean, 0.009, 0.06));
@@ -1095,7 +1099,9 @@ SCENARIO("Evidence is judged by its shape: data loss and hangers weigh little, a
       float right = -1e9F;
       for (const ScanPoint& p : clean) right = std::max(right, p.x);
       const MatchReport r = cat.cascade().evaluate(m, without_band(clean, right - 0.04, right + 0.01));
-      THEN("the strip along the edge weighs fully and rejects it") { CHECK_FALSE(r.passes(m.thresholds)); }
+      THEN("the strip along the edge weighs fully and rejects it") {
+        CHECK_FALSE(r.passes(m.thresholds));
+      }
     }
   }
 }
@@ -1230,7 +1236,7 @@ TEST_CASE("decide() allocates nothing", "[cascade][alloc]") {
   const ClassProbability sure_wrong[] = {{0, 0.93}, {2, 0.04}, {1, 0.02}, {3, 0.01}};  // SVM path, fallback, PM
   const ClassProbability unsure[] = {{1, 0.50}, {3, 0.45}, {0, 0.03}, {2, 0.02}};      // PM path, unknown
   const auto untaught = sample_part(part("frame_window"), kTestPose, 702);
-  (void)cat.cascade().decide(sure_wrong, cat.models(), scan, far_deadline());          // warm-up
+  (void)cat.cascade().decide(sure_wrong, cat.models(), scan, far_deadline());  // warm-up
   // When it decides along every path
   long allocations = 0;
   Decision a, b, c;
@@ -1248,10 +1254,13 @@ TEST_CASE("decide() allocates nothing", "[cascade][alloc]") {
   CHECK(c.source == DecisionSource::kTimeout);
 }
 
-SCENARIO("Of two candidates that both pass, the one with clearly less evidence against it wins, whichever the SVM "
-         "ranks first", "[cascade][policy]") {
-  GIVEN("a plate_4h scan, and plate_5h's template with gates so wide that it passes too, though the scan has material "
-        "where its fifth hole is") {
+SCENARIO(
+    "Of two candidates that both pass, the one with clearly less evidence against it wins, whichever the SVM "
+    "ranks first",
+    "[cascade][policy]") {
+  GIVEN(
+      "a plate_4h scan, and plate_5h's template with gates so wide that it passes too, though the scan has material "
+      "where its fifth hole is") {
     Catalogue4& cat = catalogue4();
     std::vector<TemplateModel> models(cat.models().begin(), cat.models().end());
     algo::TemplateThresholds& wide = models[2].thresholds;
@@ -1288,11 +1297,13 @@ SCENARIO("Of two candidates that both pass, the one with clearly less evidence a
   }
 }
 
-SCENARIO("A look-alike that fails only its outer size leaves the winner ambiguous when it fails narrowly, not when it "
-         "fails by a size twin's millimetres",
-         "[cascade][policy]") {
-  GIVEN("a plate_4h scan, and a look-alike of plate_4h whose template is plate_4h's but whose size centre lies D above "
-        "the scan's (limit 3.5 mm): it fails the size gate alone, with the same evidence as plate_4h") {
+SCENARIO(
+    "A look-alike that fails only its outer size leaves the winner ambiguous when it fails narrowly, not when it "
+    "fails by a size twin's millimetres",
+    "[cascade][policy]") {
+  GIVEN(
+      "a plate_4h scan, and a look-alike of plate_4h whose template is plate_4h's but whose size centre lies D above "
+      "the scan's (limit 3.5 mm): it fails the size gate alone, with the same evidence as plate_4h") {
     Catalogue4& cat = catalogue4();
     const auto scan = sample_part(part("plate_4h"), kTestPose, 1301);
     const MatchReport own = cat.cascade().evaluate(cat.models()[0], scan);
@@ -1323,7 +1334,9 @@ SCENARIO("A look-alike that fails only its outer size leaves the winner ambiguou
         REQUIRE(d.candidates[1].class_index == 1);
         REQUIRE(d.candidates[1].rejected_by == algo::RejectReason::kSize);
         if (beyond_m < slack_m) {
-          THEN("a narrow failure: no clear margin, unknown") { CHECK(d.source == DecisionSource::kUnknown); }
+          THEN("a narrow failure: no clear margin, unknown") {
+            CHECK(d.source == DecisionSource::kUnknown);
+          }
         } else {
           THEN("a clear size difference: plate_4h") {
             CHECK(d.source == DecisionSource::kPm);

@@ -1,11 +1,10 @@
 // The cellsight executable as a user runs it: `sim` output, determinism, and bad input (exit code 2, one clear
 // line, nothing half-written).
-#include <catch2/catch.hpp>
-
 #include <sys/wait.h>
 #include <unistd.h>
 
 #include <array>
+#include <catch2/catch.hpp>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
@@ -40,7 +39,9 @@ Run run(const std::string& args, const std::string& config = kConfig) {
   return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
 }
 
-fs::path fresh_dir(const std::string& name) { return cellsight::test::scratch_path("cli/" + name); }
+fs::path fresh_dir(const std::string& name) {
+  return cellsight::test::scratch_path("cli/" + name);
+}
 
 std::string read_all(const fs::path& p) {
   std::ifstream in(p, std::ios::binary);
@@ -58,8 +59,9 @@ std::string pose_of(const fs::path& dir) {
 
 }  // namespace
 
-TEST_CASE("Given every catalogue part, when `cellsight sim` runs, then a full pass of mono8 frames and truth.yaml "
-          "is written") {
+TEST_CASE(
+    "Given every catalogue part, when `cellsight sim` runs, then a full pass of mono8 frames and truth.yaml "
+    "is written") {
   auto parts = cellsight::app::load_catalogue(CELLSIGHT_SOURCE_DIR "/config/parts.yaml");
   REQUIRE(parts.ok());
   for (const auto& part : *parts) {
@@ -85,8 +87,9 @@ TEST_CASE("Given every catalogue part, when `cellsight sim` runs, then a full pa
   }
 }
 
-TEST_CASE("Given the same seed twice, when `cellsight sim` runs, then the outputs are byte-identical; another seed "
-          "gives another pose") {
+TEST_CASE(
+    "Given the same seed twice, when `cellsight sim` runs, then the outputs are byte-identical; another seed "
+    "gives another pose") {
   const fs::path a = fresh_dir("seed-a"), b = fresh_dir("seed-b"), c = fresh_dir("seed-c");
   REQUIRE(run("sim --part plate_5h --seed 21 --out " + a.string()).exit_code == 0);
   REQUIRE(run("sim --part plate_5h --seed 21 --out " + b.string()).exit_code == 0);
@@ -117,8 +120,9 @@ TEST_CASE("Given an explicit pose, when `cellsight sim` runs, then truth.yaml re
   fs::remove_all(out);
 }
 
-TEST_CASE("Given bad input, when `cellsight sim` runs, then it exits 2 with one line saying what and why, and "
-          "writes nothing") {
+TEST_CASE(
+    "Given bad input, when `cellsight sim` runs, then it exits 2 with one line saying what and why, and "
+    "writes nothing") {
   const fs::path out = fresh_dir("bad");
   SECTION("unknown part") {
     const Run r = run("sim --part teapot --out " + out.string());
@@ -160,7 +164,8 @@ TEST_CASE("Given bad input, when `cellsight sim` runs, then it exits 2 with one 
     std::string text(buf.data(), std::fread(buf.data(), 1, buf.size(), pipe));
     const int status = ::pclose(pipe);
     CHECK(WEXITSTATUS(status) == 2);
-    CHECK(text.find("bad.yaml:2:18: conveyor.speed_m_per_s: 'fast' is not valid, expected a number from 0.001 to 1 m/s") !=
+    CHECK(text.find(
+              "bad.yaml:2:18: conveyor.speed_m_per_s: 'fast' is not valid, expected a number from 0.001 to 1 m/s") !=
           std::string::npos);
   }
   SECTION("unknown option") {
@@ -182,8 +187,9 @@ TEST_CASE("Given `cellsight sim --list`, when run, then every catalogue part is 
   for (const auto& p : *parts) CHECK(r.output.find(p.name) != std::string::npos);
 }
 
-TEST_CASE("Given `cellsight sim --random-catalogue`, when run, then it writes a loadable catalogue once, `sim --list` "
-          "of a site file pointing at it shows role and family, and bad arguments exit 2") {
+TEST_CASE(
+    "Given `cellsight sim --random-catalogue`, when run, then it writes a loadable catalogue once, `sim --list` "
+    "of a site file pointing at it shows role and family, and bad arguments exit 2") {
   const fs::path dir = fresh_dir("random-catalogue");
   fs::create_directories(dir);
   const fs::path file = dir / "random.yaml";
@@ -219,8 +225,9 @@ TEST_CASE("Given `cellsight sim --random-catalogue`, when run, then it writes a 
   fs::remove_all(dir);
 }
 
-TEST_CASE("Given a folder as --config, when any mode runs, then it exits 2 naming the folder (it used to abort with "
-          "an uncaught std::ios_failure, exit 134)") {
+TEST_CASE(
+    "Given a folder as --config, when any mode runs, then it exits 2 naming the folder (it used to abort with "
+    "an uncaught std::ios_failure, exit 134)") {
   const fs::path dir = fresh_dir("config-dir");
   fs::create_directories(dir);
   for (const char* mode : {"sim --list", "parts list", "calibrate support --sim"}) {
@@ -232,9 +239,10 @@ TEST_CASE("Given a folder as --config, when any mode runs, then it exits 2 namin
   fs::remove_all(dir);
 }
 
-TEST_CASE("Given scan files that are no scans (a device, a folder, a huge file whose header declares too many "
-          "vertices, a header that never ends), when classified, then each is refused at once from its first bytes, "
-          "exit 2") {
+TEST_CASE(
+    "Given scan files that are no scans (a device, a folder, a huge file whose header declares too many "
+    "vertices, a header that never ends), when classified, then each is refused at once from its first bytes, "
+    "exit 2") {
   using Clock = std::chrono::steady_clock;
   const fs::path dir = fresh_dir("classify-bad-scans");
   fs::create_directories(dir);
@@ -263,8 +271,9 @@ TEST_CASE("Given scan files that are no scans (a device, a folder, a huge file w
   std::ofstream(short_file) << "ply\nformat binary_little_endian 1.0\nelement vertex 1000000\nproperty float x\n"
                                "property float y\nproperty float z\nend_header\n";
   fs::resize_file(short_file, 4096);
-  refused_fast(short_file.string(), "PLY: the header declares 1000000 vertices (at least 12000000 bytes of data), the "
-                                    "file holds 3975 after the header: it is truncated");
+  refused_fast(short_file.string(),
+               "PLY: the header declares 1000000 vertices (at least 12000000 bytes of data), the "
+               "file holds 3975 after the header: it is truncated");
 
   // A header that does not end within 64 kB.
   const fs::path endless = dir / "endless.ply";
@@ -273,8 +282,9 @@ TEST_CASE("Given scan files that are no scans (a device, a folder, a huge file w
   fs::remove_all(dir);
 }
 
-TEST_CASE("Given an empty-carrier scan that is no scan, when `calibrate support --scan` reads it, then it is refused "
-          "from its first bytes, exit 2, and the calibration is not touched") {
+TEST_CASE(
+    "Given an empty-carrier scan that is no scan, when `calibrate support --scan` reads it, then it is refused "
+    "from its first bytes, exit 2, and the calibration is not touched") {
   using Clock = std::chrono::steady_clock;
   const fs::path dir = fresh_dir("support-bad-scans");
   fs::create_directories(dir / "folder.ply");

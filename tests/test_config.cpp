@@ -1,8 +1,7 @@
 // Configuration and part-catalogue reading: shipped files, every class of bad input, one clear line per error.
+#include <algorithm>
 #include <catch2/catch.hpp>
 #include <chrono>
-
-#include <algorithm>
 #include <cstdint>
 #include <cstdio>
 #include <filesystem>
@@ -42,7 +41,8 @@ std::string load_error(const std::string& yaml) {
 
 }  // namespace
 
-TEST_CASE("Given the shipped config file, when it is loaded, then it is valid and states exactly the built-in defaults") {
+TEST_CASE(
+    "Given the shipped config file, when it is loaded, then it is valid and states exactly the built-in defaults") {
   auto cfg = app::load_config(kShippedConfig);
   INFO((cfg.ok() ? std::string() : cfg.error().message));
   REQUIRE(cfg.ok());
@@ -144,8 +144,9 @@ TEST_CASE("Given the shipped config file, when it is loaded, then it is valid an
   CHECK(cfg->catalogue_path == fs::path(kShippedCatalogue).lexically_normal().string());
 }
 
-TEST_CASE("Given a value out of range, when the config is loaded, then one line names file, line, column, key, "
-          "value and the range with its unit") {
+TEST_CASE(
+    "Given a value out of range, when the config is loaded, then one line names file, line, column, key, "
+    "value and the range with its unit") {
   const std::string message = load_error("rig:\n  camera:\n    fx_px: -3\n");
   CHECK(message.find("c.yaml:3:12: rig.camera.fx_px: '-3' is not valid, expected a number from 50 to 50000 px") !=
         std::string::npos);
@@ -164,14 +165,15 @@ TEST_CASE("Given wrong types and bad choices, when the config is loaded, then ea
   CHECK(message.find("camera.backend: 'usb' is not valid, expected one of: sim | v4l2") != std::string::npos);
   CHECK(message.find("camera.exposure_us: a list is not valid") != std::string::npos);
   CHECK(message.find("sim.sensor.noise: 'maybe' is not valid, expected true or false") != std::string::npos);
-  CHECK(message.find("grid.nx: '29.5' is not valid, expected a whole number from 8 to 4096 cells") != std::string::npos);
+  CHECK(message.find("grid.nx: '29.5' is not valid, expected a whole number from 8 to 4096 cells") !=
+        std::string::npos);
   CHECK(message.find("rig.laser.normal: is not valid, expected [x, y, z]") != std::string::npos);
   CHECK(std::count(message.begin(), message.end(), '\n') == 4);
 }
 
 TEST_CASE("Given inconsistent limits, when the config is loaded, then the relation is named") {
-  CHECK(load_error("camera:\n  exposure_min_us: 500\n  exposure_max_us: 100\n").find("must not exceed camera.exposure_max_us") !=
-        std::string::npos);
+  CHECK(load_error("camera:\n  exposure_min_us: 500\n  exposure_max_us: 100\n")
+            .find("must not exceed camera.exposure_max_us") != std::string::npos);
   CHECK(load_error("exposure:\n  width_min_px: 6\n  width_max_px: 3\n").find("must be below exposure.width_max_px") !=
         std::string::npos);
   CHECK(load_error("perfect_match:\n  step_min_m: 0.01\n  step_initial_m: 0.001\n")
@@ -211,8 +213,9 @@ TEST_CASE("Given the shipped catalogue, when it is loaded, then it has at least 
   }
 }
 
-TEST_CASE("Given every catalogue part at the extremes of the random pose, when placed on the carrier, then it lies "
-          "inside the occupancy grid") {
+TEST_CASE(
+    "Given every catalogue part at the extremes of the random pose, when placed on the carrier, then it lies "
+    "inside the occupancy grid") {
   auto cfg = app::load_config(kShippedConfig);
   REQUIRE(cfg.ok());
   auto cell = app::make_sim_cell(*cfg);
@@ -229,15 +232,17 @@ TEST_CASE("Given catalogue mistakes, when the catalogue is loaded, then each is 
     return parts.error().message;
   };
   CHECK(load("format_version: 1\nparts:\n  - {name: a, width_mm: 400, height_mm: 700, features: [{type: dimple}]}\n")
-            .find("parts[0].features[0].type: 'dimple' is not valid, expected one of: hole | slot") != std::string::npos);
+            .find("parts[0].features[0].type: 'dimple' is not valid, expected one of: hole | slot") !=
+        std::string::npos);
   CHECK(load("parts:\n  - {name: a, width_mm: 400, height_mm: 700}\n  - {name: a, width_mm: 400, height_mm: 700}\n")
             .find("parts[1].name: 'a' appears twice") != std::string::npos);
-  CHECK(load("parts:\n  - {name: a, width_mm: 400, height_mm: 700, features: [{type: hole, x_mm: 300, diameter_mm: 10}]}\n")
+  CHECK(load("parts:\n  - {name: a, width_mm: 400, height_mm: 700, features: [{type: hole, x_mm: 300, diameter_mm: "
+             "10}]}\n")
             .find("feature 0: centre outside the part") != std::string::npos);
   CHECK(load("parts:\n  - {name: a, height_mm: 700}\n").find(":2:5: parts[0].width_mm: missing") != std::string::npos);
   CHECK(load("parts: []\n").find("the catalogue is empty") != std::string::npos);
-  CHECK(load("parts:\n  - {name: a, width_mm: 400, height_mm: 700, colour: red}\n").find("parts[0].colour: unknown key") !=
-        std::string::npos);
+  CHECK(load("parts:\n  - {name: a, width_mm: 400, height_mm: 700, colour: red}\n")
+            .find("parts[0].colour: unknown key") != std::string::npos);
 }
 
 TEST_CASE("Given pose texts, when parsed, then metres and degrees are read and malformed ones refused") {
@@ -254,16 +259,18 @@ TEST_CASE("Given pose texts, when parsed, then metres and degrees are read and m
   CHECK(app::parse_pose("0.01,,3").error().message.find("'' is not a number") != std::string::npos);
 }
 
-TEST_CASE("Given a folder as the config file, when it is loaded, then it is refused as not a regular file, "
-          "not thrown") {
+TEST_CASE(
+    "Given a folder as the config file, when it is loaded, then it is refused as not a regular file, "
+    "not thrown") {
   const std::string dir = fs::path(write_temp("c.yaml", "")).parent_path().string();
   auto cfg = app::load_config(dir);
   REQUIRE_FALSE(cfg.ok());
   CHECK(cfg.error().message == dir + ": is a directory, not a configuration file");
 }
 
-TEST_CASE("Given a key written twice in one mapping, when the config is loaded, then it is refused with file, line and "
-          "key (yaml-cpp would keep the first value silently)") {
+TEST_CASE(
+    "Given a key written twice in one mapping, when the config is loaded, then it is refused with file, line and "
+    "key (yaml-cpp would keep the first value silently)") {
   const std::string message = load_error("conveyor:\n  speed_m_per_s: 0.01\n  speed_m_per_s: 0.02\n");
   CHECK(message.find("c.yaml:3:3: conveyor.speed_m_per_s: given twice (first at line 2); keep one") !=
         std::string::npos);
@@ -277,8 +284,9 @@ TEST_CASE("Given a key written twice in one mapping, when the config is loaded, 
   CHECK(load_error("? [a]\n: 1\n? [b]\n: 2\n").find("given twice") == std::string::npos);
 }
 
-TEST_CASE("Given a Modbus bind address that is not a dotted IPv4 address, when the config is loaded, then it is "
-          "refused with file, line, key and reason") {
+TEST_CASE(
+    "Given a Modbus bind address that is not a dotted IPv4 address, when the config is loaded, then it is "
+    "refused with file, line, key and reason") {
   CHECK(load_error("modbus:\n  bind_address: 999.1.1.1\n")
             .find("c.yaml:2:17: modbus.bind_address: '999.1.1.1' is not valid, expected a dotted IPv4 address such as "
                   "0.0.0.0 (every interface) or 192.168.0.10 (host names are not accepted)") != std::string::npos);
@@ -292,8 +300,9 @@ TEST_CASE("Given a Modbus bind address that is not a dotted IPv4 address, when t
   }
 }
 
-TEST_CASE("Given a file of many mistakes, when the config is loaded, then the first 20 are printed and the rest "
-          "counted") {
+TEST_CASE(
+    "Given a file of many mistakes, when the config is loaded, then the first 20 are printed and the rest "
+    "counted") {
   std::string yaml;
   for (int i = 0; i < 1000; ++i) yaml += "unknown_" + std::to_string(i) + ": 1\n";
   const std::string message = load_error(yaml);
@@ -304,8 +313,9 @@ TEST_CASE("Given a file of many mistakes, when the config is loaded, then the fi
   CHECK(message.substr(message.rfind('\n') + 1) == "... and 980 more");
 }
 
-TEST_CASE("Given a short config of aliases of aliases, when the config is loaded, then it is refused at once instead "
-          "of walking the expansion (found writing fuzz_config)") {
+TEST_CASE(
+    "Given a short config of aliases of aliases, when the config is loaded, then it is refused at once instead "
+    "of walking the expansion (found writing fuzz_config)") {
   // Found writing tests/fuzz/fuzz_config: the repeated-key check walked every alias as a copy, so 500 bytes of
   // references (six levels of ten here: 10^6 values) took seconds, nine levels hours.
   std::string yaml = "a0: &a0 [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]\n";
@@ -547,8 +557,9 @@ Probe probe(const RangedKey& key) {
 
 }  // namespace
 
-TEST_CASE("Given each numeric key just outside its range, when the config is loaded, then it is refused with file, "
-          "line, column, key, value and range; at each bound it is accepted") {
+TEST_CASE(
+    "Given each numeric key just outside its range, when the config is loaded, then it is refused with file, "
+    "line, column, key, value and range; at each bound it is accepted") {
   const fs::path dir = test::scratch_dir("config-ranges");
   const std::string file = (dir / "c.yaml").string();
   auto load = [&](const KeyFile& f) {
@@ -564,8 +575,9 @@ TEST_CASE("Given each numeric key just outside its range, when the config is loa
       CHECK_FALSE(cfg.ok());
       if (cfg.ok()) continue;  // every key is still tried: a table run names all wrong bounds at once
       const std::string where = file + ":" + std::to_string(f.line) + ":" + std::to_string(f.column) + ": " + key.path;
-      CHECK(cfg.error().message == (key.kind == kVec3 ? where + ": is not valid, expected [x, y, z] with each " + p.range
-                                                      : where + ": '" + value + "' is not valid, " + p.range));
+      CHECK(cfg.error().message == (key.kind == kVec3
+                                        ? where + ": is not valid, expected [x, y, z] with each " + p.range
+                                        : where + ": '" + value + "' is not valid, " + p.range));
     }
     for (const std::string& value : {p.at_lo, p.at_hi}) {
       if ((key.reach == kHighOnly && value == p.at_lo) || (key.reach == kLowOnly && value == p.at_hi)) continue;

@@ -26,9 +26,9 @@ struct Plant {
   double sigma_px = 1.2;
   double bloom_per_efold = 0.15;  // sigma *= 1 + this * ln(A / 255) above saturation
   int rows = 768;
-  int part_rows = 600;            // the others see no part
-  double row_spread = 0.3;        // sd of ln(row factor)
-  double width_noise_px = 0.15;   // per-row measurement noise
+  int part_rows = 600;           // the others see no part
+  double row_spread = 0.3;       // sd of ln(row factor)
+  double width_noise_px = 0.15;  // per-row measurement noise
   std::vector<double> row_factor;
 
   explicit Plant(std::uint32_t seed) {
@@ -49,7 +49,8 @@ struct Plant {
     return threshold_dn * std::exp(w * w / (8.0 * sigma_px * sigma_px)) / (gain_dn_per_us * reflectivity);
   }
 
-  StripeSummary observe(double exposure_us, double reflectivity, std::mt19937& rng, double frame_jitter_px = 0.0) const {
+  StripeSummary observe(double exposure_us, double reflectivity, std::mt19937& rng,
+                        double frame_jitter_px = 0.0) const {
     std::normal_distribution<double> n01(0.0, 1.0);
     StripeSummary s;
     s.rows = rows;
@@ -72,7 +73,9 @@ struct Plant {
   }
 };
 
-bool in_band(const ExposureParams& p, float w) { return w >= p.width_min_px && w <= p.width_max_px; }
+bool in_band(const ExposureParams& p, float w) {
+  return w >= p.width_min_px && w <= p.width_max_px;
+}
 
 // Runs the loop. reflectivity(frame); the camera applies a command `delay` frames late and reports the exposure
 // each frame was really taken with. Returns per frame the median width seen and the exposure used.
@@ -134,7 +137,9 @@ int direction_changes(const Trace& t, int from) {
   return changes;
 }
 
-int frames_to_cover(double ratio, double step_ratio) { return int(std::ceil(std::log(ratio) / std::log(step_ratio))); }
+int frames_to_cover(double ratio, double step_ratio) {
+  return int(std::ceil(std::log(ratio) / std::log(step_ratio)));
+}
 
 }  // namespace
 
@@ -148,10 +153,11 @@ SCENARIO("the controller brings the width into the band from far below and from 
     THEN("after holding it probes upward, then steps into the band, and stays there") {
       // Budget: the hold, probing until the brightest rows (factor ~e^(2.5 * 0.3)) pass 1.05 T, model steps to
       // the band centre at most x max_step_ratio per frame, plus 10 frames for the smoothed final approach.
-      const double visible_us = plant.threshold_dn * 1.05 / (plant.gain_dn_per_us * refl * std::exp(2.5 * plant.row_spread));
-      const int budget = params.no_stripe_hold_frames +
-                         frames_to_cover(visible_us / params.exposure_min_us, params.probe_step_ratio) +
-                         frames_to_cover(plant.exposure_for_width(centre, refl) / visible_us, params.max_step_ratio) + 10;
+      const double visible_us =
+          plant.threshold_dn * 1.05 / (plant.gain_dn_per_us * refl * std::exp(2.5 * plant.row_spread));
+      const int budget =
+          params.no_stripe_hold_frames + frames_to_cover(visible_us / params.exposure_min_us, params.probe_step_ratio) +
+          frames_to_cover(plant.exposure_for_width(centre, refl) / visible_us, params.max_step_ratio) + 10;
       const int first = first_in_band_from(t, params, 0);
       INFO("in band at frame " << first << ", budget " << budget);
       REQUIRE(first >= 0);
@@ -165,8 +171,8 @@ SCENARIO("the controller brings the width into the band from far below and from 
     const double refl = 0.9;
     const Trace t = simulate(plant, params, params.exposure_max_us, 300, [&](int) { return refl; });
     THEN("it comes down at the rate limit into the band and stays there") {
-      const int budget = frames_to_cover(params.exposure_max_us / plant.exposure_for_width(centre, refl),
-                                         params.max_step_ratio) + 10;
+      const int budget =
+          frames_to_cover(params.exposure_max_us / plant.exposure_for_width(centre, refl), params.max_step_ratio) + 10;
       const int first = first_in_band_from(t, params, 0);
       INFO("start width " << t.width[0] << ", in band at frame " << first << ", budget " << budget);
       REQUIRE(t.width[0] > params.width_max_px);
@@ -188,9 +194,11 @@ SCENARIO("a camera that applies exposures late neither winds the loop up nor slo
     const double centre = 0.5 * (params.width_min_px + params.width_max_px);
     for (const double start_width : {2.5, 9.0}) {
       const auto start_us = std::int32_t(plant.exposure_for_width(start_width, refl));
-      const Trace t = simulate(plant, params, start_us, 120, [&](int) { return refl; }, 2, 0.0, 3);
-      THEN("from a width of " << start_width << " px the approach is monotone, reaches the band within the "
-           "rate-limit budget + the delay, and stays") {
+      const Trace t = simulate(
+          plant, params, start_us, 120, [&](int) { return refl; }, 2, 0.0, 3);
+      THEN("from a width of " << start_width
+                              << " px the approach is monotone, reaches the band within the "
+                                 "rate-limit budget + the delay, and stays") {
         // Without predicting the in-flight change, each of the 2 stale frames would repeat the step: the
         // exposure overshoots and has to turn back.
         const int first = first_in_band_from(t, params, 0);
@@ -235,7 +243,8 @@ SCENARIO("once in the band the exposure does not hunt", "[exposure]") {
   const ExposureParams params;
   const Plant plant(13);
   GIVEN("a steady part seen with per-row noise only, the camera applying exposures a frame late") {
-    const Trace t = simulate(plant, params, 200, 400, [](int) { return 0.5; }, 1, 0.0, 98);
+    const Trace t = simulate(
+        plant, params, 200, 400, [](int) { return 0.5; }, 1, 0.0, 98);
     const int first = first_in_band_from(t, params, 0);
     REQUIRE(first >= 0);
     THEN("from the first frame in the band the exposure never turns back and settles for good") {
@@ -249,7 +258,8 @@ SCENARIO("once in the band the exposure does not hunt", "[exposure]") {
     }
   }
   GIVEN("a steady part whose median width also jitters 0.2 px rms from frame to frame (geometry)") {
-    const Trace t = simulate(plant, params, 2000, 700, [](int) { return 0.5; }, 1, 0.2, 99);
+    const Trace t = simulate(
+        plant, params, 2000, 700, [](int) { return 0.5; }, 1, 0.2, 99);
     const int first = first_in_band_from(t, params, 0);
     REQUIRE(first >= 0);
     REQUIRE(first < 50);
@@ -290,7 +300,9 @@ SCENARIO("many saturated rows reduce the exposure even with the width in the ban
     WHEN("the limit is disabled (max_saturated_fraction = 1)") {
       params.max_saturated_fraction = 1.0f;
       const Trace t = simulate(plant, params, start_us, 50, [&](int) { return refl; });
-      THEN("the same start is simply held") { CHECK(t.exposure_us.back() == start_us); }
+      THEN("the same start is simply held") {
+        CHECK(t.exposure_us.back() == start_us);
+      }
     }
   }
 }
@@ -346,7 +358,8 @@ SCENARIO("the exposure never leaves its limits nor exceeds the step limit whatev
       s.saturated_rows = int(float(s.valid_rows) * u01(rng));
       s.too_wide_rows = u01(rng) < 0.1f ? 700 : 0;
       const float pick = u01(rng);
-      s.median_width_px = pick < 0.05f ? std::nanf("") : (pick < 0.1f ? -3.0f : (pick < 0.15f ? 1e9f : 15.0f * u01(rng)));
+      s.median_width_px =
+          pick < 0.05f ? std::nanf("") : (pick < 0.1f ? -3.0f : (pick < 0.15f ? 1e9f : 15.0f * u01(rng)));
       // The frame exposure is sometimes the last command, sometimes stale or garbage (<= 0: unknown).
       const float f = u01(rng);
       const std::int32_t frame_us = f < 0.7f ? last : (f < 0.9f ? std::int32_t(20000 * u01(rng)) : -5);
@@ -357,8 +370,8 @@ SCENARIO("the exposure never leaves its limits nor exceeds the step limit whatev
       const double step_min = double(last) / params.max_step_ratio - 0.5;
       const bool rate_ok = step.exposure_us <= step_max && step.exposure_us >= step_min;
       if (!in_limits || !rate_ok) {
-        INFO("frame " << k << " exposure " << step.exposure_us << " frame " << frame_us << " last " << last << " action "
-                      << cellsight::algo::to_string(step.action));
+        INFO("frame " << k << " exposure " << step.exposure_us << " frame " << frame_us << " last " << last
+                      << " action " << cellsight::algo::to_string(step.action));
         CHECK(in_limits);
         CHECK(rate_ok);
         ok = false;
@@ -366,7 +379,9 @@ SCENARIO("the exposure never leaves its limits nor exceeds the step limit whatev
       }
       last = step.exposure_us;
     }
-    THEN("every command was inside [min, max] and within one step of the previous command") { CHECK(ok); }
+    THEN("every command was inside [min, max] and within one step of the previous command") {
+      CHECK(ok);
+    }
   }
 }
 
@@ -374,9 +389,13 @@ SCENARIO("the controller is deterministic and its parameters are validated", "[e
   GIVEN("two controllers fed the same frames") {
     const ExposureParams params;
     const Plant plant(15);
-    const Trace a = simulate(plant, params, 300, 200, [](int k) { return k < 100 ? 0.9 : 0.2; }, 1, 0.2, 5);
-    const Trace b = simulate(plant, params, 300, 200, [](int k) { return k < 100 ? 0.9 : 0.2; }, 1, 0.2, 5);
-    THEN("they command identical exposures") { CHECK(a.exposure_us == b.exposure_us); }
+    const Trace a = simulate(
+        plant, params, 300, 200, [](int k) { return k < 100 ? 0.9 : 0.2; }, 1, 0.2, 5);
+    const Trace b = simulate(
+        plant, params, 300, 200, [](int k) { return k < 100 ? 0.9 : 0.2; }, 1, 0.2, 5);
+    THEN("they command identical exposures") {
+      CHECK(a.exposure_us == b.exposure_us);
+    }
   }
   GIVEN("parameter sets") {
     THEN("the defaults pass and each broken value is named in the error") {

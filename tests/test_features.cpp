@@ -189,8 +189,9 @@ SCENARIO("A cut's spectral peak equals an independent cv::dft pipeline and sits 
       }
     }
   }
-  GIVEN("a cut across a tilted plate whose last 8 samples at either end are flanges bent 30 mm back: the trend line "
-        "leaves a residual the window weighs mostly where it is positive") {
+  GIVEN(
+      "a cut across a tilted plate whose last 8 samples at either end are flanges bent 30 mm back: the trend line "
+      "leaves a residual the window weighs mostly where it is positive") {
     std::vector<double> profile;
     for (int i = 0; i < 200; ++i) profile.push_back(0.10 + 0.0004 * i - (i < 8 || i >= 192 ? 0.03 : 0.0));
     WHEN("it is analysed") {

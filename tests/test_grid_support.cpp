@@ -1,7 +1,6 @@
 // Occupancy grid, depth image and support removal against brute force and the simulator's truth labels.
-#include <catch2/catch.hpp>
-
 #include <Eigen/Geometry>
+#include <catch2/catch.hpp>
 #include <map>
 #include <random>
 #include <set>
@@ -18,7 +17,7 @@ namespace {
 // Checks a grid after accumulate() against a brute-force count of the same points: the points outside, every
 // cell, the occupied count and the depth image (front-most cell of each column). Returns the brute-force count.
 std::size_t check_against_brute_force(const algo::OccupancyGrid& grid, const std::vector<algo::ScanPoint>& points,
-                               std::size_t outside) {
+                                      std::size_t outside) {
   const algo::GridSpec& spec = grid.spec();
   std::set<std::tuple<int, int, int>> expected;
   std::map<std::pair<int, int>, int> front;  // (x, y) -> max z index
@@ -76,8 +75,9 @@ std::vector<algo::ScanPoint> random_points(int count, std::uint32_t seed) {
 
 }  // namespace
 
-TEST_CASE("Given random points, when accumulated, then the occupied cells and the depth image equal a brute-force "
-          "count, and clear() empties the grid") {
+TEST_CASE(
+    "Given random points, when accumulated, then the occupied cells and the depth image equal a brute-force "
+    "count, and clear() empties the grid") {
   algo::OccupancyGrid grid(small_grid_spec(), 5000);
   const std::vector<algo::ScanPoint> points = random_points(3000, 3);
   (void)check_against_brute_force(grid, points, grid.accumulate(points));
@@ -91,8 +91,9 @@ TEST_CASE("Given random points, when accumulated, then the occupied cells and th
   }
 }
 
-TEST_CASE("Given more occupied cells than the grid's touched list holds, when accumulated, then the overflow path "
-          "gives the brute-force cells, count and depth image, and clear() leaves no cell behind") {
+TEST_CASE(
+    "Given more occupied cells than the grid's touched list holds, when accumulated, then the overflow path "
+    "gives the brute-force cells, count and depth image, and clear() leaves no cell behind") {
   // The touched list holds 100 cells; 3000 points occupy well over a thousand.
   algo::OccupancyGrid grid(small_grid_spec(), 100);
   const std::vector<algo::ScanPoint> many = random_points(3000, 5);
@@ -105,8 +106,9 @@ TEST_CASE("Given more occupied cells than the grid's touched list holds, when ac
   (void)check_against_brute_force(grid, few, grid.accumulate(few));
 }
 
-TEST_CASE("Given a noisy plane with outliers, when the support is fitted, then the plane is recovered and removal "
-          "takes exactly the points within the threshold") {
+TEST_CASE(
+    "Given a noisy plane with outliers, when the support is fitted, then the plane is recovered and removal "
+    "takes exactly the points within the threshold") {
   std::mt19937 rng(11);
   std::normal_distribution<double> noise(0.0, 0.0003);
   std::uniform_real_distribution<double> u(0.0, 0.6), w(0.0, 1.0), z_out(0.06, 0.3);
@@ -133,8 +135,9 @@ TEST_CASE("Given a noisy plane with outliers, when the support is fitted, then t
   for (const auto& p : scan.points()) CHECK(std::abs(fit->plane.signed_distance({p.x, p.y, p.z})) >= 0.006);
 }
 
-TEST_CASE("Given carrier planes tilted either way about x and y, when the support is fitted, then the normal points "
-          "toward the camera (+z), so a point in front of the carrier is at a positive distance") {
+TEST_CASE(
+    "Given carrier planes tilted either way about x and y, when the support is fitted, then the normal points "
+    "toward the camera (+z), so a point in front of the carrier is at a positive distance") {
   // The least-squares normal (a singular vector) comes with either sign; only the orientation step makes "in front"
   // positive, which perturbation and the depth of the part above the carrier rely on. Eigen's SVD happens to return
   // +z for a plane near x-y (the shipped carrier), so the steep tilts are what would show a missing orientation.
@@ -144,9 +147,9 @@ TEST_CASE("Given carrier planes tilted either way about x and y, when the suppor
   int case_index = 0;
   for (const double tilt_x_deg : {-30.0, -12.0, 4.0, 30.0}) {
     for (const double tilt_y_deg : {-30.0, -9.0, 2.0, 30.0}) {
-      const Eigen::Vector3d normal = (Eigen::AngleAxisd(tilt_x_deg * M_PI / 180.0, Eigen::Vector3d::UnitX()) *
-                                      Eigen::AngleAxisd(tilt_y_deg * M_PI / 180.0, Eigen::Vector3d::UnitY()) *
-                                      Eigen::Vector3d::UnitZ());
+      const Eigen::Vector3d normal =
+          (Eigen::AngleAxisd(tilt_x_deg * M_PI / 180.0, Eigen::Vector3d::UnitX()) *
+           Eigen::AngleAxisd(tilt_y_deg * M_PI / 180.0, Eigen::Vector3d::UnitY()) * Eigen::Vector3d::UnitZ());
       const double offset = 0.03 + 0.01 * case_index++;
       algo::ScanBuffer scan(2000);
       for (int i = 0; i < 2000; ++i) {

@@ -1,8 +1,7 @@
 // Logging: one line per event with monotonic time and level; lines below the level are dropped.
-#include <catch2/catch.hpp>
-
 #include <unistd.h>
 
+#include <catch2/catch.hpp>
 #include <cstdio>
 #include <string>
 
@@ -33,8 +32,9 @@ std::string capture_stderr(F emit) {
 
 }  // namespace
 
-TEST_CASE("Given level info, when events of each level are logged, then debug is dropped and each line carries "
-          "monotonic seconds, level and component") {
+TEST_CASE(
+    "Given level info, when events of each level are logged, then debug is dropped and each line carries "
+    "monotonic seconds, level and component") {
   log::set_level(log::Level::kInfo);
   const std::string out = capture_stderr([] {
     CS_LOG_DEBUG("cam", "hidden %d", 1);

@@ -53,9 +53,7 @@ struct SmallCell {
   app::Config config;
 
   // Under the temporary folder, per process.
-  static SmallCell named(const std::string& name) {
-    return SmallCell(test::scratch_root() / "db" / name);
-  }
+  static SmallCell named(const std::string& name) { return SmallCell(test::scratch_root() / "db" / name); }
 
   explicit SmallCell(const fs::path& where) {
     dir = where;
@@ -129,8 +127,8 @@ TEST_CASE("teach then train then classify a small database through the executabl
   // A stale model is refused with what to run.
   const fs::path probe = cell.dir / "probe.ply";
   {
-    const Run scan = cell.run("scan --sim --part plate_5h --seed 901 --calibration " + (cell.dir / "calibration.yaml").string() +
-                              " --out " + probe.string());
+    const Run scan = cell.run("scan --sim --part plate_5h --seed 901 --calibration " +
+                              (cell.dir / "calibration.yaml").string() + " --out " + probe.string());
     INFO(scan.output);
     REQUIRE(scan.exit_code == 0);
   }
@@ -272,7 +270,8 @@ TEST_CASE("teach refuses bad scans and keeps the database as it was") {
   // A part scanned far outside the grid (shifted 2 m): refused, nothing stored.
   std::vector<algo::ScanPoint> shifted;
   for (int i = 0; i < 4000; ++i) {
-    shifted.push_back({2.0F + 0.001F * static_cast<float>(i % 200), 0.3F + 0.001F * static_cast<float>(i / 200), 0.1F, 0, 0});
+    shifted.push_back(
+        {2.0F + 0.001F * static_cast<float>(i % 200), 0.3F + 0.001F * static_cast<float>(i / 200), 0.1F, 0, 0});
   }
   const fs::path outside = cell.dir / "outside.ply";
   std::ofstream(outside, std::ios::binary) << algo::write_ply_binary(shifted);
@@ -341,8 +340,9 @@ TEST_CASE("a manifest that was edited or damaged is refused") {
   CHECK(wrong.error().message.find("149x250x91") != std::string::npos);
 }
 
-TEST_CASE("Given a manifest whose texts hold quotes and backslashes, when it is saved and read back, then every "
-          "text is the same (fuzz_manifest finding)") {
+TEST_CASE(
+    "Given a manifest whose texts hold quotes and backslashes, when it is saved and read back, then every "
+    "text is the same (fuzz_manifest finding)") {
   // Found by tests/fuzz/fuzz_manifest: parts_fingerprint was written between quotes without escaping, so a manifest
   // that read fine (a quote in a plain scalar, checksum right) was saved as one that no longer parsed.
   app::Manifest m;
@@ -426,8 +426,10 @@ TEST_CASE("fixture: a small trained database for the PLC integration test", "[.]
   CHECK(db->svm_stale_reason().empty());
 }
 
-TEST_CASE("opening the database to write removes the temporary files an interrupted write left, only those, and "
-          "says so", "[model_db]") {
+TEST_CASE(
+    "opening the database to write removes the temporary files an interrupted write left, only those, and "
+    "says so",
+    "[model_db]") {
   const SmallCell cell = SmallCell::named("orphans");
   const fs::path models(cell.models);
   fs::create_directories(models / "templates");
@@ -439,8 +441,8 @@ TEST_CASE("opening the database to write removes the temporary files an interrup
                                          models / "manifest.yaml.tmp-0aZ9kk"};
   for (const fs::path& p : orphans) touch(p);
   // ... and files that are not ours or not of that pattern.
-  const std::vector<fs::path> others = {models / "templates" / "plate.dmap.bak", models / "notes.tmp-1",
-                                        models / "templates" / "plate.dmap.tmp-abc12", models / "plate.tmp-abcdefg",
+  const std::vector<fs::path> others = {models / "templates" / "plate.dmap.bak",        models / "notes.tmp-1",
+                                        models / "templates" / "plate.dmap.tmp-abc12",  models / "plate.tmp-abcdefg",
                                         models / "templates" / "plate.dmap.tmp-ab_12c", models / ".tmp-abcdef"};
   for (const fs::path& p : others) touch(p);
   fs::create_directories(models / "kept.tmp-abcdef");  // a folder of that name is not a file write_file_atomic made
@@ -518,8 +520,10 @@ TEST_CASE("parts list checks every template and the SVM as loading them does, ma
   fs::remove_all(cell.dir);
 }
 
-TEST_CASE("a teach and a train killed between their files and the manifest leave the database as it was; the next "
-          "writer removes what they wrote", "[model_db][crash]") {
+TEST_CASE(
+    "a teach and a train killed between their files and the manifest leave the database as it was; the next "
+    "writer removes what they wrote",
+    "[model_db][crash]") {
   const SmallCell cell = SmallCell::named("killed");
   const fs::path models(cell.models);
   for (const char* part : {"plate_4h", "bracket_l"}) {

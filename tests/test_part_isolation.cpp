@@ -61,7 +61,9 @@ SCENARIO("A neighbour's part at the field's edge and loose specks are separated 
       add_sheet(points, 0.57, 0.61, 0.30, 0.80, 0.21, kStray);
       algo::ScanBuffer b = buffer_of(points);
       const algo::IsolationReport r = isolator.isolate(b, 0.0165, 0.64);
-      THEN("it stays: only material at the field's edge is a neighbour's") { CHECK(r.dropped_pieces == 0); }
+      THEN("it stays: only material at the field's edge is a neighbour's") {
+        CHECK(r.dropped_pieces == 0);
+      }
     }
     WHEN("a 40 mm sheet strip enters from the scanned range's right end, 20 mm away from the plate") {
       add_sheet(points, 0.57, 0.61, 0.30, 0.80, 0.21, kStray);
@@ -184,7 +186,9 @@ SCENARIO("The chain the part hangs from is cut off where it meets the part; the 
       algo::ScanBuffer b = buffer_of(points);
       const std::size_t before = b.size();
       (void)isolator.remove_hanger(b, kFieldTop);
-      THEN("it is wider than any hanger and stays") { CHECK(b.size() == before); }
+      THEN("it is wider than any hanger and stays") {
+        CHECK(b.size() == before);
+      }
     }
     WHEN("nothing rises above the plate") {
       algo::ScanBuffer b = buffer_of(points);

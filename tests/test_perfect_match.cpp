@@ -668,10 +668,12 @@ SCENARIO("Points off the part's surface do not pull the pose", "[perfect_match][
   }
 }
 
-SCENARIO("A part swung about the hook's vertical axis is levelled in depth, so its inclined relief does not turn the pose",
-         "[perfect_match][level]") {
-  GIVEN("louvred_panel (inclined louvres) and channel_u (side flanges), swung by +-1.5 deg about the vertical through "
-        "the hook and displaced in the plane") {
+SCENARIO(
+    "A part swung about the hook's vertical axis is levelled in depth, so its inclined relief does not turn the pose",
+    "[perfect_match][level]") {
+  GIVEN(
+      "louvred_panel (inclined louvres) and channel_u (side flanges), swung by +-1.5 deg about the vertical through "
+      "the hook and displaced in the plane") {
     for (const char* name : {"louvred_panel", "channel_u"}) {
       const Template& t = cached_template(name);
       const auto points = part_points(name, 0.0013, 0.31);

@@ -1,9 +1,8 @@
 // Seeded scan perturbations against independent truth: a synthetic raw scan (a plate with a hole in front of a
 // carrier plane, sampled like the sensor), statistics, brute-force distances and analytic geometry.
-#include <catch2/catch.hpp>
-
 #include <algorithm>
 #include <array>
+#include <catch2/catch.hpp>
 #include <cmath>
 #include <map>
 #include <numbers>
@@ -57,9 +56,15 @@ std::vector<ScanPoint> make_scan(const Synthetic& s = {}) {
   return points;
 }
 
-double depth_of(const ScanPoint& p) { return carrier_plane().signed_distance(Eigen::Vector3d(p.x, p.y, p.z)); }
-bool is_part(const ScanPoint& p) { return depth_of(p) >= kBand_m; }
-bool same(const ScanPoint& a, const ScanPoint& b) { return a.x == b.x && a.y == b.y && a.z == b.z; }
+double depth_of(const ScanPoint& p) {
+  return carrier_plane().signed_distance(Eigen::Vector3d(p.x, p.y, p.z));
+}
+bool is_part(const ScanPoint& p) {
+  return depth_of(p) >= kBand_m;
+}
+bool same(const ScanPoint& a, const ScanPoint& b) {
+  return a.x == b.x && a.y == b.y && a.z == b.z;
+}
 
 // The kinds that only remove points keep the others in order: which of `before` are still there.
 std::vector<char> kept_flags(const std::vector<ScanPoint>& before, const std::vector<ScanPoint>& after) {
@@ -131,16 +136,19 @@ TEST_CASE("Given a scan, when dropout runs, then 3 +- 0.5 % of the points are lo
     int single = 0, in_run = 0;
     for (std::size_t i = 1; i + 1 < before.size(); ++i) {
       if (kept[i] != 0) continue;
-      if (kept[i - 1] != 0 && kept[i + 1] != 0) ++single;
-      else ++in_run;
+      if (kept[i - 1] != 0 && kept[i + 1] != 0)
+        ++single;
+      else
+        ++in_run;
     }
     CHECK(single > 0);
     CHECK(in_run > 0);
   }
 }
 
-TEST_CASE("Given a part, when glare hits it, then >= 90 % of its points in the band are lost, none outside, and "
-          "the carrier is untouched") {
+TEST_CASE(
+    "Given a part, when glare hits it, then >= 90 % of its points in the band are lost, none outside, and "
+    "the carrier is untouched") {
   const auto before = make_scan();
   std::map<int, int> orientations;  // 0 vertical, 1 horizontal, 2 oblique
   for (std::uint64_t seed = 1; seed <= 12; ++seed) {
@@ -175,8 +183,9 @@ TEST_CASE("Given a part, when glare hits it, then >= 90 % of its points in the b
   CHECK(orientations.size() == 3);
 }
 
-TEST_CASE("Given a part, when a stray edge enters, then its points are in front of the carrier, >= 15 mm from "
-          "every part point, sampled like the scan and touching an end of the scanned x range") {
+TEST_CASE(
+    "Given a part, when a stray edge enters, then its points are in front of the carrier, >= 15 mm from "
+    "every part point, sampled like the scan and touching an end of the scanned x range") {
   const auto before = make_scan();
   // Part points hashed on a 15 mm grid: the 3 x 3 neighbouring cells hold every point nearer than 15 mm.
   constexpr double kCell_m = 0.015;
@@ -215,7 +224,8 @@ TEST_CASE("Given a part, when a stray edge enters, then its points are in front 
         for (std::int64_t j = -1; j <= 1; ++j) {
           const auto it = part.find(key((cx + i + 0.5) * kCell_m, (cy + j + 0.5) * kCell_m));
           if (it == part.end()) continue;
-          for (const Eigen::Vector2d& q : it->second) nearest = std::min(nearest, (q - Eigen::Vector2d(p.x, p.y)).norm());
+          for (const Eigen::Vector2d& q : it->second)
+            nearest = std::min(nearest, (q - Eigen::Vector2d(p.x, p.y)).norm());
         }
       }
     }
@@ -234,8 +244,9 @@ TEST_CASE("Given a part, when a stray edge enters, then its points are in front 
   CHECK(sides.size() == 2);
 }
 
-TEST_CASE("Given a part, when chain and stray points are added, then a narrow strip rises from the part's top "
-          "edge and 0.2 % outliers lie in front of the carrier") {
+TEST_CASE(
+    "Given a part, when chain and stray points are added, then a narrow strip rises from the part's top "
+    "edge and 0.2 % outliers lie in front of the carrier") {
   const auto before = make_scan();
   auto after = before;
   const auto r = algo::perturb_scan(after, spec_of("stray_points"), carrier_plane(), 5);
@@ -244,7 +255,7 @@ TEST_CASE("Given a part, when chain and stray points are added, then a narrow st
   CHECK(width >= 0.006 - 1e-6);
   CHECK(width <= 0.010 + 1e-6);
   CHECK(r.chain.y_min_m == Approx(0.85).margin(0.0021));  // the plate's top edge
-  CHECK(r.chain.y_max_m == Approx(1.0).margin(0.0021));     // up to the top of the scan
+  CHECK(r.chain.y_max_m == Approx(1.0).margin(0.0021));   // up to the top of the scan
   CHECK(r.chain.depth_m == Approx(kPlateDepth_m).margin(1e-4));
   CHECK(r.outliers == static_cast<std::size_t>(std::lround(0.002 * static_cast<double>(before.size()))));
   const std::size_t added = r.chain.points + r.outliers;
@@ -369,8 +380,8 @@ TEST_CASE("Given perturbation texts, the parser takes kinds, strengths, shares a
 
   const auto bad = algo::parse_perturb("noise,sparkle:2");
   REQUIRE_FALSE(bad.ok());
-  CHECK_THAT(bad.error().message, Catch::Contains("'sparkle'") && Catch::Contains("stray_edge") &&
-                                      Catch::Contains("mixed"));
+  CHECK_THAT(bad.error().message,
+             Catch::Contains("'sparkle'") && Catch::Contains("stray_edge") && Catch::Contains("mixed"));
   CHECK_FALSE(algo::parse_perturb("noise:0").ok());
   CHECK_FALSE(algo::parse_perturb("noise:x").ok());
   CHECK_FALSE(algo::parse_perturb("glare@1.5").ok());

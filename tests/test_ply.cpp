@@ -14,7 +14,8 @@ namespace {
 std::vector<algo::ScanPoint> sample_points() {
   std::vector<algo::ScanPoint> pts;
   for (int i = 0; i < 257; ++i) {
-    pts.push_back({0.001F * i, 1.0F - 0.002F * i, 0.1F + 0.0001F * i, static_cast<std::uint16_t>(i / 10), static_cast<std::uint16_t>(i)});
+    pts.push_back({0.001F * i, 1.0F - 0.002F * i, 0.1F + 0.0001F * i, static_cast<std::uint16_t>(i / 10),
+                   static_cast<std::uint16_t>(i)});
   }
   return pts;
 }
@@ -48,11 +49,13 @@ TEST_CASE("Given points, when written as binary or ASCII PLY and read back, then
   }
 }
 
-TEST_CASE("Given a binary PLY from another tool (double x y z, colour, normals, a face element first), when read, "
-          "then the vertices come through and the rest is skipped") {
-  std::string f = "ply\nformat binary_little_endian 1.0\ncomment other scanner\nelement face 2\n"
-                  "property list uchar int vertex_indices\nelement vertex 3\nproperty double x\nproperty uchar red\n"
-                  "property double y\nproperty float nx\nproperty double z\nend_header\n";
+TEST_CASE(
+    "Given a binary PLY from another tool (double x y z, colour, normals, a face element first), when read, "
+    "then the vertices come through and the rest is skipped") {
+  std::string f =
+      "ply\nformat binary_little_endian 1.0\ncomment other scanner\nelement face 2\n"
+      "property list uchar int vertex_indices\nelement vertex 3\nproperty double x\nproperty uchar red\n"
+      "property double y\nproperty float nx\nproperty double z\nend_header\n";
   for (int face = 0; face < 2; ++face) {
     append<std::uint8_t>(f, 3);
     for (int k = 0; k < 3; ++k) append<std::int32_t>(f, k);
@@ -73,8 +76,9 @@ TEST_CASE("Given a binary PLY from another tool (double x y z, colour, normals, 
 }
 
 TEST_CASE("Given an ASCII PLY with extra columns and CRLF lines, when read, then x, y, z are taken by name") {
-  const std::string f = "ply\r\nformat ascii 1.0\r\nelement vertex 2\r\nproperty float z\r\nproperty float intensity\r\n"
-                        "property float x\r\nproperty float y\r\nend_header\r\n0.3 99 0.1 0.2\r\n-1e-3 5 4 5.5\r\n";
+  const std::string f =
+      "ply\r\nformat ascii 1.0\r\nelement vertex 2\r\nproperty float z\r\nproperty float intensity\r\n"
+      "property float x\r\nproperty float y\r\nend_header\r\n0.3 99 0.1 0.2\r\n-1e-3 5 4 5.5\r\n";
   auto pts = algo::parse_ply(f);
   REQUIRE(pts.ok());
   REQUIRE(pts->size() == 2);
@@ -84,23 +88,43 @@ TEST_CASE("Given an ASCII PLY with extra columns and CRLF lines, when read, then
 }
 
 TEST_CASE("Given malformed PLY files, when read, then each is refused with what is wrong") {
-  const std::string head = "ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n";
+  const std::string head =
+      "ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float "
+      "z\nend_header\n";
   CHECK(parse_error("PLY\nformat ascii 1.0\n").find("not a PLY file") != std::string::npos);
-  CHECK(parse_error("ply\nformat binary_big_endian 1.0\nelement vertex 0\nend_header\n").find("binary_big_endian' is not supported") != std::string::npos);
-  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n").find("end_header") != std::string::npos);
-  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n1 2\n").find("lacks x, y or z") != std::string::npos);
-  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 1\nproperty int x\nproperty float y\nproperty float z\nend_header\n1 2 3\n").find("must be float or double") != std::string::npos);
-  CHECK(parse_error("ply\nformat ascii 1.0\nelement face 1\nproperty list uchar int i\nend_header\n").find("no 'element vertex'") != std::string::npos);
-  CHECK(parse_error("ply\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n").find("no format line") != std::string::npos);
+  CHECK(parse_error("ply\nformat binary_big_endian 1.0\nelement vertex 0\nend_header\n")
+            .find("binary_big_endian' is not supported") != std::string::npos);
+  CHECK(
+      parse_error("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n").find("end_header") !=
+      std::string::npos);
+  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n1 2\n")
+            .find("lacks x, y or z") != std::string::npos);
+  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 1\nproperty int x\nproperty float y\nproperty float "
+                    "z\nend_header\n1 2 3\n")
+            .find("must be float or double") != std::string::npos);
+  CHECK(parse_error("ply\nformat ascii 1.0\nelement face 1\nproperty list uchar int i\nend_header\n")
+            .find("no 'element vertex'") != std::string::npos);
+  CHECK(parse_error("ply\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n")
+            .find("no format line") != std::string::npos);
   CHECK(parse_error(head + std::string(20, '\0')).find("truncated at vertex 1 of 2") != std::string::npos);
-  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n4 5\n").find("missing number at vertex 1") != std::string::npos);
-  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 nan 3\n").find("vertex 0") != std::string::npos);
-  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 99999999999\nproperty float x\nproperty float y\nproperty float z\nend_header\n").find("more than a scan can have") != std::string::npos);
-  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty quux z\nend_header\n").find("unknown property type 'quux'") != std::string::npos);
+  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float "
+                    "z\nend_header\n1 2 3\n4 5\n")
+            .find("missing number at vertex 1") != std::string::npos);
+  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float "
+                    "z\nend_header\n1 nan 3\n")
+            .find("vertex 0") != std::string::npos);
+  CHECK(parse_error("ply\nformat ascii 1.0\nelement vertex 99999999999\nproperty float x\nproperty float y\nproperty "
+                    "float z\nend_header\n")
+            .find("more than a scan can have") != std::string::npos);
+  CHECK(
+      parse_error(
+          "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty quux z\nend_header\n")
+          .find("unknown property type 'quux'") != std::string::npos);
 }
 
-TEST_CASE("Given a valid file with random bytes corrupted or cut, when read, then it either parses or is refused, "
-          "never crashes") {
+TEST_CASE(
+    "Given a valid file with random bytes corrupted or cut, when read, then it either parses or is refused, "
+    "never crashes") {
   const std::string good = algo::write_ply_binary(sample_points());
   const std::string good_ascii = algo::write_ply_ascii(sample_points());
   std::mt19937 rng(5);
@@ -119,8 +143,9 @@ TEST_CASE("Given a valid file with random bytes corrupted or cut, when read, the
   CHECK(refused > 100);
 }
 
-TEST_CASE("Given a header that does not end within 64 kB, when read, then it is refused from those bytes (a file "
-          "that is no scan is not searched to its end)") {
+TEST_CASE(
+    "Given a header that does not end within 64 kB, when read, then it is refused from those bytes (a file "
+    "that is no scan is not searched to its end)") {
   const std::string comments(70000, '\n');
   const std::string text = "ply\nformat ascii 1.0\n" + comments +
                            "element vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
@@ -132,12 +157,14 @@ TEST_CASE("Given a header that does not end within 64 kB, when read, then it is 
         "PLY: no end_header: the header is truncated");
 }
 
-TEST_CASE("Given a header whose end_header line ends just past the header limit, when read whole or judged from "
-          "its first bytes, then both refuse it alike (fuzz_ply finding)") {
+TEST_CASE(
+    "Given a header whose end_header line ends just past the header limit, when read whole or judged from "
+    "its first bytes, then both refuse it alike (fuzz_ply finding)") {
   // Found by tests/fuzz/fuzz_ply: parse_ply looked for the line break after end_header in the whole text, the file
   // check (formats/input_file) in the first max_header_bytes, so the in-memory reader took what classify refused.
-  const std::string head = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
-                           "property float z\nend_header";
+  const std::string head =
+      "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+      "property float z\nend_header";
   const algo::PlyLimits limits{.max_vertices = 16, .max_header_bytes = head.size() + 1};
   const std::string text = head + "\r\n1 2 3\n";  // '\r' is the last byte within the limit, '\n' the first past it
   const auto whole = algo::parse_ply(text, limits);
@@ -153,33 +180,39 @@ TEST_CASE("Given a header whose end_header line ends just past the header limit,
   CHECK(algo::parse_ply_header(text.substr(0, roomier.max_header_bytes), roomier).ok());
 }
 
-TEST_CASE("Given double coordinates beyond float range, when read, then the scan is refused instead of holding "
-          "infinities (fuzz_ply finding)") {
+TEST_CASE(
+    "Given double coordinates beyond float range, when read, then the scan is refused instead of holding "
+    "infinities (fuzz_ply finding)") {
   // Found by tests/fuzz/fuzz_ply: a finite double such as 1e300 passed the finiteness check and became +inf in the
   // float a scan point stores.
-  const std::string ascii = "ply\nformat ascii 1.0\nelement vertex 2\nproperty double x\nproperty double y\n"
-                            "property double z\nend_header\n0.1 0.2 0.3\n0.1 -1e300 0.3\n";
+  const std::string ascii =
+      "ply\nformat ascii 1.0\nelement vertex 2\nproperty double x\nproperty double y\n"
+      "property double z\nend_header\n0.1 0.2 0.3\n0.1 -1e300 0.3\n";
   CHECK(parse_error(ascii) == "PLY: vertex 1 has a non-finite coordinate or one beyond float range");
-  std::string binary = "ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty double x\n"
-                       "property double y\nproperty double z\nend_header\n";
+  std::string binary =
+      "ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty double x\n"
+      "property double y\nproperty double z\nend_header\n";
   append<double>(binary, 3.5e38);
   append<double>(binary, 0.0);
   append<double>(binary, 0.0);
   CHECK(parse_error(binary) == "PLY: vertex 0 has a non-finite coordinate or one beyond float range");
   // The largest float itself is still a number a scan may hold.
-  const std::string largest = "ply\nformat ascii 1.0\nelement vertex 1\nproperty double x\nproperty double y\n"
-                              "property double z\nend_header\n3.4028234663852886e38 0 -3.4028234663852886e38\n";
+  const std::string largest =
+      "ply\nformat ascii 1.0\nelement vertex 1\nproperty double x\nproperty double y\n"
+      "property double z\nend_header\n3.4028234663852886e38 0 -3.4028234663852886e38\n";
   const auto points = algo::parse_ply(largest);
   REQUIRE(points.ok());
   CHECK((*points)[0].x == std::numeric_limits<float>::max());
 }
 
-TEST_CASE("Given an element without properties and a huge count before the vertices, when read, then the vertices "
-          "come at once (found writing fuzz_ply)") {
+TEST_CASE(
+    "Given an element without properties and a huge count before the vertices, when read, then the vertices "
+    "come at once (found writing fuzz_ply)") {
   // Found writing tests/fuzz/fuzz_ply: the rows of such an element were skipped one by one, 2^64 - 1 of them, so a
   // 130-byte file held classify for ever (its rows take no bytes, so the size check cannot catch it).
   for (const std::string format : {"ascii", "binary_little_endian"}) {
-    std::string text = "ply\nformat " + format + " 1.0\nelement nothing 18446744073709551615\nelement vertex 1\n"
+    std::string text = "ply\nformat " + format +
+                       " 1.0\nelement nothing 18446744073709551615\nelement vertex 1\n"
                        "property float x\nproperty float y\nproperty float z\nend_header\n";
     if (format == "ascii") {
       text += "1 2 3\n";
@@ -195,11 +228,13 @@ TEST_CASE("Given an element without properties and a huge count before the verti
   }
 }
 
-TEST_CASE("Given a header alone, when checked, then it tells where the data starts and the least data its elements "
-          "need") {
-  const std::string binary = "ply\nformat binary_little_endian 1.0\nelement face 3\nproperty list uchar int i\n"
-                             "element vertex 5\nproperty double x\nproperty double y\nproperty double z\n"
-                             "property uchar red\nend_header\n";
+TEST_CASE(
+    "Given a header alone, when checked, then it tells where the data starts and the least data its elements "
+    "need") {
+  const std::string binary =
+      "ply\nformat binary_little_endian 1.0\nelement face 3\nproperty list uchar int i\n"
+      "element vertex 5\nproperty double x\nproperty double y\nproperty double z\n"
+      "property uchar red\nend_header\n";
   auto b = algo::parse_ply_header(binary);
   REQUIRE(b.ok());
   CHECK(b->binary);
@@ -212,14 +247,16 @@ TEST_CASE("Given a header alone, when checked, then it tells where the data star
   REQUIRE(w.ok());
   CHECK(w->min_data_bytes == written.size() - w->data_start);
   // ASCII: a digit and a separator per value, the last value without one.
-  auto a = algo::parse_ply_header("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
-                                  "property float z\nend_header\n");
+  auto a = algo::parse_ply_header(
+      "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+      "property float z\nend_header\n");
   REQUIRE(a.ok());
   CHECK(a->min_data_bytes == 11);
   // Counts that cannot fit in memory saturate instead of wrapping round to a small number.
-  auto huge = algo::parse_ply_header("ply\nformat binary_little_endian 1.0\nelement face 18446744073709551615\n"
-                                     "property int i\nelement vertex 1\nproperty float x\nproperty float y\n"
-                                     "property float z\nend_header\n");
+  auto huge = algo::parse_ply_header(
+      "ply\nformat binary_little_endian 1.0\nelement face 18446744073709551615\n"
+      "property int i\nelement vertex 1\nproperty float x\nproperty float y\n"
+      "property float z\nend_header\n");
   REQUIRE(huge.ok());
   CHECK(huge->min_data_bytes == SIZE_MAX);
 }

@@ -1,10 +1,9 @@
 // Random part catalogues: reproducible from a seed, buildable, inside the grid, near twins that differ by exactly
 // their stated relation, and a file that reads back into the same parts.
-#include <catch2/catch.hpp>
-
 #include <unistd.h>
 
 #include <algorithm>
+#include <catch2/catch.hpp>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -28,7 +27,9 @@ app::Config shipped_config() {
   return *cfg;
 }
 
-fs::path fresh_dir() { return test::numbered_scratch_dir("random-catalogue"); }
+fs::path fresh_dir() {
+  return test::numbered_scratch_dir("random-catalogue");
+}
 
 // One physical feature on the sheet (repeats expanded, independently of the generator): kind, centre and size in
 // micrometres, direction, edge. Rise and angle are kept apart so "other relief" can compare footprints alone.
@@ -39,7 +40,9 @@ struct Instance {
   auto operator<=>(const Instance&) const = default;
 };
 
-long um(double mm) { return std::lround(mm * 1000.0); }
+long um(double mm) {
+  return std::lround(mm * 1000.0);
+}
 
 std::vector<Instance> instances(const sim::PartSpec& part, bool mirror = false) {
   std::vector<Instance> out;
@@ -76,11 +79,14 @@ std::vector<Instance> minus(const std::vector<Instance>& a, const std::vector<In
 std::vector<Eigen::Vector2d> outline_set(const sim::PartSpec& part, bool mirror = false) {
   std::vector<Eigen::Vector2d> out = part.outline_mm;
   for (auto& p : out) p.x() *= mirror ? -1.0 : 1.0;
-  std::sort(out.begin(), out.end(), [](const auto& p, const auto& q) { return std::pair(p.x(), p.y()) < std::pair(q.x(), q.y()); });
+  std::sort(out.begin(), out.end(),
+            [](const auto& p, const auto& q) { return std::pair(p.x(), p.y()) < std::pair(q.x(), q.y()); });
   return out;
 }
 
-int kind_of(const Instance& i) { return std::get<0>(i.footprint); }
+int kind_of(const Instance& i) {
+  return std::get<0>(i.footprint);
+}
 
 // Checks that `twin` is `base` changed by exactly `relation`, against the feature instances.
 void check_relation(const sim::PartSpec& base, const sim::PartSpec& twin, sim::TwinRelation relation) {
@@ -151,8 +157,9 @@ void check_relation(const sim::PartSpec& base, const sim::PartSpec& twin, sim::T
 
 }  // namespace
 
-TEST_CASE("Given a seed, when the catalogue is generated twice, then the files are byte-identical; another seed "
-          "gives another catalogue") {
+TEST_CASE(
+    "Given a seed, when the catalogue is generated twice, then the files are byte-identical; another seed "
+    "gives another catalogue") {
   const std::string first = app::catalogue_yaml(sim::random_catalogue(12, 7), "");
   const std::string again = app::catalogue_yaml(sim::random_catalogue(12, 7), "");
   const std::string other = app::catalogue_yaml(sim::random_catalogue(12, 8), "");
@@ -161,8 +168,9 @@ TEST_CASE("Given a seed, when the catalogue is generated twice, then the files a
   CHECK(first.size() > 2000);
 }
 
-TEST_CASE("Given random catalogues, when every part is checked, then it is in the size range, buildable, laid out "
-          "with margins, and inside the grid at the pose extremes") {
+TEST_CASE(
+    "Given random catalogues, when every part is checked, then it is in the size range, buildable, laid out "
+    "with margins, and inside the grid at the pose extremes") {
   const app::Config config = shipped_config();
   for (const auto& [count, seed] : {std::pair{12, 1ULL}, std::pair{12, 7ULL}, std::pair{40, 99ULL}}) {
     const auto parts = sim::random_catalogue(count, seed);
@@ -192,8 +200,9 @@ TEST_CASE("Given random catalogues, when every part is checked, then it is in th
   }
 }
 
-TEST_CASE("Given a catalogue of 40 parts, when parts outside the twin pairs are compared, then no two share a shape, "
-          "and every outline and feature kind occurs") {
+TEST_CASE(
+    "Given a catalogue of 40 parts, when parts outside the twin pairs are compared, then no two share a shape, "
+    "and every outline and feature kind occurs") {
   const auto cat = sim::generate_random_catalogue(40, 11);
   std::set<std::size_t> paired;
   for (const auto& t : cat.twins) paired.insert({t.base, t.twin});
@@ -239,8 +248,9 @@ TEST_CASE("Given a hand-made layout with a clash, when it is checked, then the c
   CHECK(sim::check_layout(part, sim::kLayoutMarginMm) == "");
 }
 
-TEST_CASE("Given catalogues of several sizes, when twins and roles are counted, then the pairs and the untaught "
-          "parts are as specified and each pair differs by exactly its relation") {
+TEST_CASE(
+    "Given catalogues of several sizes, when twins and roles are counted, then the pairs and the untaught "
+    "parts are as specified and each pair differs by exactly its relation") {
   for (int count : {2, 3, 4, 5, 8, 11, 12, 30}) {
     for (std::uint64_t seed : {1ULL, 2ULL, 3ULL}) {
       INFO("N " << count << " seed " << seed);
@@ -288,8 +298,9 @@ TEST_CASE("Given catalogues of several sizes, when twins and roles are counted, 
   }
 }
 
-TEST_CASE("Given a generated catalogue, when it is written and loaded back, then the specs are exactly the same; "
-          "the CLI path refuses to overwrite") {
+TEST_CASE(
+    "Given a generated catalogue, when it is written and loaded back, then the specs are exactly the same; "
+    "the CLI path refuses to overwrite") {
   const app::Config config = shipped_config();
   const fs::path dir = fresh_dir();
   const std::string path = (dir / "random.yaml").string();
@@ -341,7 +352,8 @@ TEST_CASE("Given a generated part, when a simulated pass is rendered, then the s
     for (const auto& t : truth) {
       if (!t.is_part) continue;
       ++on_part;
-      bright += image.at<std::uint8_t>(static_cast<int>(std::lround(t.pixel.y())), static_cast<int>(std::lround(t.pixel.x()))) > 60;
+      bright += image.at<std::uint8_t>(static_cast<int>(std::lround(t.pixel.y())),
+                                       static_cast<int>(std::lround(t.pixel.x()))) > 60;
     }
   }
   INFO(parts.front().name << ": " << on_part << " part points, " << bright << " bright");
@@ -349,8 +361,9 @@ TEST_CASE("Given a generated part, when a simulated pass is rendered, then the s
   CHECK(bright > on_part * 3 / 4);
 }
 
-TEST_CASE("Given the optional family and role keys, when a catalogue is loaded, then they are read, a bad role is "
-          "named, and parts without them keep loading") {
+TEST_CASE(
+    "Given the optional family and role keys, when a catalogue is loaded, then they are read, a bad role is "
+    "named, and parts without them keep loading") {
   const fs::path dir = fresh_dir();
   auto load = [&](const std::string& yaml) {
     const std::string path = (dir / "parts.yaml").string();
@@ -358,8 +371,9 @@ TEST_CASE("Given the optional family and role keys, when a catalogue is loaded, 
     std::ofstream(path) << yaml;
     return app::load_catalogue(path);
   };
-  auto parts = load("parts:\n  - {name: a, width_mm: 400, height_mm: 700, family: f1, role: untaught}\n"
-                    "  - {name: b, width_mm: 400, height_mm: 700}\n");
+  auto parts = load(
+      "parts:\n  - {name: a, width_mm: 400, height_mm: 700, family: f1, role: untaught}\n"
+      "  - {name: b, width_mm: 400, height_mm: 700}\n");
   REQUIRE(parts.ok());
   CHECK((*parts)[0].family == "f1");
   CHECK((*parts)[0].role == sim::PartRole::kUntaught);
@@ -374,6 +388,7 @@ TEST_CASE("Given the optional family and role keys, when a catalogue is loaded, 
   CHECK(typo.error().message.find("parts[0].familly: unknown key") != std::string::npos);
   auto shipped = app::load_catalogue(CELLSIGHT_SOURCE_DIR "/config/parts.yaml");
   REQUIRE(shipped.ok());
-  CHECK(std::all_of(shipped->begin(), shipped->end(), [](const auto& p) { return p.role == sim::PartRole::kUnspecified; }));
+  CHECK(std::all_of(shipped->begin(), shipped->end(),
+                    [](const auto& p) { return p.role == sim::PartRole::kUnspecified; }));
   fs::remove_all(dir);
 }

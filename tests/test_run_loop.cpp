@@ -1301,7 +1301,9 @@ std::string write_true_calibration(const app::Config& config, const std::filesys
   return path;
 }
 
-std::filesystem::path fresh_dir(const std::string& name) { return test::scratch_dir("run-" + name); }
+std::filesystem::path fresh_dir(const std::string& name) {
+  return test::scratch_dir("run-" + name);
+}
 
 int free_tcp_port() {
   const int fd = socket(AF_INET, SOCK_STREAM, 0);

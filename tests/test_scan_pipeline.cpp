@@ -21,7 +21,6 @@ using namespace cellsight;
 
 namespace {
 
-
 // Euclidean distance from p to the nearest point of any facet of the scene (plane distance combined with how far
 // the foot point lies outside the facet's area, searched on rings of 0.25 mm up to 5 mm).
 double distance_to_scene(const sim::Scene& scene, const Eigen::Vector3d& p, bool& on_part) {
@@ -184,30 +183,39 @@ PassResult scan_and_measure(const app::Config& cfg, const sim::PassSpec& pass) {
 
 }  // namespace
 
-TEST_CASE("Given simulated passes of several parts and coatings, when scanned, then the points lie on the true "
-          "surface (RMS <= 0.5 mm, p99 <= 2 mm) and cover >= 95 % of what the camera sees") {
+TEST_CASE(
+    "Given simulated passes of several parts and coatings, when scanned, then the points lie on the true "
+    "surface (RMS <= 0.5 mm, p99 <= 2 mm) and cover >= 95 % of what the camera sees") {
   auto cfg = app::load_config(CELLSIGHT_SOURCE_DIR "/config/cellsight.yaml");
   REQUIRE(cfg.ok());
   auto cell = app::make_sim_cell(*cfg);
   REQUIRE(cell.ok());
-  for (const auto& [part, seed] : std::vector<std::pair<std::string, int>>{{"ribbed_v4", 1}, {"louvred_panel", 2}, {"perforated_fine", 3}, {"bracket_l", 4}, {"tray", 5}, {"channel_u", 6}}) {
+  for (const auto& [part, seed] : std::vector<std::pair<std::string, int>>{{"ribbed_v4", 1},
+                                                                           {"louvred_panel", 2},
+                                                                           {"perforated_fine", 3},
+                                                                           {"bracket_l", 4},
+                                                                           {"tray", 5},
+                                                                           {"channel_u", 6}}) {
     auto pass = cell->random_pass(part, seed);
     REQUIRE(pass.ok());
     const PassResult r = scan_and_measure(*cfg, *pass);
     INFO(part << " (" << pass->coating_a.name << "): " << r.points << " points, RMS " << r.rms_mm << " mm, p99 "
-              << r.p99_mm << " mm, coverage " << r.coverage * 100 << " % (of all visible points " << r.coverage_geometric * 100
-              << " %), frames in band " << r.frames_in_band << "/" << r.frames_with_stripe);
+              << r.p99_mm << " mm, coverage " << r.coverage * 100 << " % (of all visible points "
+              << r.coverage_geometric * 100 << " %), frames in band " << r.frames_in_band << "/"
+              << r.frames_with_stripe);
     WARN(part << " (" << pass->coating_a.name << "): " << r.points << " points, RMS " << r.rms_mm << " mm, p99 "
-              << r.p99_mm << " mm, coverage " << r.coverage * 100 << " % (of all visible points " << r.coverage_geometric * 100
-              << " %), frames in band " << r.frames_in_band << "/" << r.frames_with_stripe);
+              << r.p99_mm << " mm, coverage " << r.coverage * 100 << " % (of all visible points "
+              << r.coverage_geometric * 100 << " %), frames in band " << r.frames_in_band << "/"
+              << r.frames_with_stripe);
     CHECK(r.rms_mm <= 0.5);
     CHECK(r.p99_mm <= 2.0);
     CHECK(r.coverage >= 0.95);
   }
 }
 
-TEST_CASE("Given a part whose coating changes from bare metal to matt mid-part, when scanned, then the exposure loop "
-          "keeps the median stripe width in its band in >= 95 % of the frames") {
+TEST_CASE(
+    "Given a part whose coating changes from bare metal to matt mid-part, when scanned, then the exposure loop "
+    "keeps the median stripe width in its band in >= 95 % of the frames") {
   auto cfg = app::load_config(CELLSIGHT_SOURCE_DIR "/config/cellsight.yaml");
   REQUIRE(cfg.ok());
   auto cell = app::make_sim_cell(*cfg);
@@ -231,8 +239,9 @@ TEST_CASE("Given a part whose coating changes from bare metal to matt mid-part, 
   }
 }
 
-TEST_CASE("Given the support plane fitted on an empty-carrier scan, when it is removed from part scans, then <= 0.5 % "
-          "of the carrier points stay and <= 0.5 % of the part points go") {
+TEST_CASE(
+    "Given the support plane fitted on an empty-carrier scan, when it is removed from part scans, then <= 0.5 % "
+    "of the carrier points stay and <= 0.5 % of the part points go") {
   auto cfg = app::load_config(CELLSIGHT_SOURCE_DIR "/config/cellsight.yaml");
   REQUIRE(cfg.ok());
   auto cell = app::make_sim_cell(*cfg);
@@ -244,8 +253,10 @@ TEST_CASE("Given the support plane fitted on an empty-carrier scan, when it is r
   auto fit = algo::fit_support_plane(carrier.points, {});
   REQUIRE(fit.ok());
   WARN("support plane: normal " << fit->plane.normal.transpose() << ", offset " << fit->plane.offset_m * 1e3
-                                << " mm, rms " << fit->rms_m * 1e3 << " mm, inliers " << fit->inlier_fraction * 100 << " %");
-  for (const auto& [part, seed] : std::vector<std::pair<std::string, int>>{{"frame_window", 21}, {"perforated_coarse", 22}, {"tray", 23}}) {
+                                << " mm, rms " << fit->rms_m * 1e3 << " mm, inliers " << fit->inlier_fraction * 100
+                                << " %");
+  for (const auto& [part, seed] :
+       std::vector<std::pair<std::string, int>>{{"frame_window", 21}, {"perforated_coarse", 22}, {"tray", 23}}) {
     auto pass = cell->random_pass(part, seed);
     REQUIRE(pass.ok());
     const Scanned s = scan_pass(*cfg, *cell, *pass);
@@ -275,8 +286,8 @@ TEST_CASE("Given the support plane fitted on an empty-carrier scan, when it is r
     CHECK(removed_total == part_removed + (carrier_points - carrier_left));
     const double left_share = static_cast<double>(carrier_left) / static_cast<double>(carrier_points);
     const double removed_share = static_cast<double>(part_removed) / static_cast<double>(part_points);
-    WARN(part << ": carrier points " << carrier_points << ", left " << left_share * 100 << " %; part points " << part_points
-              << ", removed " << removed_share * 100 << " %");
+    WARN(part << ": carrier points " << carrier_points << ", left " << left_share * 100 << " %; part points "
+              << part_points << ", removed " << removed_share * 100 << " %");
     CHECK(carrier_points > 1000);
     CHECK(left_share <= 0.005);
     CHECK(removed_share <= 0.005);

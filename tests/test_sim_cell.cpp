@@ -18,8 +18,9 @@ sim::SimCell shipped_cell() {
 
 }  // namespace
 
-TEST_CASE("Given seeds, when passes are drawn, then poses stay inside the configured ranges, repeat for a seed and "
-          "differ between seeds") {
+TEST_CASE(
+    "Given seeds, when passes are drawn, then poses stay inside the configured ranges, repeat for a seed and "
+    "differ between seeds") {
   sim::SimCell cell = shipped_cell();
   const auto& p = cell.params();
   for (std::uint64_t seed = 0; seed < 200; ++seed) {
@@ -38,8 +39,9 @@ TEST_CASE("Given seeds, when passes are drawn, then poses stay inside the config
   CHECK_FALSE(cell.random_pass("teapot", 1).ok());
 }
 
-TEST_CASE("Given a simulated pass, when frames are rendered with ground truth, then the image is bright where the "
-          "truth says the stripe is, and truth points lie on the part or the carrier") {
+TEST_CASE(
+    "Given a simulated pass, when frames are rendered with ground truth, then the image is bright where the "
+    "truth says the stripe is, and truth points lie on the part or the carrier") {
   sim::SimCell cell = shipped_cell();
   auto pass = cell.random_pass("louvred_panel", 5);
   REQUIRE(pass.ok());
@@ -68,7 +70,7 @@ TEST_CASE("Given a simulated pass, when frames are rendered with ground truth, t
         // Stripe ends lie exactly on hole or outline edges: accept a point within 0.1 um of the facet's area.
         const Eigen::Vector2d uv = f.to_uv(t.p_carrier_m);
         for (const Eigen::Vector2d& nudge : {Eigen::Vector2d(0, 0), Eigen::Vector2d(1e-7, 0), Eigen::Vector2d(-1e-7, 0),
-                                            Eigen::Vector2d(0, 1e-7), Eigen::Vector2d(0, -1e-7)}) {
+                                             Eigen::Vector2d(0, 1e-7), Eigen::Vector2d(0, -1e-7)}) {
           on_facet = on_facet || f.contains(uv + nudge);
         }
       }

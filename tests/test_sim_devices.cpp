@@ -1,13 +1,12 @@
 // Simulated camera, digital I/O and encoder: the interfaces the production loop uses, on the simulated line.
 #include <catch2/catch.hpp>
+#include <chrono>
+#include <thread>
 
 #include "app/config.hpp"
 #include "app/sim_mode.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "drivers/sim/sim_faults.hpp"
-
-#include <chrono>
-#include <thread>
 
 using namespace cellsight;
 using drivers::DeviceStatus;
@@ -29,8 +28,9 @@ Cell shipped() {
 
 }  // namespace
 
-TEST_CASE("Given two parts on the simulated line, when the devices are driven like the production loop, then each "
-          "pass is a rising edge, its frames in order, then a falling edge") {
+TEST_CASE(
+    "Given two parts on the simulated line, when the devices are driven like the production loop, then each "
+    "pass is a rising edge, its frames in order, then a falling edge") {
   Cell c = shipped();
   sim::SimLine line(c.cell);
   sim::SimCamera camera(line, 4, 1500);
@@ -194,8 +194,9 @@ int grab_rest_of_pass(sim::SimCamera& camera) {
 
 }  // namespace
 
-TEST_CASE("Given photo-eye chatter inside the debounce window, when a pass goes by, then the input delivers one "
-          "rising and one falling edge and counts the bounces; without a window every bounce is an edge") {
+TEST_CASE(
+    "Given photo-eye chatter inside the debounce window, when a pass goes by, then the input delivers one "
+    "rising and one falling edge and counts the bounces; without a window every bounce is an edge") {
   Cell c = shipped();
   sim::PassFaults chatter;
   chatter.bounce_pairs = 3;
@@ -235,8 +236,9 @@ TEST_CASE("Given photo-eye chatter inside the debounce window, when a pass goes 
   }
 }
 
-TEST_CASE("Given an injected camera stall and encoder glitch, when the pass reaches their frames, then the camera "
-          "delivers nothing and the encoder reads fail for their wall-clock time, then both work again") {
+TEST_CASE(
+    "Given an injected camera stall and encoder glitch, when the pass reaches their frames, then the camera "
+    "delivers nothing and the encoder reads fail for their wall-clock time, then both work again") {
   Cell c = shipped();
   OpenDevices d(c.cell);
   auto& [line, camera, io, encoder] = d;
@@ -274,8 +276,9 @@ TEST_CASE("Given an injected camera stall and encoder glitch, when the pass reac
   CHECK(grab_rest_of_pass(camera) == c.cell.frame_count() - 6);
 }
 
-TEST_CASE("Given a fault schedule, when it is parsed, then every EVERY-th pass gets its kind, the first rule listed "
-          "wins, defaults follow camera.timeout_ms and gpio.debounce_us, and a bad spec is refused") {
+TEST_CASE(
+    "Given a fault schedule, when it is parsed, then every EVERY-th pass gets its kind, the first rule listed "
+    "wins, defaults follow camera.timeout_ms and gpio.debounce_us, and a bad spec is refused") {
   const sim::FaultDefaults defaults{800, 2000};
   auto plan = sim::FaultPlan::parse("camera_stall@10,encoder_glitch@5/250,camera_hiccup@3,chatter@2/4", defaults);
   REQUIRE(plan.ok());
@@ -302,8 +305,9 @@ TEST_CASE("Given a fault schedule, when it is parsed, then every EVERY-th pass g
   }
 }
 
-TEST_CASE("Given the frame memo, when a pass comes again, then its frames are replayed byte for byte as rendered, "
-          "and a frame asked for at another exposure is rendered afresh") {
+TEST_CASE(
+    "Given the frame memo, when a pass comes again, then its frames are replayed byte for byte as rendered, "
+    "and a frame asked for at another exposure is rendered afresh") {
   Cell c = shipped();
   OpenDevices d(c.cell);
   auto& [line, camera, io, encoder] = d;

@@ -1,7 +1,6 @@
 // Simulated-cell renderer against independent truth: OpenCV projection of the analytic laser/plate intersection,
 // and ray-rectangle geometry for occlusion and laser shadows.
 #include <catch2/catch.hpp>
-
 #include <cmath>
 #include <numbers>
 
@@ -14,7 +13,7 @@ namespace {
 constexpr double kDeg = std::numbers::pi / 180.0;
 
 struct RowTruth {
-  std::vector<double> u;        // analytic stripe column per row (NaN: the line does not cross the row)
+  std::vector<double> u;               // analytic stripe column per row (NaN: the line does not cross the row)
   std::vector<Eigen::Vector3d> point;  // the 3D point on the plate seen in that row
 };
 
@@ -66,16 +65,17 @@ sim::Scene scene_of(std::vector<sim::Facet> facets) {
 
 }  // namespace
 
-TEST_CASE("Given a tilted flat plate and no noise, when a frame is rendered, then every row's stripe centre "
-          "matches the analytic ray-plane-camera projection within 0.05 px") {
+TEST_CASE(
+    "Given a tilted flat plate and no noise, when a frame is rendered, then every row's stripe centre "
+    "matches the analytic ray-plane-camera projection within 0.05 px") {
   const sim::Rig rig = sim::make_rig(test::exact_rig_params());
   const double travel = rig.params.carrier.start_offset_m;  // carrier frame == world frame at this travel
   // A plate leaning back 10 deg, turned 25 deg about y and 3 deg in plane: depth changes along the stripe,
   // the stripe is slanted and crosses the lens distortion.
-  const Eigen::Matrix3d r = (Eigen::AngleAxisd(25 * kDeg, Eigen::Vector3d::UnitY()) *
-                             Eigen::AngleAxisd(-10 * kDeg, Eigen::Vector3d::UnitX()) *
-                             Eigen::AngleAxisd(3 * kDeg, Eigen::Vector3d::UnitZ()))
-                                .toRotationMatrix();
+  const Eigen::Matrix3d r =
+      (Eigen::AngleAxisd(25 * kDeg, Eigen::Vector3d::UnitY()) *
+       Eigen::AngleAxisd(-10 * kDeg, Eigen::Vector3d::UnitX()) * Eigen::AngleAxisd(3 * kDeg, Eigen::Vector3d::UnitZ()))
+          .toRotationMatrix();
   const sim::Facet f = test::plate({0.01, 0.55, 0.15}, r.col(0), r.col(1), 0.25, 0.45);
   const sim::Scene scene = scene_of({f});
   sim::Renderer renderer(rig, 1);
@@ -111,16 +111,18 @@ TEST_CASE("Given a tilted flat plate and no noise, when a frame is rendered, the
   }
 }
 
-TEST_CASE("Given a fin between the camera and the lit plate, when a frame is rendered, then the rows whose view "
-          "ray the fin blocks carry no stripe and the others do") {
+TEST_CASE(
+    "Given a fin between the camera and the lit plate, when a frame is rendered, then the rows whose view "
+    "ray the fin blocks carry no stripe and the others do") {
   const sim::Rig rig = sim::make_rig(test::exact_rig_params());
   const double travel = rig.params.carrier.start_offset_m;
   const sim::Facet back = test::plate({0.0, 0.55, 0.10}, Eigen::Vector3d::UnitX(), Eigen::Vector3d::UnitY(), 0.2, 0.4);
   // A fin parallel to the laser plane, 25 mm toward the camera side, standing 120 mm out of the plate,
   // covering heights 0.45..0.65 m. The laser never touches it; it only blocks the camera's view.
   const double fin_x = 0.025, fin_z0 = 0.10, fin_z1 = 0.22, fin_y0 = 0.45, fin_y1 = 0.65;
-  const sim::Facet fin = test::plate({fin_x, 0.5 * (fin_y0 + fin_y1), 0.5 * (fin_z0 + fin_z1)}, Eigen::Vector3d::UnitZ(),
-                                     Eigen::Vector3d::UnitY(), 0.5 * (fin_z1 - fin_z0), 0.5 * (fin_y1 - fin_y0));
+  const sim::Facet fin =
+      test::plate({fin_x, 0.5 * (fin_y0 + fin_y1), 0.5 * (fin_z0 + fin_z1)}, Eigen::Vector3d::UnitZ(),
+                  Eigen::Vector3d::UnitY(), 0.5 * (fin_z1 - fin_z0), 0.5 * (fin_y1 - fin_y0));
   sim::Renderer renderer(rig, 1);
   cv::Mat image;
   renderer.render(scene_of({back, fin}), {travel, 700.0, 1}, image);
@@ -162,8 +164,9 @@ TEST_CASE("Given a fin between the camera and the lit plate, when a frame is ren
   CHECK(seen_rows > 300);
 }
 
-TEST_CASE("Given a shelf between the laser and the plate, when a frame is rendered, then the plate's rows in its "
-          "shadow carry no stripe and the shelf itself is lit") {
+TEST_CASE(
+    "Given a shelf between the laser and the plate, when a frame is rendered, then the plate's rows in its "
+    "shadow carry no stripe and the shelf itself is lit") {
   const sim::Rig rig = sim::make_rig(test::exact_rig_params());
   const double travel = rig.params.carrier.start_offset_m;
   const sim::Facet back = test::plate({0.0, 0.55, 0.10}, Eigen::Vector3d::UnitX(), Eigen::Vector3d::UnitY(), 0.2, 0.4);
@@ -208,8 +211,9 @@ TEST_CASE("Given a shelf between the laser and the plate, when a frame is render
   CHECK(on_shelf > 50);
 }
 
-TEST_CASE("Given the same frame request twice, when rendered with noise, then the images are identical; a new "
-          "seed changes the noise") {
+TEST_CASE(
+    "Given the same frame request twice, when rendered with noise, then the images are identical; a new "
+    "seed changes the noise") {
   sim::RigParams params = sim::default_rig_params();
   const sim::Rig rig = sim::make_rig(params);
   const sim::Facet f = test::plate({0.0, 0.55, 0.10}, Eigen::Vector3d::UnitX(), Eigen::Vector3d::UnitY(), 0.2, 0.4);

@@ -41,8 +41,8 @@ double line_dn(double x, const Line& l, Sampling s) {
 }
 
 struct Noise {
-  double read_dn = 0.0;         // Gaussian read noise
-  double shot_dn2_per_dn = 0.0; // shot noise variance per DN of signal
+  double read_dn = 0.0;          // Gaussian read noise
+  double shot_dn2_per_dn = 0.0;  // shot noise variance per DN of signal
 };
 
 // One row: background + sum of lines (+ noise), rounded to the nearest DN and clipped like an 8-bit sensor.
@@ -87,7 +87,9 @@ double analytic_width(const Line& l, Sampling s, double level) {
   return crossing(+1.0) - crossing(-1.0);
 }
 
-bool usable(const StripeRow& r) { return r.status == StripeStatus::kValid || r.status == StripeStatus::kSaturated; }
+bool usable(const StripeRow& r) {
+  return r.status == StripeStatus::kValid || r.status == StripeStatus::kSaturated;
+}
 
 constexpr int kWidth = 256;
 constexpr double kBackgroundDn = 6.0;
@@ -120,7 +122,8 @@ SCENARIO("noise-free Gaussian stripes are located to 0.02 px", "[stripe]") {
           double max_err = 0.0;
           for (int r = 0; r < img.height; ++r) {
             const StripeRow& row = profile.row(r);
-            INFO("row " << r << " sigma " << truth[std::size_t(r)].sigma_px << " amp " << truth[std::size_t(r)].amplitude_dn);
+            INFO("row " << r << " sigma " << truth[std::size_t(r)].sigma_px << " amp "
+                        << truth[std::size_t(r)].amplitude_dn);
             REQUIRE(row.status == StripeStatus::kValid);
             max_err = std::max(max_err, std::fabs(row.centre_px - truth[std::size_t(r)].centre_px));
           }
@@ -135,9 +138,10 @@ SCENARIO("noise-free Gaussian stripes are located to 0.02 px", "[stripe]") {
           // (bisection), and 0.1 px more is allowed for that. Plus 0.05 px for rounding to whole DN.
           for (int r = 0; r < img.height; ++r) {
             const Line& l = truth[std::size_t(r)];
-            const double w_true = sampling == Sampling::kPoint
-                                      ? 2.0 * l.sigma_px * std::sqrt(2.0 * std::log(l.amplitude_dn / params.threshold_dn))
-                                      : analytic_width(l, sampling, params.threshold_dn);
+            const double w_true =
+                sampling == Sampling::kPoint
+                    ? 2.0 * l.sigma_px * std::sqrt(2.0 * std::log(l.amplitude_dn / params.threshold_dn))
+                    : analytic_width(l, sampling, params.threshold_dn);
             const double bound = 1.0 / (2.0 * (w_true - 1.0)) + 0.05 + (sampling == Sampling::kArea ? 0.1 : 0.0);
             INFO("row " << r << " sigma " << l.sigma_px << " amp " << l.amplitude_dn << " w_true " << w_true);
             CHECK(std::fabs(profile.row(r).width_px - w_true) <= bound);
@@ -170,7 +174,8 @@ SCENARIO("stripes a few DN above the threshold are still found", "[stripe]") {
       // here) and lift the threshold above these peaks; the median over 5 chunks does not see the stripe.
       // With 4-8 DN of signal above the threshold, 8-bit rounding alone moves the centre by a few 0.01 px.
       for (int r = 0; r < img.height; ++r) {
-        INFO("row " << r << " sigma " << truth[std::size_t(r)].sigma_px << " amp " << truth[std::size_t(r)].amplitude_dn);
+        INFO("row " << r << " sigma " << truth[std::size_t(r)].sigma_px << " amp "
+                    << truth[std::size_t(r)].amplitude_dn);
         REQUIRE(profile.row(r).status == StripeStatus::kValid);
         CHECK(profile.row(r).centre_px == Approx(truth[std::size_t(r)].centre_px).margin(0.1));
       }
@@ -240,7 +245,8 @@ SCENARIO("saturated stripes are flagged and located to 0.2 px", "[stripe]") {
           CHECK(row.peak == 255);
           max_err = std::max(max_err, std::fabs(row.centre_px - l.centre_px));
           const double w_true = analytic_width(l, sampling, params.threshold_dn);
-          CHECK(std::fabs(row.width_px - w_true) <= 1.0 / (2.0 * (w_true - 1.0)) + 0.05 + (sampling == Sampling::kArea ? 0.1 : 0.0));
+          CHECK(std::fabs(row.width_px - w_true) <=
+                1.0 / (2.0 * (w_true - 1.0)) + 0.05 + (sampling == Sampling::kArea ? 0.1 : 0.0));
         }
         INFO("max error " << max_err);
         CHECK(max_err <= 0.2);
@@ -297,8 +303,9 @@ SCENARIO("empty rows and hot pixels and blobs and the image border give no strip
   std::mt19937 rng(7);
   const Noise noise{2.0, 0.0};
   Image img(kWidth, 6);
-  GIVEN("rows of background noise, a lone hot pixel, two hot pixels far apart, a broad ambient blob, and stripes "
-        "cut by the left and right image borders") {
+  GIVEN(
+      "rows of background noise, a lone hot pixel, two hot pixels far apart, a broad ambient blob, and stripes "
+      "cut by the left and right image borders") {
     render_row(img.row(0), img.width, kBackgroundDn, {}, Sampling::kPoint, noise, &rng);
     render_row(img.row(1), img.width, kBackgroundDn, {}, Sampling::kPoint, noise, &rng);
     img.row(1)[77] = 255;
@@ -324,7 +331,9 @@ SCENARIO("empty rows and hot pixels and blobs and the image border give no strip
       THEN("the broad blob (FWHM 47 px > max_width_px) is counted as too wide, evidence of over-exposure") {
         CHECK(profile.summary().too_wide_rows == 1);
       }
-      THEN("the hot-pixel row still reports its maximum as the peak") { CHECK(profile.row(1).peak == 255); }
+      THEN("the hot-pixel row still reports its maximum as the peak") {
+        CHECK(profile.row(1).peak == 255);
+      }
     }
   }
 }
@@ -549,8 +558,9 @@ SCENARIO("a stripe on an ambient-lit surface is measured against that surface", 
     }
     StripeProfile profile(img.height);
     REQUIRE(run(img, params, profile) == StripeResult::kOk);
-    THEN("no row drowns in runs from the lit surface: all are valid, centred, and as wide as over a dark "
-         "background") {
+    THEN(
+        "no row drowns in runs from the lit surface: all are valid, centred, and as wide as over a dark "
+        "background") {
       // A row-wide threshold (mean ~20 DN + 16) would sit below the surface's noise peaks (36 + 3 sigma),
       // flooding the run list; the chunk thresholds sit on the surface. Noise here is ~4 DN at the flanks.
       const double w_true = 2.0 * 1.2 * std::sqrt(2.0 * std::log(180.0 / params.threshold_dn));

@@ -26,8 +26,9 @@ std::string read_all(const fs::path& p) {
 }
 }  // namespace
 
-TEST_CASE("Given a calibrated simulated cell, when the support is calibrated from an empty-carrier scan, then the "
-          "carrier plane is stored and a scan that is no empty carrier is refused without touching the file") {
+TEST_CASE(
+    "Given a calibrated simulated cell, when the support is calibrated from an empty-carrier scan, then the "
+    "carrier plane is stored and a scan that is no empty carrier is refused without touching the file") {
   auto cfg = app::load_config(CELLSIGHT_SOURCE_DIR "/config/cellsight.yaml");
   REQUIRE(cfg.ok());
   const fs::path dir = test::scratch_dir("support");

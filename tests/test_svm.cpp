@@ -524,8 +524,8 @@ SCENARIO("The scaler's fit leaves out NaN and infinite feature values", "[svm]")
     for (FeatureVector& f : samples) f.fill(0.0F);
     const float width[] = {kNaN, 0.4F, kInf, 0.5F, 0.6F, -kInf, kNaN};
     // Heavy-tailed (Hu I5, I6): compressed by the median |v| of the finite values, the (n/2)-th smallest of n.
-    const float hu5[] = {kNaN, 1e-12F, -kInf, -2e-12F, 5e-9F, kNaN, kNaN};       // finite 1, 2, 5000 (e-12): 2e-12
-    const float hu6[] = {6e-12F, 5e-12F, kNaN, kNaN, kNaN, -2e-12F, 1e-12F};     // finite 1, 2, 5, 6 (e-12): 5e-12
+    const float hu5[] = {kNaN, 1e-12F, -kInf, -2e-12F, 5e-9F, kNaN, kNaN};    // finite 1, 2, 5000 (e-12): 2e-12
+    const float hu6[] = {6e-12F, 5e-12F, kNaN, kNaN, kNaN, -2e-12F, 1e-12F};  // finite 1, 2, 5, 6 (e-12): 5e-12
     for (std::size_t i = 0; i < samples.size(); ++i) {
       samples[i][algo::kWidthIndex] = width[i];
       samples[i][algo::kHuIndex + 4] = hu5[i];

@@ -28,7 +28,6 @@ namespace {
 
 using test::TempDir;
 
-
 std::string read_text(const fs::path& file) {
   std::ifstream in(file, std::ios::binary);
   std::stringstream s;

@@ -1,6 +1,5 @@
 // Camera model and triangulation against OpenCV and the simulator's ground truth.
 #include <catch2/catch.hpp>
-
 #include <opencv2/calib3d.hpp>
 
 #include "algo/triangulation.hpp"
@@ -55,8 +54,9 @@ TEST_CASE("Given camera points, when projected, then algo::project equals cv::pr
   }
 }
 
-TEST_CASE("Given a point on the laser plane projected by OpenCV, when its pixel is triangulated, then the point is "
-          "recovered") {
+TEST_CASE(
+    "Given a point on the laser plane projected by OpenCV, when its pixel is triangulated, then the point is "
+    "recovered") {
   const sim::Rig rig = sim::make_rig(sim::default_rig_params());
   const algo::SensorCalibration calibration = test::true_calibration(rig);
   std::vector<cv::Point3d> world;
@@ -69,8 +69,9 @@ TEST_CASE("Given a point on the laser plane projected by OpenCV, when its pixel 
   CHECK(worst.table_m < 2e-6);  // 0.002 mm: linear interpolation between pixel columns
 }
 
-TEST_CASE("Given a laser plane stated with a normal that is not unit length, when pixels are triangulated, then the "
-          "points of that plane are recovered as with a unit normal") {
+TEST_CASE(
+    "Given a laser plane stated with a normal that is not unit length, when pixels are triangulated, then the "
+    "points of that plane are recovered as with a unit normal") {
   // The plane n . p = d is the same for (s n, s d): a tilted plane 20 mm off the origin, stated with s = 2.5. Its
   // offset is not 0, so a table that normalised the normal without rescaling the offset would move the plane.
   const sim::Rig rig = sim::make_rig(sim::default_rig_params());
@@ -92,8 +93,9 @@ TEST_CASE("Given a laser plane stated with a normal that is not unit length, whe
   CHECK(worst.table_m < 2e-6);
 }
 
-TEST_CASE("Given a laser plane behind the camera, when pixels are triangulated, then no point is returned; the same "
-          "plane in front gives points at its distance") {
+TEST_CASE(
+    "Given a laser plane behind the camera, when pixels are triangulated, then no point is returned; the same "
+    "plane in front gives points at its distance") {
   const sim::Rig rig = sim::make_rig(sim::default_rig_params());
   algo::SensorCalibration calibration = test::true_calibration(rig);
   // The optical axis in the cell frame (the camera's z row) and a plane across it 0.5 m behind / before the centre:
@@ -126,8 +128,9 @@ TEST_CASE("Given a laser plane behind the camera, when pixels are triangulated, 
   });
 }
 
-TEST_CASE("Given a simulated pass, when the ground-truth stripe pixels are triangulated with the encoder travel, then "
-          "the carrier-frame points match the simulator's points") {
+TEST_CASE(
+    "Given a simulated pass, when the ground-truth stripe pixels are triangulated with the encoder travel, then "
+    "the carrier-frame points match the simulator's points") {
   auto cfg = app::load_config(CELLSIGHT_SOURCE_DIR "/config/cellsight.yaml");
   REQUIRE(cfg.ok());
   auto cell = app::make_sim_cell(*cfg);

@@ -12,9 +12,9 @@ namespace cellsight::sim {
 namespace {
 
 constexpr double kDeg = std::numbers::pi / 180.0;
-constexpr int kSuper = 4;                 // samples per pixel side where an edge crosses the pixel
-constexpr int kOutlineSamples = 24;       // per plate edge, to bound its curved (distorted) image
-constexpr double kBboxMarginPx = 4.0;     // lens blur reaches beyond the plate's outline
+constexpr int kSuper = 4;              // samples per pixel side where an edge crosses the pixel
+constexpr int kOutlineSamples = 24;    // per plate edge, to bound its curved (distorted) image
+constexpr double kBboxMarginPx = 4.0;  // lens blur reaches beyond the plate's outline
 // Cabin light as Renderer::prepare models it (lamp above and in front, part of it diffuse).
 constexpr double kCabinAmbientFloor = 0.35;
 const Eigen::Vector3d kCabinLightDir = Eigen::Vector3d(0.3, 0.8, 0.5).normalized();
@@ -42,8 +42,8 @@ std::vector<Eigen::Vector2d> plate_outline(const algo::BoardSpec& board) {
   return out;
 }
 
-Surface surface_at(const algo::BoardSpec& board, const Eigen::Vector2d& lo, const Eigen::Vector2d& hi, double dot_radius_m,
-                   const Eigen::Vector2d& uv) {
+Surface surface_at(const algo::BoardSpec& board, const Eigen::Vector2d& lo, const Eigen::Vector2d& hi,
+                   double dot_radius_m, const Eigen::Vector2d& uv) {
   if ((uv.array() < lo.array()).any() || (uv.array() > hi.array()).any()) return kBackdrop;
   return board.distance_to_nearest_dot_m(uv) < dot_radius_m ? kDot : kPlate;
 }
@@ -104,8 +104,10 @@ Facet board_facet(const algo::BoardSpec& board, const Eigen::Isometry3d& board_t
   f.axis_u = board_to_cell.linear().col(0);
   f.axis_v = board_to_cell.linear().col(1);
   const Eigen::Vector2d lo = board.plate_min_m(), hi = board.plate_max_m();
-  f.outline = {{lo.x() - margin_m, lo.y() - margin_m}, {hi.x() + margin_m, lo.y() - margin_m},
-               {hi.x() + margin_m, hi.y() + margin_m}, {lo.x() - margin_m, hi.y() + margin_m}};
+  f.outline = {{lo.x() - margin_m, lo.y() - margin_m},
+               {hi.x() + margin_m, lo.y() - margin_m},
+               {hi.x() + margin_m, hi.y() + margin_m},
+               {lo.x() - margin_m, hi.y() + margin_m}};
   const double s = board.spacing_mm * 1e-3;
   const double radius = 0.5 * board.dot_diameter_mm * 1e-3;
   // Even rows start at u = 0, odd rows at u = s; within a row dots are 2 s apart.
@@ -156,7 +158,8 @@ bool BoardRenderer::fully_visible(const algo::BoardSpec& board, const Eigen::Iso
     const Eigen::Vector3d p = to_cam * Eigen::Vector3d(uv.x(), uv.y(), 0.0);
     if (p.z() <= 0.0) return false;
     const Eigen::Vector2d px = algo::project(rig_.params.camera.intrinsics, p);
-    if (px.x() < margin_px || px.y() < margin_px || px.x() > width_ - 1 - margin_px || px.y() > height_ - 1 - margin_px) {
+    if (px.x() < margin_px || px.y() < margin_px || px.x() > width_ - 1 - margin_px ||
+        px.y() > height_ - 1 - margin_px) {
       return false;
     }
   }
@@ -249,7 +252,8 @@ void BoardRenderer::shade(const algo::BoardSpec& board, const Eigen::Isometry3d&
   for (int y = view.y0; y <= view.y1; ++y) {
     auto* out = light_.ptr<float>(y);
     for (int x = view.x0; x <= view.x1; ++x) {
-      const std::size_t c00 = static_cast<std::size_t>(y) * stride + x, c10 = c00 + 1, c01 = c00 + stride, c11 = c01 + 1;
+      const std::size_t c00 = static_cast<std::size_t>(y) * stride + x, c10 = c00 + 1, c01 = c00 + stride,
+                        c11 = c01 + 1;
       if (!(corner_valid_[c00] && corner_valid_[c10] && corner_valid_[c01] && corner_valid_[c11])) continue;
       const Eigen::Vector2d centre = 0.25 * (corner_uv_[c00] + corner_uv_[c10] + corner_uv_[c01] + corner_uv_[c11]);
       const std::array<double, 3> share = pixel_shares(board, view, c00, centre);
@@ -349,8 +353,8 @@ void BoardRenderer::render(const algo::BoardSpec& board, const Eigen::Isometry3d
   add_noise_and_quantise(background_, seed, image);
 }
 
-void BoardRenderer::render_laser(const algo::BoardSpec& board, const Eigen::Isometry3d& board_to_cell, double exposure_us,
-                                 std::uint64_t seed, cv::Mat& image) {
+void BoardRenderer::render_laser(const algo::BoardSpec& board, const Eigen::Isometry3d& board_to_cell,
+                                 double exposure_us, std::uint64_t seed, cv::Mat& image) {
   Scene scene;
   scene.facets.push_back(board_facet(board, board_to_cell));
   scene.part_material_a = Material{look_.plate_reflectance, 0.0, 10.0};
@@ -435,7 +439,8 @@ std::vector<Eigen::Isometry3d> plan_laser_views(const Rig& rig, const algo::Boar
   for (const Spec& s : kSpecs) {
     Eigen::Vector3d c(0.0, aim.y() + s.dy_m, aim.z() + s.dz_m);
     c.x() = (rig.laser_offset_m - n.y() * c.y() - n.z() * c.z()) / n.x();  // the board's middle on the laser plane
-    const Eigen::Vector3d halfway = ((rig.camera_centre_world - c).normalized() + (emitter - c).normalized()).normalized();
+    const Eigen::Vector3d halfway =
+        ((rig.camera_centre_world - c).normalized() + (emitter - c).normalized()).normalized();
     const Eigen::Vector3d front = Eigen::AngleAxisd(s.yaw_deg * kDeg, Eigen::Vector3d::UnitY()) *
                                   (Eigen::AngleAxisd(s.pitch_deg * kDeg, Eigen::Vector3d::UnitX()) * halfway);
     Eigen::Isometry3d board_to_cell = Eigen::Isometry3d::Identity();
@@ -451,8 +456,10 @@ std::vector<CarrierView> plan_conveyor_views(const Rig& rig, const algo::BoardSp
   const Eigen::Vector3d& aim = rig.params.camera.aim_world_m;
   constexpr double kClampYawDeg = 2.0;  // clamped by hand: not quite square to the conveyor
   Eigen::Isometry3d at_zero = Eigen::Isometry3d::Identity();
-  at_zero.linear() = facing(Eigen::AngleAxisd(kClampYawDeg * kDeg, Eigen::Vector3d::UnitY()) * Eigen::Vector3d::UnitZ());
-  const Eigen::Vector3d centre(aim.x() - 0.5 * (count - 1) * step_mm * 1e-3, aim.y(), rig.params.carrier.part_plane_z_m);
+  at_zero.linear() =
+      facing(Eigen::AngleAxisd(kClampYawDeg * kDeg, Eigen::Vector3d::UnitY()) * Eigen::Vector3d::UnitZ());
+  const Eigen::Vector3d centre(aim.x() - 0.5 * (count - 1) * step_mm * 1e-3, aim.y(),
+                               rig.params.carrier.part_plane_z_m);
   at_zero.translation() = centre - at_zero.linear() * field_centre(board);
   std::vector<CarrierView> out;
   for (int i = 0; i < count; ++i) {

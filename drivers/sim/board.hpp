@@ -69,12 +69,14 @@ class BoardRenderer {
 };
 
 // The board as one sheet the laser can light: the dark dots return almost no laser light, so they are holes.
-[[nodiscard]] Facet board_facet(const algo::BoardSpec& board, const Eigen::Isometry3d& board_to_cell, double margin_m = 0.0);
+[[nodiscard]] Facet board_facet(const algo::BoardSpec& board, const Eigen::Isometry3d& board_to_cell,
+                                double margin_m = 0.0);
 
 // --- The simulated technician: where the board is held for each calibration step on this rig ----------------
 // Ten tilted views spread over the image for the intrinsics (a view that cannot be fitted into the picture,
 // even moved toward its centre, is left out).
-[[nodiscard]] std::vector<Eigen::Isometry3d> plan_camera_views(const BoardRenderer& renderer, const algo::BoardSpec& board);
+[[nodiscard]] std::vector<Eigen::Isometry3d> plan_camera_views(const BoardRenderer& renderer,
+                                                               const algo::BoardSpec& board);
 // Where this cell's reference fixture puts dot 0 (cell frame): the board on the laser plane at the aim point.
 [[nodiscard]] Eigen::Vector3d plan_reference_origin(const Rig& rig, const algo::BoardSpec& board);
 // Board poses that cut the laser plane at different depths and tilts, facing both the camera and the laser.

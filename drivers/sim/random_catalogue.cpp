@@ -32,18 +32,18 @@ constexpr std::uint64_t kPartPurpose = 0x70617274ULL;        // "part"
 
 // Unit half circle in 15 degree steps, as literals: libm's sin and cos are not bit-exact across platforms.
 constexpr std::array<std::array<double, 2>, 13> kHalfCircle = {{{1.0, 0.0},
-                                                               {0.96592582628906831, 0.25881904510252074},
-                                                               {0.86602540378443865, 0.5},
-                                                               {0.70710678118654752, 0.70710678118654752},
-                                                               {0.5, 0.86602540378443865},
-                                                               {0.25881904510252074, 0.96592582628906831},
-                                                               {0.0, 1.0},
-                                                               {-0.25881904510252074, 0.96592582628906831},
-                                                               {-0.5, 0.86602540378443865},
-                                                               {-0.70710678118654752, 0.70710678118654752},
-                                                               {-0.86602540378443865, 0.5},
-                                                               {-0.96592582628906831, 0.25881904510252074},
-                                                               {-1.0, 0.0}}};
+                                                                {0.96592582628906831, 0.25881904510252074},
+                                                                {0.86602540378443865, 0.5},
+                                                                {0.70710678118654752, 0.70710678118654752},
+                                                                {0.5, 0.86602540378443865},
+                                                                {0.25881904510252074, 0.96592582628906831},
+                                                                {0.0, 1.0},
+                                                                {-0.25881904510252074, 0.96592582628906831},
+                                                                {-0.5, 0.86602540378443865},
+                                                                {-0.70710678118654752, 0.70710678118654752},
+                                                                {-0.86602540378443865, 0.5},
+                                                                {-0.96592582628906831, 0.25881904510252074},
+                                                                {-1.0, 0.0}}};
 
 enum class OutlineKind { kRectangle, kChamfered, kTrapezoid, kRoundTop, kNotched };
 constexpr std::array<const char*, 5> kOutlineNames = {"rectangular plate", "chamfered plate", "trapezoid",
@@ -81,13 +81,23 @@ Needs needs_for(TwinRelation relation) {
   return needs;
 }
 
-int pick_int(Rng& rng, int lo, int hi) { return lo + static_cast<int>(rng.below(static_cast<std::uint64_t>(hi - lo + 1))); }
+int pick_int(Rng& rng, int lo, int hi) {
+  return lo + static_cast<int>(rng.below(static_cast<std::uint64_t>(hi - lo + 1)));
+}
 // Whole millimetres: every generated size prints exactly and reads back to the same double.
-double pick_mm(Rng& rng, double lo, double hi) { return std::round(rng.uniform(lo, hi)); }
+double pick_mm(Rng& rng, double lo, double hi) {
+  return std::round(rng.uniform(lo, hi));
+}
 // Multiples of 5 mm for part sizes (half of them is then a multiple of 2.5, exact in binary).
-double pick_5mm(Rng& rng, double lo, double hi) { return 5.0 * std::round(rng.uniform(lo, hi) / 5.0); }
-bool chance(Rng& rng, double p) { return rng.uniform() < p; }
-double tenth_mm(double v) { return std::round(v * 10.0) / 10.0; }
+double pick_5mm(Rng& rng, double lo, double hi) {
+  return 5.0 * std::round(rng.uniform(lo, hi) / 5.0);
+}
+bool chance(Rng& rng, double p) {
+  return rng.uniform() < p;
+}
+double tenth_mm(double v) {
+  return std::round(v * 10.0) / 10.0;
+}
 
 template <class T>
 void shuffle(std::vector<T>& items, Rng& rng) {
@@ -155,13 +165,20 @@ Eigen::Vector2d single_half_extent(const FeatureSpec& f) {
 
 const char* kind_name(FeatureKind kind) {
   switch (kind) {
-    case FeatureKind::kHole: return "hole";
-    case FeatureKind::kSlot: return "slot";
-    case FeatureKind::kWindow: return "window";
-    case FeatureKind::kHoleArray: return "hole_array";
-    case FeatureKind::kRib: return "rib";
-    case FeatureKind::kLouvre: return "louvre";
-    case FeatureKind::kFlange: return "flange";
+    case FeatureKind::kHole:
+      return "hole";
+    case FeatureKind::kSlot:
+      return "slot";
+    case FeatureKind::kWindow:
+      return "window";
+    case FeatureKind::kHoleArray:
+      return "hole_array";
+    case FeatureKind::kRib:
+      return "rib";
+    case FeatureKind::kLouvre:
+      return "louvre";
+    case FeatureKind::kFlange:
+      return "flange";
   }
   return "?";
 }
@@ -406,12 +423,24 @@ std::string summary(const PartSpec& part, OutlineKind outline) {
   for (const auto& f : part.features) {
     const int n = f.count_x * f.count_y;
     switch (f.kind) {
-      case FeatureKind::kHole: holes += n; break;
-      case FeatureKind::kSlot: slots += n; break;
-      case FeatureKind::kWindow: windows += n; break;
-      case FeatureKind::kRib: ribs += n; break;
-      case FeatureKind::kLouvre: louvres += n; break;
-      case FeatureKind::kFlange: ++flanges; break;
+      case FeatureKind::kHole:
+        holes += n;
+        break;
+      case FeatureKind::kSlot:
+        slots += n;
+        break;
+      case FeatureKind::kWindow:
+        windows += n;
+        break;
+      case FeatureKind::kRib:
+        ribs += n;
+        break;
+      case FeatureKind::kLouvre:
+        louvres += n;
+        break;
+      case FeatureKind::kFlange:
+        ++flanges;
+        break;
       case FeatureKind::kHoleArray:
         perforation += ", perforation " + std::to_string(f.count_x) + " x " + std::to_string(f.count_y);
         break;
@@ -436,7 +465,8 @@ std::optional<PartSpec> make_part(const Needs& needs, Rng& rng) {
   PartSpec part;
   part.width_mm = pick_5mm(rng, kRandomWidthMinMm, kRandomWidthMaxMm);
   part.height_mm = pick_5mm(rng, kRandomHeightMinMm, needs.max_height_mm);
-  const auto outline = needs.rectangle ? OutlineKind::kRectangle : static_cast<OutlineKind>(rng.below(kOutlineNames.size()));
+  const auto outline =
+      needs.rectangle ? OutlineKind::kRectangle : static_cast<OutlineKind>(rng.below(kOutlineNames.size()));
   if (outline == OutlineKind::kRectangle && chance(rng, 0.5)) add_flanges(part, rng);
   part.outline_mm = make_outline(outline, part.width_mm, part.height_mm, rng);
 
@@ -453,18 +483,26 @@ std::optional<PartSpec> make_part(const Needs& needs, Rng& rng) {
   std::sort(kinds.begin(), kinds.end(), [](FeatureKind a, FeatureKind b) {
     constexpr auto rank = [](FeatureKind k) {
       switch (k) {
-        case FeatureKind::kWindow: return 0;
-        case FeatureKind::kHoleArray: return 1;
-        case FeatureKind::kLouvre: return 2;
-        case FeatureKind::kRib: return 3;
-        case FeatureKind::kSlot: return 4;
-        default: return 5;
+        case FeatureKind::kWindow:
+          return 0;
+        case FeatureKind::kHoleArray:
+          return 1;
+        case FeatureKind::kLouvre:
+          return 2;
+        case FeatureKind::kRib:
+          return 3;
+        case FeatureKind::kSlot:
+          return 4;
+        default:
+          return 5;
       }
     };
     return rank(a) < rank(b);
   });
   for (FeatureKind kind : kinds) {
-    const int wanted = kind == FeatureKind::kHole ? pick_int(rng, 1, 3) : kind == FeatureKind::kSlot ? pick_int(rng, 1, 2) : 1;
+    const int wanted = kind == FeatureKind::kHole   ? pick_int(rng, 1, 3)
+                       : kind == FeatureKind::kSlot ? pick_int(rng, 1, 2)
+                                                    : 1;
     for (int n = 0; n < wanted; ++n) {
       for (int t = 0; t < kFeatureTries; ++t) {
         if (place(part, make_feature(kind, needs, rng), rng)) break;
@@ -569,16 +607,24 @@ int twin_pair_count(int count) {
   return count >= 4 ? 1 : 0;
 }
 
-int untaught_count(int count) { return std::clamp(count - 2, 0, 3); }
+int untaught_count(int count) {
+  return std::clamp(count - 2, 0, 3);
+}
 
 const char* twin_relation_text(TwinRelation relation) {
   switch (relation) {
-    case TwinRelation::kOneHoleMore: return "one hole more";
-    case TwinRelation::kOneRibLess: return "one rib less";
-    case TwinRelation::kMirrored: return "mirrored left-right";
-    case TwinRelation::kOtherRelief: return "same outline, ribs and louvres swapped";
-    case TwinRelation::kHeightPlus5mm: return "5 mm taller";
-    case TwinRelation::kOneSlotMore: return "one slot more";
+    case TwinRelation::kOneHoleMore:
+      return "one hole more";
+    case TwinRelation::kOneRibLess:
+      return "one rib less";
+    case TwinRelation::kMirrored:
+      return "mirrored left-right";
+    case TwinRelation::kOtherRelief:
+      return "same outline, ribs and louvres swapped";
+    case TwinRelation::kHeightPlus5mm:
+      return "5 mm taller";
+    case TwinRelation::kOneSlotMore:
+      return "one slot more";
   }
   return "?";
 }
@@ -589,10 +635,14 @@ Eigen::AlignedBox2d feature_footprint_mm(const PartSpec& part, const FeatureSpec
     // Rounded to 0.1 mm so that libm's last bit of cos cannot move a layout decision from one machine to another.
     const double inward = std::max(1.0, tenth_mm(-std::cos(f.angle_deg * std::numbers::pi / 180.0) * f.width_mm));
     switch (f.edge) {
-      case Edge::kBottom: return {Eigen::Vector2d(-w2, -h2), Eigen::Vector2d(w2, -h2 + inward)};
-      case Edge::kTop: return {Eigen::Vector2d(-w2, h2 - inward), Eigen::Vector2d(w2, h2)};
-      case Edge::kLeft: return {Eigen::Vector2d(-w2, -h2), Eigen::Vector2d(-w2 + inward, h2)};
-      case Edge::kRight: return {Eigen::Vector2d(w2 - inward, -h2), Eigen::Vector2d(w2, h2)};
+      case Edge::kBottom:
+        return {Eigen::Vector2d(-w2, -h2), Eigen::Vector2d(w2, -h2 + inward)};
+      case Edge::kTop:
+        return {Eigen::Vector2d(-w2, h2 - inward), Eigen::Vector2d(w2, h2)};
+      case Edge::kLeft:
+        return {Eigen::Vector2d(-w2, -h2), Eigen::Vector2d(-w2 + inward, h2)};
+      case Edge::kRight:
+        return {Eigen::Vector2d(w2 - inward, -h2), Eigen::Vector2d(w2, h2)};
     }
   }
   const Eigen::Vector2d half =
@@ -638,8 +688,8 @@ RandomCatalogue generate_random_catalogue(int count, std::uint64_t seed) {
   Rng layout(mix_seed(seed, kLayoutPurpose));
 
   // Which parts pair up, and how: every relation once (shuffled) before any repeats; +5 mm never repeats.
-  std::vector<TwinRelation> relations = {TwinRelation::kOneHoleMore, TwinRelation::kOneRibLess,
-                                         TwinRelation::kMirrored,    TwinRelation::kOtherRelief,
+  std::vector<TwinRelation> relations = {TwinRelation::kOneHoleMore,   TwinRelation::kOneRibLess,
+                                         TwinRelation::kMirrored,      TwinRelation::kOtherRelief,
                                          TwinRelation::kHeightPlus5mm, TwinRelation::kOneSlotMore};
   shuffle(relations, layout);
   const std::vector<TwinRelation> repeatable = {TwinRelation::kOneHoleMore, TwinRelation::kOneRibLess,
@@ -700,8 +750,8 @@ RandomCatalogue generate_random_catalogue(int count, std::uint64_t seed) {
   }
   std::vector<std::size_t> unrelated;
   for (std::size_t i = 0; i < n; ++i) {
-    const bool paired = std::any_of(out.twins.begin(), out.twins.end(),
-                                    [&](const TwinPair& p) { return p.base == i || p.twin == i; });
+    const bool paired =
+        std::any_of(out.twins.begin(), out.twins.end(), [&](const TwinPair& p) { return p.base == i || p.twin == i; });
     if (!paired) unrelated.push_back(i);
   }
   shuffle(unrelated, layout);

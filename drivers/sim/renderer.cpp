@@ -12,23 +12,25 @@
 namespace cellsight::sim {
 namespace {
 
-constexpr double kSampleSpacingPx = 0.7;     // along the stripe; well below a pixel so the polyline is smooth
+constexpr double kSampleSpacingPx = 0.7;  // along the stripe; well below a pixel so the polyline is smooth
 constexpr int kMaxSamplesPerSegment = 8000;
-constexpr int kBoundaryBisections = 12;     // occlusion edges located to ~1e-4 of a sample step
-constexpr double kDrawRadiusSigmas = 3.5;   // the Gaussian is cut where it is < 0.3 % of its peak
-constexpr double kLutMax = 8.0;             // q = d^2 / (2 sigma^2) range of the exp(-q) table
+constexpr int kBoundaryBisections = 12;    // occlusion edges located to ~1e-4 of a sample step
+constexpr double kDrawRadiusSigmas = 3.5;  // the Gaussian is cut where it is < 0.3 % of its peak
+constexpr double kLutMax = 8.0;            // q = d^2 / (2 sigma^2) range of the exp(-q) table
 constexpr int kLutPerUnit = 512;
 constexpr double kFullScaleDn = 255.0;
 constexpr double kOcclusionEndGuard = 1e-4;  // relative ray length near the lit point itself (~0.2 mm)
 constexpr int kBackgroundExtraRows = 256;
 constexpr int kBackgroundExtraCols = 64;
-constexpr double kMinGrazingSine = 0.05;    // caps the stripe widening on surfaces nearly in the laser plane
+constexpr double kMinGrazingSine = 0.05;  // caps the stripe widening on surfaces nearly in the laser plane
 
-double cross2(const Eigen::Vector2d& a, const Eigen::Vector2d& b) { return a.x() * b.y() - a.y() * b.x(); }
+double cross2(const Eigen::Vector2d& a, const Eigen::Vector2d& b) {
+  return a.x() * b.y() - a.y() * b.x();
+}
 
 // Removes [a, b] from a sorted list of disjoint intervals.
-void subtract_interval(std::vector<std::pair<double, double>>& intervals, std::vector<std::pair<double, double>>& scratch,
-                       double a, double b) {
+void subtract_interval(std::vector<std::pair<double, double>>& intervals,
+                       std::vector<std::pair<double, double>>& scratch, double a, double b) {
   scratch.clear();
   for (const auto& [x, y] : intervals) {
     if (b <= x || a >= y) {
@@ -78,9 +80,11 @@ Renderer::Renderer(const Rig& rig, std::uint64_t noise_seed) : rig_(rig) {
   low_rays_world_.reserve(static_cast<std::size_t>(low_w) * low_h);
   for (int by = 0; by < low_h; ++by) {
     for (int bx = 0; bx < low_w; ++bx) {
-      const Eigen::Vector2d centre(bx * kAmbientScale + 0.5 * (kAmbientScale - 1), by * kAmbientScale + 0.5 * (kAmbientScale - 1));
+      const Eigen::Vector2d centre(bx * kAmbientScale + 0.5 * (kAmbientScale - 1),
+                                   by * kAmbientScale + 0.5 * (kAmbientScale - 1));
       const Eigen::Vector2d n = algo::undistort(k, centre);
-      low_rays_world_.push_back((rig_.camera_pose.r_cam_world.transpose() * Eigen::Vector3d(n.x(), n.y(), 1.0)).normalized());
+      low_rays_world_.push_back(
+          (rig_.camera_pose.r_cam_world.transpose() * Eigen::Vector3d(n.x(), n.y(), 1.0)).normalized());
     }
   }
   ambient_low_.create(low_h, low_w, CV_32F);
@@ -111,7 +115,8 @@ void Renderer::render(const Scene& scene, const FrameRequest& request, cv::Mat& 
   for (const Segment& seg : lit_) {
     sample_segment(scene, pose, seg, request.exposure_us, truth);
     if (scene.facets[seg.facet].is_part) {
-      specular_share = std::max(specular_share, std::min(1.0, material_at(scene, scene.facets[seg.facet], seg.p0).specular));
+      specular_share =
+          std::max(specular_share, std::min(1.0, material_at(scene, scene.facets[seg.facet], seg.p0).specular));
     }
   }
   if (rig_.params.sensor.noise) apply_speckle(request.seed);
@@ -129,7 +134,7 @@ void Renderer::prepare(const Scene& scene) {
   map_z_m_.assign(static_cast<std::size_t>(map_nx_) * map_ny_, std::numeric_limits<float>::quiet_NaN());
   map_shade_.assign(map_z_m_.size(), 0.0F);
   const Eigen::Vector3d light_dir = Eigen::Vector3d(0.3, 0.8, 0.5).normalized();  // cabin lamp above, in front
-  constexpr double kMinFacing = 0.15;  // facets seen edge-on from the front are left out of the map
+  constexpr double kMinFacing = 0.15;     // facets seen edge-on from the front are left out of the map
   constexpr double kAmbientFloor = 0.35;  // share of the cabin light that is diffuse from every direction
   for (const Facet& f : scene.facets) {
     if (std::abs(f.normal.z()) < kMinFacing) continue;
@@ -141,15 +146,17 @@ void Renderer::prepare(const Scene& scene) {
     for (int iy = y0; iy <= y1; ++iy) {
       for (int ix = x0; ix <= x1; ++ix) {
         const double x = (ix + 0.5) * map_cell_m_, y = (iy + 0.5) * map_cell_m_;
-        const double z = f.origin.z() - (f.normal.x() * (x - f.origin.x()) + f.normal.y() * (y - f.origin.y())) / f.normal.z();
+        const double z =
+            f.origin.z() - (f.normal.x() * (x - f.origin.x()) + f.normal.y() * (y - f.origin.y())) / f.normal.z();
         const Eigen::Vector3d p(x, y, z);
         const std::size_t cell = static_cast<std::size_t>(iy) * map_nx_ + ix;
         if (!std::isnan(map_z_m_[cell]) && map_z_m_[cell] >= z) continue;
         if (!f.contains(f.to_uv(p))) continue;
         const double diffuse = material_at(scene, f, p).diffuse;
         map_z_m_[cell] = static_cast<float>(z);
-        map_shade_[cell] = static_cast<float>(sensor.ambient_light_dn * diffuse *
-                                              (kAmbientFloor + (1.0 - kAmbientFloor) * std::max(0.0, nrm.dot(light_dir))));
+        map_shade_[cell] =
+            static_cast<float>(sensor.ambient_light_dn * diffuse *
+                               (kAmbientFloor + (1.0 - kAmbientFloor) * std::max(0.0, nrm.dot(light_dir))));
       }
     }
   }
@@ -539,8 +546,8 @@ void Renderer::add_disturbances(double exposure_us, double specular_share, std::
     const auto& run = runs_[rng.below(run_count_)];
     if (run.empty()) continue;
     const Sample& at = run[rng.below(run.size())];
-    draw_blob(at.pixel.x() + 20.0 * rng.normal(), at.pixel.y() + 4.0 * rng.normal(), rng.uniform(150.0, 900.0) * brightness,
-              rng.uniform(0.5, 0.9));
+    draw_blob(at.pixel.x() + 20.0 * rng.normal(), at.pixel.y() + 4.0 * rng.normal(),
+              rng.uniform(150.0, 900.0) * brightness, rng.uniform(0.5, 0.9));
   }
   // Ghost: the stripe reflected off a neighbouring surface, a weaker copy beside a stretch of the real one.
   if (rng.uniform() < s.ghost_probability * specular_share) {

@@ -24,8 +24,8 @@ struct Material {
 struct Scene {
   std::vector<Facet> facets;
   Material carrier_material{};
-  Material part_material_a{};           // part-frame x below split_x_m
-  Material part_material_b{};           // part-frame x at or above split_x_m (a coating boundary mid-part)
+  Material part_material_a{};  // part-frame x below split_x_m
+  Material part_material_b{};  // part-frame x at or above split_x_m (a coating boundary mid-part)
   double split_x_m = std::numeric_limits<double>::infinity();
   Eigen::Isometry3d carrier_to_part = Eigen::Isometry3d::Identity();
 };
@@ -56,7 +56,8 @@ class Renderer {
 
   // Renders into `image` (CV_8UC1, width x height of the camera; reallocated only if the shape differs).
   // `truth`, when given, receives every visible stripe point (spacing ~0.7 px along the stripe).
-  void render(const Scene& scene, const FrameRequest& request, cv::Mat& image, std::vector<TruthPoint>* truth = nullptr);
+  void render(const Scene& scene, const FrameRequest& request, cv::Mat& image,
+              std::vector<TruthPoint>* truth = nullptr);
 
   [[nodiscard]] const Rig& rig() const { return rig_; }
 

@@ -29,7 +29,7 @@ struct LaserPlacement {
 
 struct ConveyorParams {
   double speed_m_per_s = 0.01;
-  double counts_per_mm = 10.0;       // encoder resolution
+  double counts_per_mm = 10.0;             // encoder resolution
   std::int32_t trigger_every_counts = 22;  // one frame per 2.2 mm = one grid cell
 };
 
@@ -47,21 +47,21 @@ struct CarrierParams {
 
 // Sensor response and image disturbances.
 struct SensorParams {
-  double gain_dn_per_us = 0.55;     // stripe peak per microsecond of exposure at reflectivity 1, normal incidence
-  double optics_sigma_px = 1.0;     // blur of the lens + sensor
-  double bloom_per_log = 0.35;      // sigma growth per natural-log unit of over-exposure
-  double ambient_dn = 6.0;          // dark-cabin background level (sensor offset + stray light)
-  double ambient_light_dn = 40.0;   // cabin light on a white diffuse surface at the reference exposure
+  double gain_dn_per_us = 0.55;    // stripe peak per microsecond of exposure at reflectivity 1, normal incidence
+  double optics_sigma_px = 1.0;    // blur of the lens + sensor
+  double bloom_per_log = 0.35;     // sigma growth per natural-log unit of over-exposure
+  double ambient_dn = 6.0;         // dark-cabin background level (sensor offset + stray light)
+  double ambient_light_dn = 40.0;  // cabin light on a white diffuse surface at the reference exposure
   double reference_exposure_us = 1500.0;
-  double speckle_contrast = 0.2;    // laser speckle: relative intensity ripple along the stripe
-  double halo_fraction = 0.03;      // light scattered around the stripe by the surface
-  double ambient_gradient_dn = 3.0; // left-to-right unevenness of the background
+  double speckle_contrast = 0.2;     // laser speckle: relative intensity ripple along the stripe
+  double halo_fraction = 0.03;       // light scattered around the stripe by the surface
+  double ambient_gradient_dn = 3.0;  // left-to-right unevenness of the background
   double read_noise_dn = 1.8;
   double shot_noise_dn_per_dn = 0.25;  // variance per DN of signal (sensor gain)
   double hot_pixel_fraction = 2e-5;
-  double spikes_per_frame = 1.5;     // glints on bare metal (scaled by the specular share of the coating)
-  double ghost_probability = 0.08;   // per frame, a secondary reflection of a stripe run (bare metal)
-  bool noise = true;                 // false: no random disturbance at all (exact tests)
+  double spikes_per_frame = 1.5;    // glints on bare metal (scaled by the specular share of the coating)
+  double ghost_probability = 0.08;  // per frame, a secondary reflection of a stripe run (bare metal)
+  bool noise = true;                // false: no random disturbance at all (exact tests)
 };
 
 struct RigParams {

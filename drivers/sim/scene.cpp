@@ -29,7 +29,9 @@ Facet make_facet(const Eigen::Vector3d& origin, const Eigen::Vector3d& axis_u, c
 }
 
 // Offsets of `count` repeats centred on 0 with the given pitch.
-double repeat_offset(int index, int count, double pitch) { return (index - (count - 1) * 0.5) * pitch; }
+double repeat_offset(int index, int count, double pitch) {
+  return (index - (count - 1) * 0.5) * pitch;
+}
 
 void add_rib(std::vector<Facet>& facets, Facet& plate, const Eigen::Vector2d& centre, const FeatureSpec& f) {
   const Eigen::Vector3d along = f.vertical ? Eigen::Vector3d::UnitY() : Eigen::Vector3d::UnitX();
@@ -41,7 +43,8 @@ void add_rib(std::vector<Facet>& facets, Facet& plate, const Eigen::Vector2d& ce
   const double rise = f.rise_mm * kMm;
   const Eigen::Vector3d c(centre.x(), centre.y(), 0.0);
 
-  const Eigen::Vector2d half_extent = f.vertical ? Eigen::Vector2d(half_base, half_len) : Eigen::Vector2d(half_len, half_base);
+  const Eigen::Vector2d half_extent =
+      f.vertical ? Eigen::Vector2d(half_base, half_len) : Eigen::Vector2d(half_len, half_base);
   plate.rects.push_back({centre - half_extent, centre + half_extent});
 
   facets.push_back(make_facet(c - half_len * along - half_top * across + rise * up, along, across,
@@ -53,8 +56,8 @@ void add_rib(std::vector<Facet>& facets, Facet& plate, const Eigen::Vector2d& ce
   }
   for (int end : {-1, 1}) {  // end caps close the bead so the sheet behind never shows through
     const Eigen::Vector3d origin = c + end * half_len * along;
-    facets.push_back(make_facet(origin, across, up,
-                                {{-half_base, 0.0}, {half_base, 0.0}, {half_top, rise}, {-half_top, rise}}));
+    facets.push_back(
+        make_facet(origin, across, up, {{-half_base, 0.0}, {half_base, 0.0}, {half_top, rise}, {-half_top, rise}}));
   }
 }
 
@@ -63,7 +66,8 @@ void add_louvre(std::vector<Facet>& facets, Facet& plate, const Eigen::Vector2d&
   const Eigen::Vector3d across = f.vertical ? Eigen::Vector3d::UnitX() : Eigen::Vector3d::UnitY();
   const double half_len = 0.5 * f.length_mm * kMm;
   const double half_w = 0.5 * f.width_mm * kMm;
-  const Eigen::Vector2d half_extent = f.vertical ? Eigen::Vector2d(half_w, half_len) : Eigen::Vector2d(half_len, half_w);
+  const Eigen::Vector2d half_extent =
+      f.vertical ? Eigen::Vector2d(half_w, half_len) : Eigen::Vector2d(half_len, half_w);
   plate.rects.push_back({centre - half_extent, centre + half_extent});
   // The flap stays attached along its upper (or right) edge and opens toward the camera.
   const Eigen::Vector3d hinge = Eigen::Vector3d(centre.x(), centre.y(), 0.0) + half_w * across - half_len * along;
@@ -79,19 +83,23 @@ void add_flange(std::vector<Facet>& facets, double half_w, double half_h, const 
   switch (f.edge) {
     case Edge::kBottom:
       facets.push_back(make_facet({-half_w, -half_h, 0}, Eigen::Vector3d::UnitX(),
-                                  -std::cos(a) * Eigen::Vector3d::UnitY() + std::sin(a) * z, rectangle(0, 0, 2 * half_w, depth)));
+                                  -std::cos(a) * Eigen::Vector3d::UnitY() + std::sin(a) * z,
+                                  rectangle(0, 0, 2 * half_w, depth)));
       break;
     case Edge::kTop:
       facets.push_back(make_facet({-half_w, half_h, 0}, Eigen::Vector3d::UnitX(),
-                                  std::cos(a) * Eigen::Vector3d::UnitY() + std::sin(a) * z, rectangle(0, 0, 2 * half_w, depth)));
+                                  std::cos(a) * Eigen::Vector3d::UnitY() + std::sin(a) * z,
+                                  rectangle(0, 0, 2 * half_w, depth)));
       break;
     case Edge::kLeft:
       facets.push_back(make_facet({-half_w, -half_h, 0}, Eigen::Vector3d::UnitY(),
-                                  -std::cos(a) * Eigen::Vector3d::UnitX() + std::sin(a) * z, rectangle(0, 0, 2 * half_h, depth)));
+                                  -std::cos(a) * Eigen::Vector3d::UnitX() + std::sin(a) * z,
+                                  rectangle(0, 0, 2 * half_h, depth)));
       break;
     case Edge::kRight:
       facets.push_back(make_facet({half_w, -half_h, 0}, Eigen::Vector3d::UnitY(),
-                                  std::cos(a) * Eigen::Vector3d::UnitX() + std::sin(a) * z, rectangle(0, 0, 2 * half_h, depth)));
+                                  std::cos(a) * Eigen::Vector3d::UnitX() + std::sin(a) * z,
+                                  rectangle(0, 0, 2 * half_h, depth)));
       break;
   }
 }
@@ -180,7 +188,8 @@ std::string validate_part(const PartSpec& spec) {
         if (!(f.width_mm > 0 && f.height_mm > 0)) return bad("width_mm and height_mm must be > 0");
         break;
       case FeatureKind::kRib:
-        if (!(f.length_mm > 0 && f.width_mm > 0 && f.rise_mm > 0)) return bad("length_mm, width_mm, rise_mm must be > 0");
+        if (!(f.length_mm > 0 && f.width_mm > 0 && f.rise_mm > 0))
+          return bad("length_mm, width_mm, rise_mm must be > 0");
         break;
       case FeatureKind::kLouvre:
         if (!(f.length_mm > 0 && f.width_mm > 0)) return bad("length_mm and width_mm must be > 0");
@@ -237,7 +246,8 @@ std::vector<Facet> build_part(const PartSpec& spec) {
     if (f.kind == FeatureKind::kHoleArray) {
       const Eigen::Vector2d first((f.x_mm - 0.5 * (f.count_x - 1) * f.pitch_x_mm) * kMm,
                                   (f.y_mm - 0.5 * (f.count_y - 1) * f.pitch_y_mm) * kMm);
-      plate.arrays.push_back({first, Eigen::Vector2d(std::max(f.pitch_x_mm, 1.0) * kMm, std::max(f.pitch_y_mm, 1.0) * kMm),
+      plate.arrays.push_back({first,
+                              Eigen::Vector2d(std::max(f.pitch_x_mm, 1.0) * kMm, std::max(f.pitch_y_mm, 1.0) * kMm),
                               f.count_x, f.count_y, 0.5 * f.diameter_mm * kMm});
     }
     if (f.kind == FeatureKind::kFlange) add_flange(facets, half_w, half_h, f);
@@ -262,10 +272,10 @@ std::vector<Facet> build_carrier(const CarrierParams& p) {
     f.finalise();
     bars.push_back(std::move(f));
   };
-  bar(margin, bottom, margin + bw, p.height_m - bw);                                  // left post
-  bar(p.length_m - margin - bw, bottom, p.length_m - margin, p.height_m - bw);        // right post
-  bar(margin, p.height_m - bw, p.length_m - margin, p.height_m);                      // top bar
-  bar(margin + bw, bottom, p.length_m - margin - bw, bottom + bw);                    // bottom bar
+  bar(margin, bottom, margin + bw, p.height_m - bw);                            // left post
+  bar(p.length_m - margin - bw, bottom, p.length_m - margin, p.height_m - bw);  // right post
+  bar(margin, p.height_m - bw, p.length_m - margin, p.height_m);                // top bar
+  bar(margin + bw, bottom, p.length_m - margin - bw, bottom + bw);              // bottom bar
   const double strap_w = 0.5 * bw;
   const double strap_bottom = p.hook_height_m - 0.12;  // reaches down behind the part's top edge
   for (int side : {-1, 1}) {

@@ -46,7 +46,9 @@ struct Facet {
     const Eigen::Vector3d d = p - origin;
     return {d.dot(axis_u), d.dot(axis_v)};
   }
-  [[nodiscard]] Eigen::Vector3d at(const Eigen::Vector2d& uv) const { return origin + uv.x() * axis_u + uv.y() * axis_v; }
+  [[nodiscard]] Eigen::Vector3d at(const Eigen::Vector2d& uv) const {
+    return origin + uv.x() * axis_u + uv.y() * axis_v;
+  }
   void transform(const Eigen::Isometry3d& t);
 };
 
@@ -66,7 +68,7 @@ struct FeatureSpec {
   bool vertical = false;               // rib/louvre/slot direction
   int count_x = 1, count_y = 1;        // hole_array, and repeats of rib/louvre/slot
   double pitch_x_mm = 0, pitch_y_mm = 0;
-  Edge edge = Edge::kBottom;           // flange
+  Edge edge = Edge::kBottom;  // flange
 
   friend bool operator==(const FeatureSpec&, const FeatureSpec&) = default;
 };
@@ -80,7 +82,7 @@ struct PartSpec {
   double width_mm = 0, height_mm = 0;
   std::vector<Eigen::Vector2d> outline_mm;  // optional; empty = width x height rectangle
   std::vector<FeatureSpec> features;
-  std::string family;                  // optional: shared by near twins (look-alike parts)
+  std::string family;  // optional: shared by near twins (look-alike parts)
   PartRole role = PartRole::kUnspecified;
 
   friend bool operator==(const PartSpec&, const PartSpec&) = default;

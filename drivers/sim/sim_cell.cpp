@@ -21,7 +21,10 @@ std::vector<Coating> default_coatings() {
 }
 
 SimCell::SimCell(const RigParams& rig, std::vector<PartSpec> catalogue, SimParams sim)
-    : rig_(make_rig(rig)), catalogue_(std::move(catalogue)), sim_(std::move(sim)), renderer_(rig_, sim_.camera_noise_seed) {
+    : rig_(make_rig(rig)),
+      catalogue_(std::move(catalogue)),
+      sim_(std::move(sim)),
+      renderer_(rig_, sim_.camera_noise_seed) {
   if (sim_.coatings.empty()) sim_.coatings = default_coatings();
 }
 
@@ -82,13 +85,16 @@ Eigen::Vector3d nominal_centre_on(const CarrierParams& carrier, const PartSpec& 
 
 }  // namespace
 
-Eigen::Vector3d SimCell::nominal_centre(const PartSpec& part) const { return nominal_centre_on(rig_.params.carrier, part); }
+Eigen::Vector3d SimCell::nominal_centre(const PartSpec& part) const {
+  return nominal_centre_on(rig_.params.carrier, part);
+}
 
 Eigen::Isometry3d placement(const CarrierParams& carrier, const PartSpec& part, const PartPose& pose) {
   const Eigen::Vector3d c = nominal_centre_on(carrier, part);
   // p_C = c + R_z(theta) R_y(swing) p_part + (x, y, 0): DESIGN.md's pose with the part frame centred on c.
   return Eigen::Translation3d(c + Eigen::Vector3d(pose.x_m, pose.y_m, 0.0)) *
-         Eigen::AngleAxisd(pose.theta_rad, Eigen::Vector3d::UnitZ()) * Eigen::AngleAxisd(pose.swing_rad, Eigen::Vector3d::UnitY());
+         Eigen::AngleAxisd(pose.theta_rad, Eigen::Vector3d::UnitZ()) *
+         Eigen::AngleAxisd(pose.swing_rad, Eigen::Vector3d::UnitY());
 }
 
 Status SimCell::begin_pass(const PassSpec& pass) {

@@ -186,7 +186,10 @@ void SimLine::count_trigger_pulse() {
 
 // --- camera ----------------------------------------------------------------------------------------------
 SimCamera::SimCamera(SimLine& line, int buffer_count, std::int32_t exposure_us)
-    : line_(line), buffers_(static_cast<std::size_t>(buffer_count)), in_use_(buffers_.size(), false), exposure_us_(exposure_us) {}
+    : line_(line),
+      buffers_(static_cast<std::size_t>(buffer_count)),
+      in_use_(buffers_.size(), false),
+      exposure_us_(exposure_us) {}
 
 Status SimCamera::start() {
   if (buffers_.empty()) return make_error("simulated camera: needs at least one buffer");
@@ -194,7 +197,9 @@ Status SimCamera::start() {
   return {};
 }
 
-void SimCamera::stop() { started_ = false; }
+void SimCamera::stop() {
+  started_ = false;
+}
 
 DeviceStatus SimCamera::set_exposure_us(std::int32_t exposure_us) {
   if (exposure_us <= 0) return DeviceStatus::kInvalidArgument;
@@ -289,7 +294,9 @@ Status SimEncoder::open() {
   return {};
 }
 
-void SimEncoder::close() { open_ = false; }
+void SimEncoder::close() {
+  open_ = false;
+}
 
 DeviceStatus SimEncoder::read_counts(std::int64_t& counts) {
   if (!open_) return DeviceStatus::kNotStarted;

@@ -188,10 +188,10 @@ int run(int argc, char** argv) {
   };
 
   // The whole shipped catalogue: the decision budget is stated for 15 classes (issue 10).
-  const std::vector<std::string> names = {"plate_4h",          "plate_5h",        "slotted_plate",     "ribbed_v4",
-                                          "ribbed_v3",         "ribbed_h5",       "louvred_panel",     "bracket_l",
-                                          "channel_u",         "tray",            "frame_window",      "chamfered_plate",
-                                          "frame_two_windows", "perforated_fine", "perforated_coarse"};
+  const std::vector<std::string> names = {
+      "plate_4h",     "plate_5h",        "slotted_plate",     "ribbed_v4",       "ribbed_v3",
+      "ribbed_h5",    "louvred_panel",   "bracket_l",         "channel_u",       "tray",
+      "frame_window", "chamfered_plate", "frame_two_windows", "perforated_fine", "perforated_coarse"};
   std::printf(
       "bench_cascade: %zu classes, grid %d x %d x %d at %.1f mm, scans from %s; %d training and %d test "
       "scans per class\n",

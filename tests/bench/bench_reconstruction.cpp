@@ -5,11 +5,11 @@
 #include <cstdio>
 #include <vector>
 
+#include "../sim_test_util.hpp"
 #include "algo/scan_builder.hpp"
 #include "app/config.hpp"
 #include "app/scan_mode.hpp"
 #include "app/sim_mode.hpp"
-#include "../sim_test_util.hpp"
 
 using Clock = std::chrono::steady_clock;
 using namespace cellsight;
@@ -27,14 +27,15 @@ int main() {
     auto pass = cell->random_pass(part, 3);
     if (!pass || !cell->begin_pass(*pass)) return 1;
     std::vector<cv::Mat> frames(static_cast<std::size_t>(cell->frame_count()));
-    for (int i = 0; i < cell->frame_count(); ++i) cell->render_frame(i, cfg->camera.exposure_us, frames[static_cast<std::size_t>(i)]);
+    for (int i = 0; i < cell->frame_count(); ++i)
+      cell->render_frame(i, cfg->camera.exposure_us, frames[static_cast<std::size_t>(i)]);
     builder.begin_pass(0, static_cast<std::int32_t>(cfg->camera.exposure_us));
     for (int i = 0; i < cell->frame_count(); ++i) {
       const cv::Mat& f = frames[static_cast<std::size_t>(i)];
       const auto t1 = Clock::now();
-      const algo::FrameOutcome out = builder.add_frame(f.data, f.cols, f.rows, static_cast<int>(f.step),
-                                                       static_cast<std::int32_t>(cfg->camera.exposure_us),
-                                                       cell->frame_info(i).encoder_counts);
+      const algo::FrameOutcome out =
+          builder.add_frame(f.data, f.cols, f.rows, static_cast<int>(f.step),
+                            static_cast<std::int32_t>(cfg->camera.exposure_us), cell->frame_info(i).encoder_counts);
       const auto t2 = Clock::now();
       total_ms.push_back(std::chrono::duration<double, std::milli>(t2 - t1).count());
       total_s += std::chrono::duration<double>(t2 - t1).count();
@@ -58,8 +59,9 @@ int main() {
   std::printf("stripe + exposure + triangulation + accumulation: median %.3f ms/frame\n", whole);
   std::printf("triangulation + accumulation (difference): %.3f ms/frame\n", whole - stripe);
   const double per_frame = static_cast<double>(points) / static_cast<double>(total_ms.size());
-  std::printf("reconstructed points: %zu (%.0f per frame); %.2f M points/s through the whole per-frame path, "
-              "%.1f M points/s for triangulation + accumulation alone\n",
-              points, per_frame, static_cast<double>(points) / total_s / 1e6, per_frame / std::max(1e-9, whole - stripe) / 1e3);
+  std::printf(
+      "reconstructed points: %zu (%.0f per frame); %.2f M points/s through the whole per-frame path, "
+      "%.1f M points/s for triangulation + accumulation alone\n",
+      points, per_frame, static_cast<double>(points) / total_s / 1e6, per_frame / std::max(1e-9, whole - stripe) / 1e3);
   return 0;
 }

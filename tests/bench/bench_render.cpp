@@ -1,14 +1,14 @@
 // Benchmark: simulated-cell frame rendering, 1024x768 on one core (target >= 500 frames/s).
+#include <time.h>
+
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
+#include <opencv2/core/utility.hpp>
 #include <vector>
 
 #include "app/config.hpp"
 #include "app/sim_mode.hpp"
-#include <opencv2/core/utility.hpp>
-
-#include <time.h>
 
 // Thread CPU time: the figure stays meaningful when other work shares the machine (wall time would not).
 double cpu_ms() {
@@ -51,8 +51,10 @@ int main() {
   std::sort(all_ms.begin(), all_ms.end());
   double total = 0;
   for (double v : all_ms) total += v;
-  std::printf("ALL %zu frames %dx%d: median %.3f ms, p95 %.3f ms, max %.3f ms, mean rate %.0f frames/s (one core, thread CPU time)\n",
-              all_ms.size(), image.cols, image.rows, all_ms[all_ms.size() / 2], all_ms[all_ms.size() * 95 / 100],
-              all_ms.back(), 1000.0 * static_cast<double>(all_ms.size()) / total);
+  std::printf(
+      "ALL %zu frames %dx%d: median %.3f ms, p95 %.3f ms, max %.3f ms, mean rate %.0f frames/s (one core, thread CPU "
+      "time)\n",
+      all_ms.size(), image.cols, image.rows, all_ms[all_ms.size() / 2], all_ms[all_ms.size() * 95 / 100], all_ms.back(),
+      1000.0 * static_cast<double>(all_ms.size()) / total);
   return 0;
 }

@@ -16,8 +16,8 @@ using cellsight::algo::StripeKernel;
 
 constexpr int kWidth = 1024;
 constexpr int kHeight = 768;
-constexpr int kFrames = 8;       // distinct frames, cycled (rendering is not timed)
-constexpr int kRuns = 300;       // timed extractions per configuration
+constexpr int kFrames = 8;  // distinct frames, cycled (rendering is not timed)
+constexpr int kRuns = 300;  // timed extractions per configuration
 
 // A frame like the simulated cell's: ambient 4-10 DN with read noise ~2 DN and hot pixels, a meandering stripe
 // (sigma 0.8-1.6 px, peak around saturation with blooming, shot noise), 10 % of rows without part, ghost runs
@@ -124,8 +124,8 @@ int main() {
   const std::vector<std::vector<std::uint8_t>> dark(1, std::vector<std::uint8_t>(std::size_t(kWidth) * kHeight, 6));
   cellsight::algo::StripeProfile profile(kHeight);
   int valid = 0;
-  std::printf("bench_stripe: %dx%d mono8, median of %d frames, one core, budget 0.5 ms (DESIGN.md)\n", kWidth,
-              kHeight, kRuns);
+  std::printf("bench_stripe: %dx%d mono8, median of %d frames, one core, budget 0.5 ms (DESIGN.md)\n", kWidth, kHeight,
+              kRuns);
   std::printf("  vector kernel: %s\n", cellsight::algo::stripe_has_simd() ? "SSE2" : "none (scalar build)");
   const Timing best = time_frames(frames, StripeKernel::kBest, profile, &valid);
   print("stripe frames, best kernel:", best);

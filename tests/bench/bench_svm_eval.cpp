@@ -76,7 +76,8 @@ int main(int argc, char** argv) {
     if (!bytes) continue;
     auto points = algo::parse_ply(*bytes);
     if (!points) continue;
-    const algo::Decision d = (*recogniser)->recognise(*points, std::chrono::steady_clock::now() + std::chrono::hours(1));
+    const algo::Decision d =
+        (*recogniser)->recognise(*points, std::chrono::steady_clock::now() + std::chrono::hours(1));
     prepare_ms.push_back(d.features_ms);
     const std::string truth = f.parent_path().filename().string();
     const std::string first(d.class_index >= 0 ? (*recogniser)->class_name(d.class_index) : "none");

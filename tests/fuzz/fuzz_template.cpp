@@ -1,5 +1,5 @@
-// libFuzzer target: Perfect Match template files (formats/template_file): the header reader of `parts list/show` and the
-// checked, memory-mapped open of `run` and `classify`, on a scratch file (both take a path). Input: a mode byte,
+// libFuzzer target: Perfect Match template files (formats/template_file): the header reader of `parts list/show` and
+// the checked, memory-mapped open of `run` and `classify`, on a scratch file (both take a path). Input: a mode byte,
 // then the file (tests/fuzz/fuzz_util.hpp). An opened template is sampled as Perfect Match samples it.
 #include <algorithm>
 #include <cstddef>

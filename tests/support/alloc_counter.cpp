@@ -25,25 +25,43 @@ thread_local int t_uncounted_depth = 0;
   if (memory == nullptr) throw std::bad_alloc();
   return memory;
 }
-[[gnu::noinline]] void counted_free(void* memory) noexcept { std::free(memory); }
+[[gnu::noinline]] void counted_free(void* memory) noexcept {
+  std::free(memory);
+}
 
 }  // namespace
 
 // Every form that can release what the forms above return, or ASan reports a mismatch between ours and the library's.
-[[gnu::noinline]] void* operator new(std::size_t size) { return counted_new(size); }
-[[gnu::noinline]] void* operator new[](std::size_t size) { return counted_new(size); }
+[[gnu::noinline]] void* operator new(std::size_t size) {
+  return counted_new(size);
+}
+[[gnu::noinline]] void* operator new[](std::size_t size) {
+  return counted_new(size);
+}
 [[gnu::noinline]] void* operator new(std::size_t size, const std::nothrow_t& /*tag*/) noexcept {
   return counted_malloc(size);
 }
 [[gnu::noinline]] void* operator new[](std::size_t size, const std::nothrow_t& /*tag*/) noexcept {
   return counted_malloc(size);
 }
-[[gnu::noinline]] void operator delete(void* memory) noexcept { counted_free(memory); }
-[[gnu::noinline]] void operator delete[](void* memory) noexcept { counted_free(memory); }
-[[gnu::noinline]] void operator delete(void* memory, std::size_t /*size*/) noexcept { counted_free(memory); }
-[[gnu::noinline]] void operator delete[](void* memory, std::size_t /*size*/) noexcept { counted_free(memory); }
-[[gnu::noinline]] void operator delete(void* memory, const std::nothrow_t& /*tag*/) noexcept { counted_free(memory); }
-[[gnu::noinline]] void operator delete[](void* memory, const std::nothrow_t& /*tag*/) noexcept { counted_free(memory); }
+[[gnu::noinline]] void operator delete(void* memory) noexcept {
+  counted_free(memory);
+}
+[[gnu::noinline]] void operator delete[](void* memory) noexcept {
+  counted_free(memory);
+}
+[[gnu::noinline]] void operator delete(void* memory, std::size_t /*size*/) noexcept {
+  counted_free(memory);
+}
+[[gnu::noinline]] void operator delete[](void* memory, std::size_t /*size*/) noexcept {
+  counted_free(memory);
+}
+[[gnu::noinline]] void operator delete(void* memory, const std::nothrow_t& /*tag*/) noexcept {
+  counted_free(memory);
+}
+[[gnu::noinline]] void operator delete[](void* memory, const std::nothrow_t& /*tag*/) noexcept {
+  counted_free(memory);
+}
 
 namespace cellsight::test {
 
@@ -51,10 +69,18 @@ AllocationWindow::AllocationWindow() {
   g_allocations.store(0);
   g_counting.store(true);
 }
-AllocationWindow::~AllocationWindow() { g_counting.store(false); }
-long AllocationWindow::count() const { return g_allocations.load(); }
+AllocationWindow::~AllocationWindow() {
+  g_counting.store(false);
+}
+long AllocationWindow::count() const {
+  return g_allocations.load();
+}
 
-UncountedScope::UncountedScope() { ++t_uncounted_depth; }
-UncountedScope::~UncountedScope() { --t_uncounted_depth; }
+UncountedScope::UncountedScope() {
+  ++t_uncounted_depth;
+}
+UncountedScope::~UncountedScope() {
+  --t_uncounted_depth;
+}
 
 }  // namespace cellsight::test
