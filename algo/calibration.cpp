@@ -606,6 +606,38 @@ PlaneFit fit_plane(const std::vector<Eigen::Vector3d>& points) {
   return fit;
 }
 
+namespace {
+
+// Fits a plane, then drops points further than reject_sigmas robust deviations and refits until nothing changes;
+// returns which points are kept.
+std::vector<bool> robust_plane_inliers(const std::vector<Eigen::Vector3d>& points, double reject_sigmas) {
+  constexpr int kMaxRounds = 5;
+  constexpr double kMinThresholdM = 0.05 * kMm;  // never reject below the stripe's own noise level
+  std::vector<bool> keep(points.size(), true);
+  for (int round = 0; round < kMaxRounds; ++round) {
+    std::vector<Eigen::Vector3d> kept;
+    for (std::size_t i = 0; i < points.size(); ++i) {
+      if (keep[i]) kept.push_back(points[i]);
+    }
+    const PlaneFit fit = fit_plane(kept);
+    std::vector<double> abs_residual;
+    abs_residual.reserve(kept.size());
+    for (const auto& p : kept) abs_residual.push_back(std::abs(fit.normal.dot(p) - fit.offset));
+    const double sigma = 1.4826 * median_of(abs_residual);
+    const double threshold = std::max(kMinThresholdM, reject_sigmas * sigma);
+    bool changed = false;
+    for (std::size_t i = 0; i < points.size(); ++i) {
+      const bool now = std::abs(fit.normal.dot(points[i]) - fit.offset) <= threshold;
+      if (now != keep[i]) changed = true;
+      keep[i] = now;
+    }
+    if (!changed) break;
+  }
+  return keep;
+}
+
+}  // namespace
+
 Expected<LaserPlaneResult> calibrate_laser_plane(const Intrinsics& intrinsics, const CameraPose& camera_pose,
                                                  const BoardSpec& board, const std::vector<LaserView>& views,
                                                  const LaserCalibrationOptions& options) {
@@ -656,30 +688,7 @@ Expected<LaserPlaneResult> calibrate_laser_plane(const Intrinsics& intrinsics, c
     }
   }
 
-  // Fit, then drop points further than reject_sigmas robust deviations and refit until nothing changes.
-  constexpr int kMaxRounds = 5;
-  constexpr double kMinThresholdM = 0.05 * kMm;  // never reject below the stripe's own noise level
-  std::vector<bool> keep(points.size(), true);
-  PlaneFit fit;
-  for (int round = 0; round < kMaxRounds; ++round) {
-    std::vector<Eigen::Vector3d> kept;
-    for (std::size_t i = 0; i < points.size(); ++i) {
-      if (keep[i]) kept.push_back(points[i]);
-    }
-    fit = fit_plane(kept);
-    std::vector<double> abs_residual;
-    abs_residual.reserve(kept.size());
-    for (const auto& p : kept) abs_residual.push_back(std::abs(fit.normal.dot(p) - fit.offset));
-    const double sigma = 1.4826 * median_of(abs_residual);
-    const double threshold = std::max(kMinThresholdM, options.reject_sigmas * sigma);
-    bool changed = false;
-    for (std::size_t i = 0; i < points.size(); ++i) {
-      const bool now = std::abs(fit.normal.dot(points[i]) - fit.offset) <= threshold;
-      if (now != keep[i]) changed = true;
-      keep[i] = now;
-    }
-    if (!changed) break;
-  }
+  const std::vector<bool> keep = robust_plane_inliers(points, options.reject_sigmas);
   std::vector<Eigen::Vector3d> kept;
   out.points_per_view.assign(views.size(), 0);
   double sum_sq = 0.0;
@@ -688,7 +697,7 @@ Expected<LaserPlaneResult> calibrate_laser_plane(const Intrinsics& intrinsics, c
     kept.push_back(points[i]);
     ++out.points_per_view[static_cast<std::size_t>(view_of[i])];
   }
-  fit = fit_plane(kept);
+  const PlaneFit fit = fit_plane(kept);
   for (const auto& p : kept) sum_sq += std::pow(fit.normal.dot(p) - fit.offset, 2);
   out.normal = fit.normal;
   out.offset_m = fit.offset;
