@@ -9,6 +9,7 @@ PACKAGES=(
   libgpiod-dev libmodbus-dev libsystemd-dev zlib1g-dev
   catch2
   clang libclang-rt-14-dev   # libFuzzer and the sanitizer runtimes for the fuzz targets (scripts/fuzz.sh)
+  clang-format clang-tidy    # the code rules (scripts/lint.sh, a stage of scripts/test.sh)
   mbpoll python3 python3-pymodbus python3-serial-asyncio   # real Modbus clients for the PLC tests
 )
 

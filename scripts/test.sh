@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# The test command (README): installs what is missing, builds with AddressSanitizer + UndefinedBehaviorSanitizer
-# and warnings as errors, and runs every test with ctest, then the timing-sensitive tests in a Release build, the
+# The test command (README): installs what is missing, checks the code rules (scripts/lint.sh: clang-format,
+# file and function sizes, clang-tidy on algo/ and runtime/; CELLSIGHT_LINT=0 skips it, and a run narrowed by a
+# regex skips it too), builds with AddressSanitizer + UndefinedBehaviorSanitizer and warnings as errors, and runs every test with ctest, then the timing-sensitive tests in a Release build, the
 # threaded tests under ThreadSanitizer ($CELLSIGHT_TSAN=0 skips), the soak (scripts/soak.sh --ci: 500 parts with
 # faults injected; CELLSIGHT_SOAK=0 skips it), then every fuzz target for a few seconds (scripts/fuzz.sh;
 # $CELLSIGHT_FUZZ_SECONDS each, 0 skips). Usage: scripts/test.sh [regex]: the ctest tests, test binaries and fuzz
@@ -9,6 +10,10 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 scripts/setup.sh
+# The code rules first: a finding fails the run in a few minutes instead of after the builds.
+if [ "${CELLSIGHT_LINT:-1}" != 0 ] && [ $# -eq 0 ]; then
+  scripts/lint.sh
+fi
 BUILD=${CELLSIGHT_TEST_BUILD:-build-test}
 cmake -S . -B "$BUILD" -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCELLSIGHT_SANITIZE=ON -DCELLSIGHT_WERROR=ON >/dev/null
 cmake --build "$BUILD" -j"$(nproc)"
