@@ -51,9 +51,12 @@ AcquireResult acquire_pass(drivers::Camera& camera, drivers::DigitalIo& io, driv
                                                          params.start_exposure_us, params.poll_slice_ms});
   PassStatus status = acquirer.begin(false, Clock::now());
   while (status == PassStatus::kScanning) status = acquirer.step(Clock::now());
-  (void)acquirer.end();  // a laser that stays on is the next pass's problem, not this scan's
+  const bool laser_off = acquirer.end();
   report.frames = acquirer.frames();
   if (status != PassStatus::kComplete) return result_of(acquirer.abort());
+  // A laser output that refuses to switch off is a digital I/O fault even though the pass itself is whole: the
+  // technician must hear of it now (scan, teach and calibrate stop), not when the next pass finds the laser on.
+  if (!laser_off) return AcquireResult::kIoFault;
   report.falling_ns = acquirer.falling_edge().timestamp_ns;
   return AcquireResult::kOk;
 }

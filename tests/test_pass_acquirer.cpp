@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "algo/scan_builder.hpp"
+#include "app/acquire.hpp"
 #include "app/config.hpp"
 #include "app/scan_mode.hpp"
 #include "app/sim_mode.hpp"
@@ -73,7 +74,9 @@ class ScriptedIo final : public drivers::DigitalIo {
   Status open() override { return {}; }
   void close() override {}
   DeviceStatus set(drivers::Output line, bool active) override {
-    if (line == drivers::Output::kLaserEnable) laser = active;
+    if (line != drivers::Output::kLaserEnable) return DeviceStatus::kOk;
+    if (!active && laser_off_status != DeviceStatus::kOk) return laser_off_status;  // the laser stays on
+    laser = active;
     return DeviceStatus::kOk;
   }
   DeviceStatus pulse(drivers::Output /*line*/, std::int32_t /*width_us*/) override { return DeviceStatus::kOk; }
@@ -83,6 +86,12 @@ class ScriptedIo final : public drivers::DigitalIo {
     return DeviceStatus::kOk;
   }
   DeviceStatus wait_edge(drivers::EdgeEvent& out, int /*timeout_ms*/) override {
+    if (rising_pending) {
+      rising_pending = false;
+      out.edge = drivers::Edge::kRising;
+      out.timestamp_ns = 111;
+      return DeviceStatus::kOk;
+    }
     if (falling_after < 0 || fell || camera_.delivered < static_cast<std::uint64_t>(falling_after)) {
       return DeviceStatus::kTimeout;
     }
@@ -93,6 +102,8 @@ class ScriptedIo final : public drivers::DigitalIo {
   }
 
   bool laser = false;
+  DeviceStatus laser_off_status = DeviceStatus::kOk;  // what set(kLaserEnable, false) answers
+  bool rising_pending = false;                        // the next wait_edge() reports a rising edge
   bool part_present = true;
   int falling_after = -1;
   bool fell = false;
@@ -271,6 +282,29 @@ TEST_CASE("pass acquirer: a whole pass allocates nothing", "[pass_acquirer][allo
   CHECK(status == PassStatus::kComplete);
   CHECK(acquirer.frames() == 20);
   CHECK(allocations == 0);
+}
+
+// The blocking loop of scan, teach and calibrate support around the same acquirer.
+TEST_CASE("acquire_pass: a whole pass is ok and leaves the laser off; a laser that will not switch off is an I/O fault",
+          "[pass_acquirer]") {
+  Rig rig;
+  rig.camera.otherwise = DeviceStatus::kOk;
+  rig.io.falling_after = 4;
+  rig.io.rising_pending = true;
+  app::AcquireParams params;
+  app::AcquireReport report;
+  SECTION("the laser obeys") {
+    CHECK(app::acquire_pass(rig.camera, rig.io, rig.encoder, rig.builder, params, report) == app::AcquireResult::kOk);
+    CHECK_FALSE(rig.io.laser);
+  }
+  SECTION("the laser output refuses to switch off") {
+    rig.io.laser_off_status = DeviceStatus::kIoError;
+    CHECK(app::acquire_pass(rig.camera, rig.io, rig.encoder, rig.builder, params, report) ==
+          app::AcquireResult::kIoFault);
+    CHECK(rig.io.laser);
+  }
+  CHECK(report.frames == 4);
+  CHECK(report.rising_ns == 111);
 }
 
 }  // namespace
