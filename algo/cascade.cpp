@@ -1524,9 +1524,10 @@ void Cascade::measure_size(const Roi& roi, MatchReport& r) {
     // The interquartile mean, not the median: a template edge a little turned against the raster makes its
     // extents a staircase of two values, whose median jumps by a whole cell with the share of either.
     std::sort(size_work_.begin(), size_work_.begin() + static_cast<std::ptrdiff_t>(n));
+    const std::size_t quarter = n / 4;  // whole lines dropped at either end
     double sum = 0.0;
-    for (std::size_t j = n / 4; j < n - n / 4; ++j) sum += size_work_[j];
-    out_m = sum / static_cast<double>(n - 2 * (n / 4)) * resolution_m_;
+    for (std::size_t j = quarter; j < n - quarter; ++j) sum += size_work_[j];
+    out_m = sum / static_cast<double>(n - 2 * quarter) * resolution_m_;
   };
   measure(true, r.size_dy_m);
   measure(false, r.size_dx_m);
@@ -1553,10 +1554,10 @@ void Cascade::mark_lost_data(const Roi& roi) {
   if (!row_window_counts(roi, typical)) return;
   column_window_counts(roi, typical);
   mark_template_outside(roi);
-  const int wi = width_;
   for (int y = roi.y0; y < roi.y1; ++y) {
     for (int x = roi.x0; x < roi.x1; ++x) {
-      const auto seed = static_cast<std::size_t>(y * wi + x);
+      const std::size_t seed =
+          static_cast<std::size_t>(y) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(x);
       if ((flags_[seed] & kMissing) == 0 || !joins_group(seed, typical)) continue;
       const CellGroup group = grow_group(roi, seed, typical);
       if (is_lost_data(group)) mark_group_lost(group);
@@ -1638,7 +1639,7 @@ void Cascade::mark_template_outside(const Roi& roi) {
   std::size_t top = 0;
   for (int y = roi.y0; y < roi.y1; ++y) {
     for (int x = roi.x0; x < roi.x1; ++x) {
-      const auto i = static_cast<std::size_t>(y * wi + x);
+      const std::size_t i = static_cast<std::size_t>(y) * static_cast<std::size_t>(wi) + static_cast<std::size_t>(x);
       mask_b_[i] = 0;
       const bool edge = x == roi.x0 || y == roi.y0 || x + 1 == roi.x1 || y + 1 == roi.y1;
       if (edge && mask_a_[i] == 0) stack_[top++] = static_cast<std::int32_t>(i);
@@ -1724,8 +1725,9 @@ void Cascade::mark_group_lost(const CellGroup& g) {
   const Eigen::Vector2d normal = g.moments.minor_axis();
   const Eigen::Vector2d centre = g.moments.mean();
   auto across = [&](std::int32_t c) {
-    return std::abs((static_cast<double>(c % wi) - centre.x()) * normal.x() +
-                    (static_cast<double>(c / wi) - centre.y()) * normal.y());
+    const int cx = c % wi, cy = c / wi;  // the cell's column and row
+    return std::abs((static_cast<double>(cx) - centre.x()) * normal.x() +
+                    (static_cast<double>(cy) - centre.y()) * normal.y());
   };
   if (g.moments.elongation() >= params_.band_elongation) {
     for (std::size_t j = 0; j < g.count; ++j) tmp_lo_[j] = static_cast<float>(across(blob_cells_[j]));
@@ -1746,10 +1748,10 @@ void Cascade::mark_laser_shadow(const Roi& roi) {
   // (kStep: kShadowStepM between its lowest and highest surface there), is lost data, not a hole. A hole the scan
   // has beside a wall loses only its cells within the window; a rib the template lacks is covered by the scan.
   constexpr std::uint8_t kShadowed = kMissing | kStep;
-  const int wi = width_;
   for (int y = roi.y0; y < roi.y1; ++y) {
     for (int x = roi.x0; x < roi.x1; ++x) {
-      const auto i = static_cast<std::size_t>(y * wi + x);
+      const std::size_t i =
+          static_cast<std::size_t>(y) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(x);
       if ((flags_[i] & (kShadowed | kLost)) == kShadowed && !(s_lo_[i] <= s_hi_[i])) flags_[i] |= kLost;
     }
   }

@@ -295,8 +295,7 @@ FeatureStatus FeatureExtractor::compute(const cv::Mat& image, FeatureVector& out
   compute_cuts(image, out);
 
   const std::array<double, 8> hu = hu_invariants(normalised_moments(m));
-  for (int i = 0; i < 8; ++i)
-    out[static_cast<std::size_t>(kHuIndex + i)] = static_cast<float>(hu[static_cast<std::size_t>(i)]);
+  for (std::size_t i = 0; i < hu.size(); ++i) out[static_cast<std::size_t>(kHuIndex) + i] = static_cast<float>(hu[i]);
 
   out[kAreaIndex] = static_cast<float>(m.b0 * params_.cell_m * params_.cell_m);
   out[kEccentricityIndex] = silhouette_eccentricity(m);
@@ -341,7 +340,7 @@ void FeatureExtractor::compute_cuts(const cv::Mat& image, FeatureVector& out) {
   std::span<double> profile(profile_m_);
   auto store = [&](int index, const SpectralPeak& peak) {
     out[static_cast<std::size_t>(index)] = static_cast<float>(peak.amplitude_m);
-    out[static_cast<std::size_t>(index + 1)] = static_cast<float>(peak.frequency_cpm);
+    out[static_cast<std::size_t>(index) + 1] = static_cast<float>(peak.frequency_cpm);
   };
   for (int k = 0; k < kCutsPerDirection; ++k) {
     const int row = bounds_.top + ((k + 1) * height + kSlots / 2) / kSlots;

@@ -146,8 +146,8 @@ void ScanBuilder::column_pass(const std::uint8_t* pixels, int width, int height,
     }
     int band_last = v;
     while (band_last + 1 < height &&
-           (candidate_[static_cast<std::size_t>(band_last + 1)] != 0 ||
-            (band_last + 1 < height - 1 && candidate_[static_cast<std::size_t>(band_last + 2)] != 0))) {
+           (candidate_[static_cast<std::size_t>(band_last) + 1] != 0 ||
+            (band_last + 1 < height - 1 && candidate_[static_cast<std::size_t>(band_last) + 2] != 0))) {
       ++band_last;
     }
     const int top = std::max(0, v - kColumnWindowRows), bottom = std::min(height - 1, band_last + kColumnWindowRows);

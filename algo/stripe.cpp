@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <cstddef>
 #include <limits>
 
 #if defined(__SSE2__)
@@ -93,7 +94,8 @@ ChunkStats chunk_sums_scalar(const std::uint8_t* p, int n, std::int16_t* sums) {
   ChunkStats s;
   s.lowest = std::numeric_limits<int>::max();
   for (int c = 0; c * kChunkPx < n; ++c) {
-    sums[c] = chunk_sum_scalar(p + c * kChunkPx, std::min(kChunkPx, n - c * kChunkPx), s.max);
+    sums[c] =
+        chunk_sum_scalar(p + static_cast<std::ptrdiff_t>(c) * kChunkPx, std::min(kChunkPx, n - c * kChunkPx), s.max);
     s.lowest = std::min(s.lowest, int(sums[c]));
   }
   return s;
@@ -152,7 +154,7 @@ ChunkStats chunk_sums_sse2(const std::uint8_t* p, int n, std::int16_t* sums) {
   __m128i vmin = _mm_set1_epi16(std::numeric_limits<std::int16_t>::max());
   int c = 0;
   for (; (c + 8) * kChunkPx <= n; c += 8) {  // 8 chunks -> 8 int16 sums in one register
-    const auto* q = reinterpret_cast<const __m128i*>(p + c * kChunkPx);
+    const auto* q = reinterpret_cast<const __m128i*>(p + static_cast<std::ptrdiff_t>(c) * kChunkPx);
     __m128i v[8];
     for (int k = 0; k < 8; ++k) {
       v[k] = _mm_loadu_si128(q + k);
@@ -177,7 +179,8 @@ ChunkStats chunk_sums_sse2(const std::uint8_t* p, int n, std::int16_t* sums) {
   s.max = std::uint8_t(_mm_cvtsi128_si32(m) & 0xFF);
   s.lowest = std::int16_t(_mm_cvtsi128_si32(l) & 0xFFFF);
   for (; c * kChunkPx < n; ++c) {  // the remaining chunks, the last one maybe short
-    sums[c] = chunk_sum_scalar(p + c * kChunkPx, std::min(kChunkPx, n - c * kChunkPx), s.max);
+    sums[c] =
+        chunk_sum_scalar(p + static_cast<std::ptrdiff_t>(c) * kChunkPx, std::min(kChunkPx, n - c * kChunkPx), s.max);
     s.lowest = std::min(s.lowest, int(sums[c]));
   }
   return s;
@@ -189,7 +192,7 @@ void scan_row_sse2(const std::uint8_t* p, int n, const std::uint8_t* thr, RowSca
   const __m128i zero = _mm_setzero_si128();
   int c = 0;
   for (; (c + 1) * kChunkPx <= n; ++c) {
-    const __m128i v = _mm_loadu_si128(reinterpret_cast<const __m128i*>(p + c * kChunkPx));
+    const __m128i v = _mm_loadu_si128(reinterpret_cast<const __m128i*>(p + static_cast<std::ptrdiff_t>(c) * kChunkPx));
     // v <= thr  <=>  saturating v - thr == 0 (an unsigned compare without a sign flip).
     const __m128i le = _mm_cmpeq_epi8(_mm_subs_epu8(v, _mm_set1_epi8(static_cast<char>(thr[c]))), zero);
     const std::uint32_t above = ~std::uint32_t(_mm_movemask_epi8(le)) & 0xFFFFu;

@@ -311,8 +311,8 @@ struct AnnealingOutcome {
 };
 
 struct StageInfo {
-  Classifier classifier;
-  int stage, stages;
+  Classifier classifier = Classifier::kSvm;
+  int stage = 0, stages = 0;
   Clock::time_point t0;
 };
 
@@ -718,7 +718,7 @@ struct TrainingRun {
   int stages = 1;  // annealing runs in all (progress)
   Clock::time_point t0;
   const ProgressCallback& progress;
-  const std::atomic<bool>* stop;
+  const std::atomic<bool>* stop = nullptr;
 };
 
 void report_samples(const TrainingRun& run, TrainingReport& report) {
@@ -972,11 +972,11 @@ void Mlp::forward(TrainingBuffers& b) const {
   const std::size_t depth = layers_.size();
   // Eq. 2.18-2.21, tanh inside, softmax at the output (thesis 4.2.2).
   for (std::size_t l = 0; l < depth; ++l) {
-    const Layer& L = layers_[l];
-    for (int o = 0; o < L.out; ++o) {
-      double z = L.b[static_cast<std::size_t>(o)];
-      const double* w = &L.w[static_cast<std::size_t>(o) * static_cast<std::size_t>(L.in)];
-      for (int q = 0; q < L.in; ++q) z += w[q] * b.act[l][static_cast<std::size_t>(q)];
+    const Layer& layer = layers_[l];
+    for (int o = 0; o < layer.out; ++o) {
+      double z = layer.b[static_cast<std::size_t>(o)];
+      const double* w = &layer.w[static_cast<std::size_t>(o) * static_cast<std::size_t>(layer.in)];
+      for (int q = 0; q < layer.in; ++q) z += w[q] * b.act[l][static_cast<std::size_t>(q)];
       b.act[l + 1][static_cast<std::size_t>(o)] = l + 1 < depth ? std::tanh(z) : z;
     }
   }
@@ -994,19 +994,20 @@ void Mlp::backward(TrainingBuffers& b, int label) const {
   for (std::size_t o = 0; o < out.size(); ++o)
     b.delta[depth - 1][o] = out[o] - (static_cast<int>(o) == label ? 1.0 : 0.0);
   for (std::size_t l = depth; l-- > 0;) {
-    const Layer& L = layers_[l];
-    for (int o = 0; o < L.out; ++o) {
+    const Layer& layer = layers_[l];
+    for (int o = 0; o < layer.out; ++o) {
       const double g = b.delta[l][static_cast<std::size_t>(o)];
       b.gb[l][static_cast<std::size_t>(o)] += g;
-      double* gwo = &b.gw[l][static_cast<std::size_t>(o) * static_cast<std::size_t>(L.in)];
-      for (int q = 0; q < L.in; ++q) gwo[q] += g * b.act[l][static_cast<std::size_t>(q)];
+      double* gwo = &b.gw[l][static_cast<std::size_t>(o) * static_cast<std::size_t>(layer.in)];
+      for (int q = 0; q < layer.in; ++q) gwo[q] += g * b.act[l][static_cast<std::size_t>(q)];
     }
     if (l == 0) break;
-    for (int q = 0; q < L.in; ++q) {
+    for (int q = 0; q < layer.in; ++q) {
       double back = 0.0;
-      for (int o = 0; o < L.out; ++o)
-        back += L.w[static_cast<std::size_t>(o) * static_cast<std::size_t>(L.in) + static_cast<std::size_t>(q)] *
-                b.delta[l][static_cast<std::size_t>(o)];
+      for (int o = 0; o < layer.out; ++o)
+        back +=
+            layer.w[static_cast<std::size_t>(o) * static_cast<std::size_t>(layer.in) + static_cast<std::size_t>(q)] *
+            b.delta[l][static_cast<std::size_t>(o)];
       const double a = b.act[l][static_cast<std::size_t>(q)];
       b.delta[l - 1][static_cast<std::size_t>(q)] = back * (1.0 - a * a);  // tanh' = 1 - tanh^2
     }
@@ -1035,12 +1036,12 @@ void Mlp::adam_step(TrainingBuffers& b, std::size_t batch_size, int step, const 
 void Mlp::probabilities(std::span<const double> x, std::span<double> out) const {
   std::vector<double> a(x.begin(), x.end()), next;
   for (std::size_t l = 0; l < layers_.size(); ++l) {
-    const Layer& L = layers_[l];
-    next.assign(static_cast<std::size_t>(L.out), 0.0);
-    for (int o = 0; o < L.out; ++o) {
-      double z = L.b[static_cast<std::size_t>(o)];
-      for (int q = 0; q < L.in; ++q)
-        z += L.w[static_cast<std::size_t>(o) * static_cast<std::size_t>(L.in) + static_cast<std::size_t>(q)] *
+    const Layer& layer = layers_[l];
+    next.assign(static_cast<std::size_t>(layer.out), 0.0);
+    for (int o = 0; o < layer.out; ++o) {
+      double z = layer.b[static_cast<std::size_t>(o)];
+      for (int q = 0; q < layer.in; ++q)
+        z += layer.w[static_cast<std::size_t>(o) * static_cast<std::size_t>(layer.in) + static_cast<std::size_t>(q)] *
              a[static_cast<std::size_t>(q)];
       next[static_cast<std::size_t>(o)] = l + 1 < layers_.size() ? std::tanh(z) : z;
     }
