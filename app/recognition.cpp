@@ -6,7 +6,7 @@
 #include <limits>
 
 #include "algo/support.hpp"
-#include "app/scan_mode.hpp"
+#include "app/scan_acquisition.hpp"
 #include "base/crc32.hpp"
 #include "base/file_read.hpp"
 #include "drivers/log.hpp"
@@ -318,6 +318,17 @@ class ModelRecogniser final : public Recogniser {
 };
 
 }  // namespace
+
+Expected<algo::Plane> load_support_plane(const std::string& calibration_path) {
+  auto record = load_calibration(calibration_path);
+  if (!record)
+    return make_error(record.error().message + "\n(run scripts/calibrate.sh, or cellsight calibrate, first)");
+  if (!record->has_support) {
+    return make_error(calibration_path +
+                      ": no support section: scan the empty carrier and run 'cellsight calibrate support' first");
+  }
+  return record->support;
+}
 
 Expected<std::unique_ptr<Recogniser>> make_recogniser(const Config& config, const std::string& models_dir,
                                                       const std::string& calibration_path, RecogniserMode mode) {

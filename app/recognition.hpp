@@ -125,6 +125,9 @@ enum class RecogniserMode : std::uint8_t {
   kPmOnly,   // debug: Perfect Match against every template, lowest error that passes its thresholds
 };
 
+// The support plane the scans are cleaned with: calibration.yaml's support section (cellsight calibrate support).
+[[nodiscard]] Expected<algo::Plane> load_support_plane(const std::string& calibration_path);
+
 // Opens the model database at `models_dir` (manifest, SVM model, templates, calibration's support plane) and builds
 // the recogniser. A missing, stale or corrupt database is a clear error that says what to run.
 [[nodiscard]] Expected<std::unique_ptr<Recogniser>> make_recogniser(const Config& config, const std::string& models_dir,

@@ -15,7 +15,7 @@
 
 #include "app/model_db.hpp"
 #include "app/recognition.hpp"
-#include "app/sim_mode.hpp"
+#include "app/sim_setup.hpp"
 #include "drivers/log.hpp"
 #include "formats/template_file.hpp"
 

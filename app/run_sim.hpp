@@ -12,7 +12,7 @@
 #include "algo/result.hpp"
 #include "app/config.hpp"
 #include "app/recogniser.hpp"
-#include "app/run_mode.hpp"
+#include "app/run_options.hpp"
 #include "drivers/digital_io.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "drivers/sim/sim_faults.hpp"

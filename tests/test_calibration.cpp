@@ -12,8 +12,8 @@
 #include <sstream>
 
 #include "algo/calibration.hpp"
-#include "app/calibrate_mode.hpp"
-#include "app/cli.hpp"
+#include "cli/calibrate_mode.hpp"
+#include "cli/cli.hpp"
 #include "drivers/sim/board.hpp"
 #include "formats/calibration_file.hpp"
 #include "tests/scratch_dir.hpp"

@@ -14,7 +14,8 @@
 
 #include "app/catalogue.hpp"
 #include "app/config.hpp"
-#include "app/sim_mode.hpp"
+#include "app/sim_setup.hpp"
+#include "cli/sim_mode.hpp"
 #include "tests/scratch_dir.hpp"
 
 using namespace cellsight;

@@ -9,8 +9,8 @@
 
 #include "algo/scan_builder.hpp"
 #include "app/config.hpp"
-#include "app/scan_mode.hpp"
-#include "app/sim_mode.hpp"
+#include "app/scan_acquisition.hpp"
+#include "app/sim_setup.hpp"
 #include "runtime/pass_acquirer.hpp"
 #include "sim_test_util.hpp"
 #include "tests/support/alloc_counter.hpp"

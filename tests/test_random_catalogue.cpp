@@ -12,7 +12,8 @@
 
 #include "app/catalogue.hpp"
 #include "app/config.hpp"
-#include "app/sim_mode.hpp"
+#include "app/sim_setup.hpp"
+#include "cli/sim_mode.hpp"
 #include "drivers/sim/random_catalogue.hpp"
 #include "tests/scratch_dir.hpp"
 

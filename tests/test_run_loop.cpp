@@ -36,9 +36,9 @@
 
 #include "app/config.hpp"
 #include "app/recogniser.hpp"
-#include "app/run_mode.hpp"
-#include "app/scan_mode.hpp"
-#include "app/sim_mode.hpp"
+#include "app/scan_acquisition.hpp"
+#include "app/sim_setup.hpp"
+#include "cli/run_mode.hpp"
 #include "drivers/modbus/modbus_server.hpp"
 #include "drivers/modbus/register_map.hpp"
 #include "drivers/modbus/sim_plc_link.hpp"

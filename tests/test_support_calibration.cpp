@@ -7,9 +7,9 @@
 #include <random>
 #include <sstream>
 
-#include "app/calibrate_mode.hpp"
 #include "app/config.hpp"
-#include "app/scan_mode.hpp"
+#include "cli/calibrate_mode.hpp"
+#include "cli/scan_mode.hpp"
 #include "formats/calibration_file.hpp"
 #include "formats/ply.hpp"
 #include "tests/scratch_dir.hpp"

@@ -15,7 +15,6 @@
 #include "app/config.hpp"
 #include "app/model_db.hpp"
 #include "app/recognition.hpp"
-#include "app/train_mode.hpp"
 #include "base/file_read.hpp"
 #include "formats/calibration_file.hpp"
 #include "formats/ply.hpp"

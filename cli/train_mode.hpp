@@ -17,9 +17,6 @@
 
 namespace cellsight::app {
 
-// The support plane the scans are cleaned with: calibration.yaml's support section (cellsight calibrate support).
-[[nodiscard]] Expected<algo::Plane> load_support_plane(const std::string& calibration_path);
-
 // Reads a taught scan: checksum against the manifest, then the PLY parser.
 [[nodiscard]] Expected<std::vector<algo::ScanPoint>> load_taught_scan(const ModelDb& db, const ScanEntry& scan);
 

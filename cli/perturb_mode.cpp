@@ -1,11 +1,11 @@
 // `cellsight perturb` and the --perturb option: parse the kinds, load the carrier plane, perturb, write.
-#include "app/perturb_mode.hpp"
+#include "cli/perturb_mode.hpp"
 
 #include <cstdio>
 
-#include "app/cli.hpp"
-#include "app/train_mode.hpp"
+#include "app/recognition.hpp"
 #include "base/atomic_file.hpp"
+#include "cli/cli.hpp"
 #include "formats/calibration_file.hpp"
 #include "formats/input_file.hpp"
 #include "formats/ply.hpp"

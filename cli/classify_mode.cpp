@@ -1,5 +1,5 @@
 // `cellsight classify` (one decision per scan) and `cellsight eval` (labelled scans -> accuracy, confusion, pose).
-#include "app/classify_mode.hpp"
+#include "cli/classify_mode.hpp"
 
 #include <Eigen/Geometry>
 #include <algorithm>
@@ -14,14 +14,14 @@
 #include <optional>
 #include <sstream>
 
-#include "app/cli.hpp"
-#include "app/mode_args.hpp"
 #include "app/model_db.hpp"
-#include "app/perturb_mode.hpp"
 #include "app/recognition.hpp"
-#include "app/scan_mode.hpp"
-#include "app/sim_mode.hpp"
+#include "app/scan_acquisition.hpp"
+#include "app/sim_setup.hpp"
 #include "base/atomic_file.hpp"
+#include "cli/cli.hpp"
+#include "cli/mode_args.hpp"
+#include "cli/perturb_mode.hpp"
 #include "drivers/sim/sim_cell.hpp"
 #include "formats/calibration_file.hpp"
 #include "formats/input_file.hpp"

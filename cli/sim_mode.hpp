@@ -7,6 +7,7 @@
 
 #include "algo/result.hpp"
 #include "app/config.hpp"
+#include "app/sim_setup.hpp"
 #include "drivers/sim/sim_cell.hpp"
 
 namespace cellsight::app {
@@ -21,15 +22,8 @@ struct SimOptions {
 // Parses "x,y,theta[,swing]" (metres, metres, degrees, degrees).
 [[nodiscard]] Expected<sim::PartPose> parse_pose(const std::string& text);
 
-// Builds the simulated cell from the configuration (loads and validates the catalogue).
-[[nodiscard]] Expected<sim::SimCell> make_sim_cell(const Config& config);
-
 // Renders every frame of the pass into a staged folder and moves it to options.out_dir when complete.
 [[nodiscard]] Status write_sim_pass(const Config& config, sim::SimCell& cell, const SimOptions& options);
-
-// Fails, naming the first part and pose corner, unless every part lies inside the configured occupancy grid at all
-// 16 extremes of the random pose (x, y, theta and swing each at +- their configured range) on the configured carrier.
-[[nodiscard]] Status check_catalogue_fits_grid(const Config& config, const std::vector<sim::PartSpec>& parts);
 
 // `sim --random-catalogue N --seed S --out FILE`: a generated catalogue (drivers/sim/random_catalogue.hpp), checked
 // against the configured grid, written atomically to a new file (an existing file is never replaced).

@@ -1,5 +1,5 @@
 // Command-line parsing and mode dispatch.
-#include "app/cli.hpp"
+#include "cli/cli.hpp"
 
 #include <algorithm>
 #include <cerrno>
@@ -11,16 +11,18 @@
 #include <string>
 #include <vector>
 
-#include "app/calibrate_mode.hpp"
-#include "app/classify_mode.hpp"
 #include "app/config.hpp"
-#include "app/mode_args.hpp"
-#include "app/perturb_mode.hpp"
-#include "app/run_mode.hpp"
-#include "app/scan_mode.hpp"
-#include "app/sim_mode.hpp"
-#include "app/teach_mode.hpp"
-#include "app/train_mode.hpp"
+#include "app/scan_acquisition.hpp"
+#include "app/sim_setup.hpp"
+#include "cli/calibrate_mode.hpp"
+#include "cli/classify_mode.hpp"
+#include "cli/mode_args.hpp"
+#include "cli/perturb_mode.hpp"
+#include "cli/run_mode.hpp"
+#include "cli/scan_mode.hpp"
+#include "cli/sim_mode.hpp"
+#include "cli/teach_mode.hpp"
+#include "cli/train_mode.hpp"
 #include "drivers/log.hpp"
 #include "drivers/sim/random_catalogue.hpp"
 

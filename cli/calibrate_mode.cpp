@@ -1,5 +1,5 @@
 // `cellsight calibrate`: views.yaml + pictures -> algo/calibration -> calibration.yaml (or the simulated cell first).
-#include "app/calibrate_mode.hpp"
+#include "cli/calibrate_mode.hpp"
 
 #include <algorithm>
 #include <cerrno>
@@ -12,9 +12,9 @@
 #include <set>
 
 #include "algo/calibration.hpp"
-#include "app/cli.hpp"
 #include "base/atomic_file.hpp"
 #include "base/local_time.hpp"
+#include "cli/cli.hpp"
 #include "drivers/sim/board.hpp"
 #include "drivers/sim/random.hpp"
 #include "formats/calibration_file.hpp"

@@ -1,5 +1,5 @@
 // `cellsight teach` and `cellsight parts`: store scans of a part type, build its template, manage the database.
-#include "app/teach_mode.hpp"
+#include "cli/teach_mode.hpp"
 
 #include <algorithm>
 #include <cmath>
@@ -10,15 +10,14 @@
 #include <optional>
 
 #include "algo/part_isolation.hpp"
-#include "app/cli.hpp"
-#include "app/mode_args.hpp"
-#include "app/perturb_mode.hpp"
 #include "app/recognition.hpp"
-#include "app/scan_mode.hpp"
-#include "app/train_mode.hpp"
+#include "app/scan_acquisition.hpp"
 #include "base/atomic_file.hpp"
 #include "base/crc32.hpp"
 #include "base/local_time.hpp"
+#include "cli/cli.hpp"
+#include "cli/mode_args.hpp"
+#include "cli/perturb_mode.hpp"
 #include "drivers/log.hpp"
 #include "formats/calibration_file.hpp"
 #include "formats/input_file.hpp"

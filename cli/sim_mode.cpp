@@ -1,5 +1,5 @@
 // `cellsight sim` implementation.
-#include "app/sim_mode.hpp"
+#include "cli/sim_mode.hpp"
 
 #include <sys/stat.h>
 #include <yaml-cpp/yaml.h>
@@ -11,6 +11,7 @@
 #include <sstream>
 
 #include "app/catalogue.hpp"
+#include "app/sim_setup.hpp"
 #include "base/atomic_file.hpp"
 #include "drivers/log.hpp"
 #include "drivers/sim/random_catalogue.hpp"
@@ -56,40 +57,6 @@ Expected<sim::PartPose> parse_pose(const std::string& text) {
   pose.theta_rad = values[2] / kRadToDeg;
   pose.swing_rad = values.size() == 4 ? values[3] / kRadToDeg : 0.0;
   return pose;
-}
-
-Expected<sim::SimCell> make_sim_cell(const Config& config) {
-  auto catalogue = load_catalogue(config.catalogue_path);
-  if (!catalogue) return catalogue.error();
-  return sim::SimCell(config.rig, std::move(*catalogue), config.sim);
-}
-
-Status check_catalogue_fits_grid(const Config& config, const std::vector<sim::PartSpec>& parts) {
-  const Eigen::Vector3d lo = config.grid.origin_m;
-  const Eigen::Vector3d hi =
-      lo + config.grid.resolution_m * Eigen::Vector3d(config.grid.nx, config.grid.ny, config.grid.nz);
-  const double xy = config.sim.pose_xy_range_m;
-  const double theta = config.sim.pose_theta_range_deg / kRadToDeg;
-  const double swing = config.sim.swing_range_deg / kRadToDeg;
-  constexpr int kPoseCorners = 16;  // x, y, theta, swing each at - or + its range
-  for (const auto& part : parts) {
-    const std::vector<sim::Facet> facets = sim::build_part(part);
-    for (int corner = 0; corner < kPoseCorners; ++corner) {
-      const sim::PartPose pose{(corner & 1 ? xy : -xy), (corner & 2 ? xy : -xy), (corner & 4 ? theta : -theta),
-                               (corner & 8 ? swing : -swing)};
-      const Eigen::Isometry3d placement = sim::placement(config.rig.carrier, part, pose);
-      for (sim::Facet f : facets) {
-        f.transform(placement);
-        if ((f.bounds.min().array() < lo.array()).any() || (f.bounds.max().array() > hi.array()).any()) {
-          std::ostringstream why;
-          why << "part " << part.name << " leaves the grid at the pose x " << pose.x_m << " m, y " << pose.y_m
-              << " m, theta " << pose.theta_rad * kRadToDeg << " deg, swing " << pose.swing_rad * kRadToDeg << " deg";
-          return make_error(why.str());
-        }
-      }
-    }
-  }
-  return {};
 }
 
 Status write_random_catalogue(const Config& config, int count, std::uint64_t seed, const std::string& out_path) {

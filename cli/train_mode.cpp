@@ -1,5 +1,5 @@
 // `cellsight train`: dataset from the taught scans, training (algo/training), thresholds, atomic database update.
-#include "app/train_mode.hpp"
+#include "cli/train_mode.hpp"
 
 #include <csignal>
 #include <cstdio>
@@ -10,10 +10,8 @@
 
 #include "algo/augment.hpp"
 #include "algo/splitmix.hpp"
-#include "app/cli.hpp"
-#include "app/mode_args.hpp"
 #include "app/recognition.hpp"
-#include "app/scan_mode.hpp"
+#include "app/scan_acquisition.hpp"
 #include "app/train_progress.hpp"
 #include "app/train_report.hpp"
 #include "base/atomic_file.hpp"
@@ -21,6 +19,8 @@
 #include "base/file_read.hpp"
 #include "base/local_time.hpp"
 #include "base/parallel_for.hpp"
+#include "cli/cli.hpp"
+#include "cli/mode_args.hpp"
 #include "drivers/log.hpp"
 #include "formats/calibration_file.hpp"
 #include "formats/ply.hpp"
@@ -88,17 +88,6 @@ struct MatchWorker {
 };
 
 }  // namespace
-
-Expected<algo::Plane> load_support_plane(const std::string& calibration_path) {
-  auto record = load_calibration(calibration_path);
-  if (!record)
-    return make_error(record.error().message + "\n(run scripts/calibrate.sh, or cellsight calibrate, first)");
-  if (!record->has_support) {
-    return make_error(calibration_path +
-                      ": no support section: scan the empty carrier and run 'cellsight calibrate support' first");
-  }
-  return record->support;
-}
 
 Expected<std::vector<algo::ScanPoint>> load_taught_scan(const ModelDb& db, const ScanEntry& scan) {
   const std::string path = db.path_of(scan.file);

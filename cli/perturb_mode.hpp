@@ -6,25 +6,12 @@
 #include <string>
 #include <vector>
 
-#include "algo/perturb.hpp"
-#include "algo/random.hpp"
+#include "algo/result.hpp"
 #include "app/config.hpp"
-#include "app/mode_args.hpp"
+#include "app/scan_acquisition.hpp"
+#include "cli/mode_args.hpp"
 
 namespace cellsight::app {
-
-// Salts of the perturbation seeds: a taught and a test pass with the same pass seed never share a draw.
-inline constexpr std::uint64_t kPerturbTeach = 0x7EAC;
-inline constexpr std::uint64_t kPerturbEval = 0xE7A1;
-
-// What teach and eval --sim apply to every generated pass before it is stored or written.
-struct PassPerturbation {
-  algo::PerturbSpec spec;
-  algo::Plane support;
-  std::uint64_t purpose = 0;  // kPerturbTeach or kPerturbEval
-
-  [[nodiscard]] std::uint64_t seed_for(std::uint64_t pass_seed) const { return algo::mix_seed(pass_seed, purpose); }
-};
 
 // The --perturb SPEC option of a mode (nullopt when absent or "none"), with the carrier plane from the calibration
 // file and the carrier band from the configuration.

@@ -1,5 +1,5 @@
 // `cellsight run` implementation: start-up wiring, the simulated conveyor's feed, signals and shutdown.
-#include "app/run_mode.hpp"
+#include "cli/run_mode.hpp"
 
 #include <pthread.h>
 #include <signal.h>
@@ -22,13 +22,12 @@
 #include <string_view>
 #include <thread>
 
-#include "app/cli.hpp"
 #include "app/devices.hpp"
 #include "app/model_db.hpp"
 #include "app/recognition.hpp"
 #include "app/run_sim.hpp"
-#include "app/scan_mode.hpp"
-#include "app/sim_mode.hpp"
+#include "app/scan_acquisition.hpp"
+#include "cli/cli.hpp"
 #include "drivers/log.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "drivers/sim/sim_faults.hpp"
@@ -40,12 +39,12 @@
 
 namespace cellsight::app {
 
+using runtime::RecogniserLoader;
 using runtime::LoopConfig;
 using runtime::LoopObserver;
 using runtime::LoopStats;
 using runtime::PartRecord;
 using runtime::ProductionLoop;
-using runtime::RecogniserLoader;
 using runtime::ServiceNotifier;
 using runtime::TriggerSource;
 
