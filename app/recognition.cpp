@@ -227,7 +227,7 @@ Expected<LoadedModels> load_models(const Config& config, const ModelDb& db) {
 namespace {
 
 // The production recogniser: everything sized here, recognise() allocates nothing.
-class ModelRecogniser final : public Recogniser {
+class ModelRecogniser final : public runtime::Recogniser {
  public:
   ModelRecogniser(const Config& config, const algo::Plane& support, LoadedModels models, RecogniserMode mode)
       : preparer_(config, support, scan_builder_params_max_points(config)),
@@ -330,8 +330,9 @@ Expected<algo::Plane> load_support_plane(const std::string& calibration_path) {
   return record->support;
 }
 
-Expected<std::unique_ptr<Recogniser>> make_recogniser(const Config& config, const std::string& models_dir,
-                                                      const std::string& calibration_path, RecogniserMode mode) {
+Expected<std::unique_ptr<runtime::Recogniser>> make_recogniser(const Config& config, const std::string& models_dir,
+                                                               const std::string& calibration_path,
+                                                               RecogniserMode mode) {
   auto record = load_calibration(calibration_path);
   if (!record)
     return make_error(record.error().message + "\n(run scripts/calibrate.sh, or cellsight calibrate, first)");
@@ -343,7 +344,7 @@ Expected<std::unique_ptr<Recogniser>> make_recogniser(const Config& config, cons
   auto models = load_models(config, *db);
   if (!models) return models.error();
   for (const std::string& p : models->templates.problems) CS_LOG_ERROR("models", "%s", p.c_str());
-  return std::unique_ptr<Recogniser>(
+  return std::unique_ptr<runtime::Recogniser>(
       std::make_unique<ModelRecogniser>(config, record->support, std::move(*models), mode));
 }
 

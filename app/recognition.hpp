@@ -22,8 +22,8 @@
 #include "algo/svm.hpp"
 #include "app/config.hpp"
 #include "app/model_db.hpp"
-#include "app/recogniser.hpp"
 #include "formats/template_file.hpp"
+#include "runtime/recogniser.hpp"
 
 namespace cellsight::app {
 
@@ -130,8 +130,8 @@ enum class RecogniserMode : std::uint8_t {
 
 // Opens the model database at `models_dir` (manifest, SVM model, templates, calibration's support plane) and builds
 // the recogniser. A missing, stale or corrupt database is a clear error that says what to run.
-[[nodiscard]] Expected<std::unique_ptr<Recogniser>> make_recogniser(const Config& config, const std::string& models_dir,
-                                                                    const std::string& calibration_path,
-                                                                    RecogniserMode mode = RecogniserMode::kCascade);
+[[nodiscard]] Expected<std::unique_ptr<runtime::Recogniser>> make_recogniser(
+    const Config& config, const std::string& models_dir, const std::string& calibration_path,
+    RecogniserMode mode = RecogniserMode::kCascade);
 
 }  // namespace cellsight::app

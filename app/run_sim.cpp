@@ -70,7 +70,7 @@ Expected<SimFeed> draw_passes(const sim::SimCell& cell, std::uint64_t seed, std:
 
 // --sim-oracle: the simulator's truth of the pass under the sensor as the decision, so the runtime (loop, Modbus,
 // handshake, truth log) can be tested end to end before a model database exists. PLC id = catalogue index + 1.
-class SimOracle final : public Recogniser {
+class SimOracle final : public runtime::Recogniser {
  public:
   SimOracle(const sim::SimLine& line, const sim::SimCell& cell, const SimFeed& feed)
       : line_(line), cell_(cell), feed_(feed) {}
@@ -260,7 +260,7 @@ Status SimRun::enable_replay() {
   return {};
 }
 
-std::unique_ptr<Recogniser> SimRun::make_oracle() const {
+std::unique_ptr<runtime::Recogniser> SimRun::make_oracle() const {
   return std::make_unique<SimOracle>(*state_->line, *state_->cell, state_->feed);
 }
 

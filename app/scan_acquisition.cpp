@@ -8,10 +8,10 @@
 
 #include "app/acquire.hpp"
 #include "app/devices.hpp"
+#include "app/loop_wiring.hpp"
 #include "app/sim_setup.hpp"
 #include "base/parallel_for.hpp"
 #include "formats/calibration_file.hpp"
-#include "runtime/loop_wiring.hpp"
 
 namespace cellsight::app {
 
@@ -62,7 +62,7 @@ Expected<std::vector<algo::ScanPoint>> acquire_scan(const Config& config, const 
   if (auto ok = devices->open(); !ok) return ok.error();
   algo::ScanBuilder builder(scan_builder_params(config), *calibration);
   AcquireParams params;
-  const runtime::AcquirerParams pass = runtime::acquirer_params(config);  // the production loop's, from the config
+  const runtime::AcquirerParams pass = acquirer_params(config);  // the production loop's, from the config
   params.start_exposure_us = pass.start_exposure_us;
   params.frame_timeout_ms = pass.frame_timeout_ms;
   params.max_frames = pass.max_frames;

@@ -132,7 +132,7 @@ std::string unknown_reason_text(const algo::Decision& d, const ClassNames& names
   return out;
 }
 
-ClassNames class_names(const Recogniser& r) {
+ClassNames class_names(const runtime::Recogniser& r) {
   return [&r](int i) { return std::string(r.class_name(i)); };
 }
 
@@ -389,7 +389,7 @@ std::vector<LabelledScan> labelled_scans(const std::string& dir, const std::map<
 
 // Counts one decision on a labelled scan: right, wrong or unknown, pose error, source, time, what the SVM alone
 // would have said (its rank order is in the decision) and how far the cascade had to go.
-void count_decision(const LabelledScan& s, const algo::Decision& d, const Recogniser& recogniser, bool taught,
+void count_decision(const LabelledScan& s, const algo::Decision& d, const runtime::Recogniser& recogniser, bool taught,
                     EvalTotals& t) {
   const std::string decided = d.class_index >= 0 ? std::string(recogniser.class_name(d.class_index)) : "unknown";
   ++t.scans;

@@ -23,6 +23,7 @@
 #include <thread>
 
 #include "app/devices.hpp"
+#include "app/loop_wiring.hpp"
 #include "app/model_db.hpp"
 #include "app/recognition.hpp"
 #include "app/run_sim.hpp"
@@ -33,18 +34,17 @@
 #include "drivers/sim/sim_faults.hpp"
 #include "formats/calibration_file.hpp"
 #include "formats/template_file.hpp"
-#include "runtime/loop_wiring.hpp"
 #include "runtime/production_loop.hpp"
 #include "runtime/service_notify.hpp"
 
 namespace cellsight::app {
 
-using runtime::RecogniserLoader;
 using runtime::LoopConfig;
 using runtime::LoopObserver;
 using runtime::LoopStats;
 using runtime::PartRecord;
 using runtime::ProductionLoop;
+using runtime::RecogniserLoader;
 using runtime::ServiceNotifier;
 using runtime::TriggerSource;
 
@@ -215,7 +215,7 @@ namespace {
 // The recogniser the loop starts with: the model database's (and a loader that retries it), or the simulator's
 // oracle. An error is the user's (exit 2): with --parts there is no point in a run that cannot recognise.
 struct RecogniserSetup {
-  std::unique_ptr<Recogniser> recogniser;
+  std::unique_ptr<runtime::Recogniser> recogniser;
   RecogniserLoader loader;
 };
 
@@ -245,7 +245,7 @@ Expected<RecogniserSetup> set_up_recogniser(const Config& config, const RunOptio
 }
 
 LoopConfig run_loop_settings(const Config& config, const RunOptions& options, bool sim) {
-  LoopConfig settings = runtime::loop_config(config);
+  LoopConfig settings = app::loop_config(config);
   settings.max_parts = options.parts;
   if (sim) {
     settings.conveyor_waits_for_ready = true;

@@ -42,7 +42,7 @@ ProductionLoop::~ProductionLoop() {
   join();
 }
 
-void ProductionLoop::set_recogniser(std::unique_ptr<app::Recogniser> recogniser) {
+void ProductionLoop::set_recogniser(std::unique_ptr<Recogniser> recogniser) {
   worker_.set_recogniser(std::move(recogniser));
 }
 void ProductionLoop::set_recogniser_loader(RecogniserLoader loader) {

@@ -4,8 +4,8 @@
 //
 // Rooms: the state machine is split per state (loop_pass.cpp idle + scanning, loop_recognise.cpp, loop_publish.cpp,
 // loop_fault.cpp, loop_commands.cpp); recognition runs on RecognitionWorker (atomic mailbox); what the PLC sees is
-// plc_mapping; log lines go through LogQueue to a writer thread; real-time set-up is realtime.cpp; Config -> LoopConfig
-// is loop_wiring.cpp.
+// plc_mapping; log lines go through LogQueue to a writer thread; real-time set-up is realtime.cpp. Config -> LoopConfig
+// is app/loop_wiring.cpp, above this layer.
 #pragma once
 
 #include <atomic>
@@ -16,7 +16,6 @@
 
 #include "algo/decision.hpp"
 #include "algo/scan_builder.hpp"
-#include "app/recogniser.hpp"
 #include "base/result.hpp"
 #include "drivers/camera.hpp"
 #include "drivers/digital_io.hpp"
@@ -24,6 +23,7 @@
 #include "runtime/log_queue.hpp"
 #include "runtime/loop_types.hpp"
 #include "runtime/pass_acquirer.hpp"
+#include "runtime/recogniser.hpp"
 #include "runtime/recognition_worker.hpp"
 
 namespace cellsight::runtime {
@@ -43,7 +43,7 @@ class ProductionLoop {
   ProductionLoop& operator=(const ProductionLoop&) = delete;
 
   // Before start(). Without a recogniser the loop starts in fault "model database invalid" and uses the loader.
-  void set_recogniser(std::unique_ptr<app::Recogniser> recogniser);
+  void set_recogniser(std::unique_ptr<Recogniser> recogniser);
   void set_recogniser_loader(RecogniserLoader loader);
   void set_observer(LoopObserver* observer);   // borrowed; must outlive the loop threads
   void set_service(ServiceNotifier* service);  // borrowed; WATCHDOG=1 while healthy

@@ -15,7 +15,7 @@ RecognitionWorker::~RecognitionWorker() {
   stop();
 }
 
-void RecognitionWorker::set_recogniser(std::unique_ptr<app::Recogniser> recogniser) {
+void RecognitionWorker::set_recogniser(std::unique_ptr<Recogniser> recogniser) {
   recogniser_ = std::move(recogniser);
   has_recogniser_.store(recogniser_ != nullptr, std::memory_order_release);
 }

@@ -35,7 +35,7 @@
 #include <vector>
 
 #include "app/config.hpp"
-#include "app/recogniser.hpp"
+#include "app/loop_wiring.hpp"
 #include "app/scan_acquisition.hpp"
 #include "app/sim_setup.hpp"
 #include "cli/run_mode.hpp"
@@ -44,9 +44,9 @@
 #include "drivers/modbus/sim_plc_link.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "formats/calibration_file.hpp"
-#include "runtime/loop_wiring.hpp"
 #include "runtime/plc_mapping.hpp"
 #include "runtime/production_loop.hpp"
+#include "runtime/recogniser.hpp"
 #include "runtime/service_notify.hpp"
 #include "sim_test_util.hpp"
 #include "tests/scratch_dir.hpp"
@@ -118,7 +118,7 @@ app::Config small_config() {
 }
 
 runtime::LoopConfig small_loop_config(const app::Config& config) {
-  runtime::LoopConfig c = runtime::loop_config(config);
+  runtime::LoopConfig c = app::loop_config(config);
   c.conveyor_waits_for_ready = true;  // the simulated conveyor
   c.require_trigger_enable = false;
   c.poll_slice_ms = 5;
@@ -137,7 +137,7 @@ struct Script {
 };
 
 // The recognition stage's test double: returns the scripted decision of the n-th call, after its delay.
-class ScriptedRecogniser final : public app::Recogniser {
+class ScriptedRecogniser final : public runtime::Recogniser {
  public:
   static constexpr std::size_t kMaxScripts = 512;
   explicit ScriptedRecogniser(std::vector<Script> scripts) : scripts_(std::move(scripts)) {}
@@ -488,7 +488,7 @@ struct Cell {
   WorldIo io;
   WorldEncoder encoder;
   drivers::SimPlcLink link;
-  std::unique_ptr<app::Recogniser> recogniser;
+  std::unique_ptr<runtime::Recogniser> recogniser;
   ScriptedRecogniser* recogniser_ptr = nullptr;
   Recorder recorder;
   std::optional<runtime::ProductionLoop> loop;
@@ -1138,10 +1138,10 @@ TEST_CASE(
   loop.set_recogniser(nullptr);
   std::atomic<bool> database_ready{false};
   std::atomic<int> loads{0};
-  loop.set_recogniser_loader([&]() -> Expected<std::unique_ptr<app::Recogniser>> {
+  loop.set_recogniser_loader([&]() -> Expected<std::unique_ptr<runtime::Recogniser>> {
     loads.fetch_add(1);
     if (!database_ready.load()) return make_error("models/manifest.yaml is not there (test)");
-    return std::unique_ptr<app::Recogniser>(std::make_unique<ScriptedRecogniser>(std::vector<Script>{Script{}}));
+    return std::unique_ptr<runtime::Recogniser>(std::make_unique<ScriptedRecogniser>(std::vector<Script>{Script{}}));
   });
   REQUIRE(loop.start().ok());
   REQUIRE(wait_until([&] { return plc.error_code() == 6; }, 5000));
