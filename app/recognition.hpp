@@ -99,7 +99,7 @@ class ScanPreparer {
 // The memory-mapped templates of every part, by class index (manifest order). A template that is missing or refused
 // leaves an empty map in `models` (its class can never be accepted) and a line in `problems`.
 struct LoadedTemplates {
-  std::vector<std::optional<TemplateFile>> files;
+  std::vector<std::optional<formats::TemplateFile>> files;
   std::vector<std::vector<int>> confusable;  // class indices; the models' spans borrow them
   std::vector<algo::TemplateModel> models;
   std::vector<std::string> problems;

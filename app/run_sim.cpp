@@ -169,15 +169,15 @@ void write_template_truth(std::FILE* file, const Config& config, const sim::SimC
     return;
   }
   constexpr std::string_view kSimSeed = "sim seed ";
-  for (const PartEntry& part : db->manifest().parts) {
+  for (const formats::PartEntry& part : db->manifest().parts) {
     std::fprintf(file, "{\"template\": \"%s\", \"part_id\": %d", part.name.c_str(), part.id);
     const sim::PartSpec* spec = cell.find_part(part.name);
     std::uint64_t seed = 0;
-    const ScanEntry* source = part.template_scan_entry();  // the pass the template was built from
+    const formats::ScanEntry* source = part.template_scan_entry();  // the pass the template was built from
     const bool from_sim = spec != nullptr && source != nullptr && source->source.rfind(kSimSeed, 0) == 0 &&
                           parse_u64(source->source.substr(kSimSeed.size()), seed);
     auto pass = from_sim ? cell.random_pass(part.name, seed) : Expected<sim::PassSpec>(make_error("not simulated"));
-    auto info = read_template_info(db->path_of(part.template_file));
+    auto info = formats::read_template_info(db->path_of(part.template_file));
     if (pass && info) {
       const Eigen::Vector3d c0 = cell.nominal_centre(*spec);
       std::fprintf(file,

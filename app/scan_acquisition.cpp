@@ -34,7 +34,7 @@ Expected<std::vector<algo::ScanPoint>> acquire_scan(const Config& config, const 
                                                     ScanSummary& summary) {
   const std::string calibration_path =
       options.calibration_path.empty() ? default_calibration_path(config) : options.calibration_path;
-  auto calibration = load_sensor_calibration(calibration_path);
+  auto calibration = formats::load_sensor_calibration(calibration_path);
   if (!calibration) {
     return make_error(calibration.error().message + "\n(run scripts/calibrate.sh, or cellsight calibrate, first)");
   }

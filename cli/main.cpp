@@ -2,5 +2,5 @@
 #include "cli/cli.hpp"
 
 int main(int argc, char** argv) {
-  return cellsight::app::run_cli(argc, argv);
+  return cellsight::cli::run_cli(argc, argv);
 }

@@ -11,15 +11,16 @@
 #include "app/scan_acquisition.hpp"
 #include "cli/mode_args.hpp"
 
-namespace cellsight::app {
+namespace cellsight::cli {
 
 // The --perturb SPEC option of a mode (nullopt when absent or "none"), with the carrier plane from the calibration
 // file and the carrier band from the configuration.
-[[nodiscard]] Expected<std::optional<PassPerturbation>> perturbation_option(const ModeArgs& args, const Config& config,
-                                                                            const std::string& calibration_path,
-                                                                            std::uint64_t purpose);
+[[nodiscard]] Expected<std::optional<app::PassPerturbation>> perturbation_option(const ModeArgs& args,
+                                                                                 const app::Config& config,
+                                                                                 const std::string& calibration_path,
+                                                                                 std::uint64_t purpose);
 
 // `cellsight perturb --kind SPEC [--seed S] [--calibration FILE] IN.ply OUT.ply`
-[[nodiscard]] int run_perturb(const std::vector<std::string>& args, const Config& config);
+[[nodiscard]] int run_perturb(const std::vector<std::string>& args, const app::Config& config);
 
-}  // namespace cellsight::app
+}  // namespace cellsight::cli

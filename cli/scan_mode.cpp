@@ -13,22 +13,22 @@
 #include "formats/input_file.hpp"
 #include "formats/ply.hpp"
 
-namespace cellsight::app {
+namespace cellsight::cli {
 
-Expected<ScanSummary> run_scan(const Config& config, const ScanOptions& options) {
-  ScanSummary summary;
-  auto points = acquire_scan(config, options, summary);
+Expected<app::ScanSummary> run_scan(const app::Config& config, const app::ScanOptions& options) {
+  app::ScanSummary summary;
+  auto points = app::acquire_scan(config, options, summary);
   if (!points) return points.error();
-  const std::string bytes = options.ascii ? algo::write_ply_ascii(*points) : algo::write_ply_binary(*points);
-  if (auto ok = write_file_atomic(options.out_path, bytes); !ok) return ok.error();
+  const std::string bytes = options.ascii ? formats::write_ply_ascii(*points) : formats::write_ply_binary(*points);
+  if (auto ok = base::write_file_atomic(options.out_path, bytes); !ok) return ok.error();
   CS_LOG_INFO("scan", "%zu points from %d frames (stripe width in band in %d of %d) -> %s", summary.points,
               summary.frames, summary.frames_in_band, summary.frames_with_stripe, options.out_path.c_str());
   return summary;
 }
 
-int run_calibrate_support(const std::vector<std::string>& args, const Config& config) {
+int run_calibrate_support(const std::vector<std::string>& args, const app::Config& config) {
   constexpr int kOk = 0, kBadInput = 2, kFailure = 1;
-  ScanOptions options;
+  app::ScanOptions options;
   options.empty_carrier = true;
   std::string scan_path;
   auto fail = [](const std::string& why) {
@@ -57,23 +57,23 @@ int run_calibrate_support(const std::vector<std::string>& args, const Config& co
   }
   if (options.sim == !scan_path.empty()) return fail("give either --scan EMPTY.ply (an empty-carrier scan) or --sim");
   const std::string calibration_path =
-      options.calibration_path.empty() ? default_calibration_path(config) : options.calibration_path;
+      options.calibration_path.empty() ? app::default_calibration_path(config) : options.calibration_path;
   // The other sections are kept: read them first, and refuse to touch a damaged file.
-  CalibrationRecord record;
+  formats::CalibrationRecord record;
   std::error_code ec;
   if (std::filesystem::exists(calibration_path, ec)) {
-    auto loaded = load_calibration(calibration_path);
+    auto loaded = formats::load_calibration(calibration_path);
     if (!loaded) return fail(loaded.error().message);
     record = *loaded;
   }
   std::vector<algo::ScanPoint> points;
   if (options.sim) {
-    ScanSummary summary;
-    auto scanned = acquire_scan(config, options, summary);
+    app::ScanSummary summary;
+    auto scanned = app::acquire_scan(config, options, summary);
     if (!scanned) return fail(scanned.error().message);
     points = std::move(*scanned);
   } else {
-    auto parsed = load_ply_file(scan_path);
+    auto parsed = formats::load_ply_file(scan_path);
     if (!parsed) return fail(parsed.error().message);
     points = std::move(*parsed);
   }
@@ -95,8 +95,8 @@ int run_calibrate_support(const std::vector<std::string>& args, const Config& co
   record.support = fit->plane;
   record.support_rms_mm = fit->rms_m * 1e3;
   record.support_points = fit->inliers;
-  record.support_date = local_time_text();
-  auto saved = save_calibration(calibration_path, record);
+  record.support_date = base::local_time_text();
+  auto saved = formats::save_calibration(calibration_path, record);
   if (!saved) {
     std::fprintf(stderr, "cellsight calibrate support: %s\n", saved.error().message.c_str());
     return kFailure;
@@ -110,4 +110,4 @@ int run_calibrate_support(const std::vector<std::string>& args, const Config& co
   return kOk;
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::cli

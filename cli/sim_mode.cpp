@@ -16,7 +16,7 @@
 #include "drivers/log.hpp"
 #include "drivers/sim/random_catalogue.hpp"
 
-namespace cellsight::app {
+namespace cellsight::cli {
 namespace {
 
 constexpr double kRadToDeg = 180.0 / std::numbers::pi;
@@ -59,9 +59,9 @@ Expected<sim::PartPose> parse_pose(const std::string& text) {
   return pose;
 }
 
-Status write_random_catalogue(const Config& config, int count, std::uint64_t seed, const std::string& out_path) {
+Status write_random_catalogue(const app::Config& config, int count, std::uint64_t seed, const std::string& out_path) {
   const sim::RandomCatalogue catalogue = sim::generate_random_catalogue(count, seed);
-  if (auto ok = check_catalogue_fits_grid(config, catalogue.parts); !ok) {
+  if (auto ok = app::check_catalogue_fits_grid(config, catalogue.parts); !ok) {
     return make_error("the generated catalogue does not fit this configuration's grid: " + ok.error().message);
   }
   std::ostringstream header;
@@ -83,7 +83,9 @@ Status write_random_catalogue(const Config& config, int count, std::uint64_t see
     if (p.role == sim::PartRole::kUntaught) header << ' ' << p.name;
   }
   header << "\n";
-  if (auto ok = write_file_atomic(out_path, catalogue_yaml(catalogue.parts, header.str()), Overwrite::kRefuse); !ok) {
+  if (auto ok = base::write_file_atomic(out_path, app::catalogue_yaml(catalogue.parts, header.str()),
+                                        base::Overwrite::kRefuse);
+      !ok) {
     return ok.error();
   }
   CS_LOG_INFO("sim", "random catalogue: %d parts, seed %llu, %zu near-twin pairs -> %s", count,
@@ -91,7 +93,7 @@ Status write_random_catalogue(const Config& config, int count, std::uint64_t see
   return {};
 }
 
-std::string truth_yaml(const Config& config, const sim::SimCell& cell, const std::vector<double>& exposures_us) {
+std::string truth_yaml(const app::Config& config, const sim::SimCell& cell, const std::vector<double>& exposures_us) {
   const sim::Rig& rig = cell.rig();
   const sim::PassSpec& pass = cell.pass();
   YAML::Emitter out;
@@ -181,13 +183,13 @@ std::string truth_yaml(const Config& config, const sim::SimCell& cell, const std
   return std::string(out.c_str()) + "\n";
 }
 
-Status write_sim_pass(const Config& config, sim::SimCell& cell, const SimOptions& options) {
+Status write_sim_pass(const app::Config& config, sim::SimCell& cell, const SimOptions& options) {
   auto pass = cell.random_pass(options.part, options.seed);
   if (!pass) return pass.error();
   if (options.pose) pass->pose = *options.pose;
   if (auto ok = cell.begin_pass(*pass); !ok) return ok.error();
 
-  auto staged = StagedDirectory::create(options.out_dir);
+  auto staged = base::StagedDirectory::create(options.out_dir);
   if (!staged) return staged.error();
   const std::string frames_dir = staged->path() + "/frames";
   if (::mkdir(frames_dir.c_str(), 0755) != 0) return make_error(frames_dir + ": cannot create");
@@ -210,7 +212,7 @@ Status write_sim_pass(const Config& config, sim::SimCell& cell, const SimOptions
     }
     if (!written) return make_error(frames_dir + name + ": cannot write the PNG");
   }
-  if (auto ok = write_file_atomic(staged->path() + "/truth.yaml", truth_yaml(config, cell, exposures_us)); !ok) {
+  if (auto ok = base::write_file_atomic(staged->path() + "/truth.yaml", truth_yaml(config, cell, exposures_us)); !ok) {
     return ok.error();
   }
   if (auto ok = staged->commit(); !ok) return ok.error();
@@ -221,4 +223,4 @@ Status write_sim_pass(const Config& config, sim::SimCell& cell, const SimOptions
   return {};
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::cli

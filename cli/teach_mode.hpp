@@ -7,9 +7,11 @@
 
 #include "app/config.hpp"
 
-namespace cellsight::app {
+namespace cellsight::cli {
 
-[[nodiscard]] int run_teach(const std::vector<std::string>& args, const Config& config, const std::string& models_dir);
-[[nodiscard]] int run_parts(const std::vector<std::string>& args, const Config& config, const std::string& models_dir);
+[[nodiscard]] int run_teach(const std::vector<std::string>& args, const app::Config& config,
+                            const std::string& models_dir);
+[[nodiscard]] int run_parts(const std::vector<std::string>& args, const app::Config& config,
+                            const std::string& models_dir);
 
-}  // namespace cellsight::app
+}  // namespace cellsight::cli

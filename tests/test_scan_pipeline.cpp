@@ -85,11 +85,11 @@ const algo::SensorCalibration& calibrated_sensor(const app::Config& cfg) {
     const fs::path dir = test::scratch_dir("scan-calib");
     const std::string file = (dir / "calibration.yaml").string();
     for (const char* step : {"camera", "laser", "conveyor"}) {
-      const int rc = app::run_calibrate({step, "--sim", "--out", (dir / step).string(), "--calibration", file}, cfg,
+      const int rc = cli::run_calibrate({step, "--sim", "--out", (dir / step).string(), "--calibration", file}, cfg,
                                         stdout, stderr);
       REQUIRE(rc == 0);
     }
-    auto loaded = app::load_sensor_calibration(file);
+    auto loaded = formats::load_sensor_calibration(file);
     REQUIRE(loaded.ok());
     fs::remove_all(dir);
     return *loaded;

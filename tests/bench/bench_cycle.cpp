@@ -146,7 +146,7 @@ int main(int argc, char** argv) {
   std::unique_ptr<runtime::Recogniser> recogniser;
   if (!models.empty()) {
     if (calibration_path.empty()) calibration_path = app::default_calibration_path(*config);
-    auto loaded = app::load_sensor_calibration(calibration_path);
+    auto loaded = formats::load_sensor_calibration(calibration_path);
     if (!loaded) {
       std::fprintf(stderr, "%s\n", loaded.error().message.c_str());
       return 2;
