@@ -1,5 +1,5 @@
 // Expected-style result for start-up and tool paths: a value or an Error with a message for a person. In base/ so
-// that every layer (base, algo, drivers, app) returns the same type.
+// that every layer (base, algo, drivers, formats, runtime, app, cli) returns the same type.
 #pragma once
 
 #include <string>
