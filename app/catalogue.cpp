@@ -28,7 +28,7 @@ constexpr struct {
 } kEdges[] = {
     {"left", sim::Edge::kLeft}, {"right", sim::Edge::kRight}, {"top", sim::Edge::kTop}, {"bottom", sim::Edge::kBottom}};
 
-bool read_feature(YamlSection& f, sim::FeatureSpec& out) {
+bool read_feature(formats::YamlSection& f, sim::FeatureSpec& out) {
   std::string type;
   f.require("type");
   f.choice("type", type, {"hole", "slot", "window", "hole_array", "rib", "louvre", "flange"});
@@ -139,16 +139,16 @@ std::string catalogue_yaml(const std::vector<sim::PartSpec>& parts, const std::s
 }
 
 Expected<std::vector<sim::PartSpec>> load_catalogue(const std::string& path) {
-  auto doc = load_yaml_file(path);
+  auto doc = formats::load_yaml_file(path);
   if (!doc) return doc.error();
-  YamlErrors errors(path);
-  YamlSection root(*doc, "", &errors);
+  formats::YamlErrors errors(path);
+  formats::YamlSection root(*doc, "", &errors);
   int version = 1;
   root.integer("format_version", version, 1, 1, "");
   std::vector<sim::PartSpec> parts;
   std::set<std::string> names;
   root.require("parts");
-  for (YamlSection p : root.list("parts")) {
+  for (formats::YamlSection p : root.list("parts")) {
     sim::PartSpec spec;
     p.require("name");
     p.require("width_mm");
@@ -165,7 +165,7 @@ Expected<std::vector<sim::PartSpec>> load_catalogue(const std::string& path) {
     p.number("height_mm", spec.height_mm, 1.0, kMaxMm, "mm");
     p.points2("outline_mm", spec.outline_mm, -kMaxMm, kMaxMm, "mm");
     bool features_ok = true;
-    for (YamlSection f : p.list("features")) {
+    for (formats::YamlSection f : p.list("features")) {
       sim::FeatureSpec feature;
       features_ok = read_feature(f, feature) && features_ok;
       spec.features.push_back(feature);

@@ -13,8 +13,8 @@ namespace {
 
 namespace fs = std::filesystem;
 
-void read_rig(YamlSection s, sim::RigParams& rig) {
-  YamlSection cam = s.section("camera");
+void read_rig(formats::YamlSection s, sim::RigParams& rig) {
+  formats::YamlSection cam = s.section("camera");
   auto& k = rig.camera.intrinsics;
   cam.integer("width_px", k.width_px, 64, 8192, "px");
   cam.integer("height_px", k.height_px, 64, 8192, "px");
@@ -33,7 +33,7 @@ void read_rig(YamlSection s, sim::RigParams& rig) {
   cam.number("roll_deg", rig.camera.roll_deg, -45.0, 45.0, "deg");
   cam.finish();
 
-  YamlSection laser = s.section("laser");
+  formats::YamlSection laser = s.section("laser");
   laser.vec3("normal", rig.laser.normal_world, -1.0, 1.0, "");
   if (rig.laser.normal_world.norm() < 0.5) laser.error("normal", "must be a direction (length near 1)");
   laser.number("offset_m", rig.laser.offset_m, -1.0, 1.0, "m");
@@ -43,14 +43,14 @@ void read_rig(YamlSection s, sim::RigParams& rig) {
   s.finish();
 }
 
-void read_conveyor(YamlSection s, sim::ConveyorParams& c) {
+void read_conveyor(formats::YamlSection s, sim::ConveyorParams& c) {
   s.number("speed_m_per_s", c.speed_m_per_s, 0.001, 1.0, "m/s");
   s.number("counts_per_mm", c.counts_per_mm, 0.1, 1000.0, "counts/mm");
   s.integer("trigger_every_counts", c.trigger_every_counts, 1, 100000, "counts");
   s.finish();
 }
 
-void read_carrier(YamlSection s, sim::CarrierParams& c) {
+void read_carrier(formats::YamlSection s, sim::CarrierParams& c) {
   s.number("length_m", c.length_m, 0.1, 3.0, "m");
   s.number("height_m", c.height_m, 0.1, 3.0, "m");
   s.number("start_offset_m", c.start_offset_m, -3.0, 3.0, "m");
@@ -63,7 +63,7 @@ void read_carrier(YamlSection s, sim::CarrierParams& c) {
   s.finish();
 }
 
-void read_sim(YamlSection s, Config& cfg) {
+void read_sim(formats::YamlSection s, Config& cfg) {
   auto& p = cfg.sim;
   s.text("catalogue", cfg.catalogue_path);
   s.number("pose_xy_range_m", p.pose_xy_range_m, 0.0, 0.3, "m");
@@ -74,7 +74,7 @@ void read_sim(YamlSection s, Config& cfg) {
   std::int64_t seed = static_cast<std::int64_t>(p.camera_noise_seed);
   s.integer("camera_noise_seed", seed, 0, INT64_MAX, "");
   p.camera_noise_seed = static_cast<std::uint64_t>(seed);
-  YamlSection sensor = s.section("sensor");
+  formats::YamlSection sensor = s.section("sensor");
   auto& n = cfg.rig.sensor;
   sensor.number("gain_dn_per_us", n.gain_dn_per_us, 0.0, 100.0, "DN/us");
   sensor.number("optics_sigma_px", n.optics_sigma_px, 0.3, 10.0, "px");
@@ -93,7 +93,7 @@ void read_sim(YamlSection s, Config& cfg) {
   sensor.boolean("noise", n.noise);
   sensor.finish();
   if (s.has("coatings")) p.coatings.clear();
-  for (YamlSection c : s.list("coatings")) {
+  for (formats::YamlSection c : s.list("coatings")) {
     sim::Coating coating;
     c.require("name");
     c.text("name", coating.name);
@@ -107,7 +107,7 @@ void read_sim(YamlSection s, Config& cfg) {
   s.finish();
 }
 
-void read_grid_section(YamlSection g, Config& cfg) {
+void read_grid_section(formats::YamlSection g, Config& cfg) {
   g.vec3("origin_m", cfg.grid.origin_m, -5.0, 5.0, "m");
   g.integer("nx", cfg.grid.nx, 8, 4096, "cells");
   g.integer("ny", cfg.grid.ny, 8, 4096, "cells");
@@ -116,7 +116,7 @@ void read_grid_section(YamlSection g, Config& cfg) {
   g.finish();
 }
 
-void read_camera_section(YamlSection c, Config& cfg) {
+void read_camera_section(formats::YamlSection c, Config& cfg) {
   c.choice("backend", cfg.camera.backend, {"sim", "v4l2"});
   c.text("device", cfg.camera.device);
   c.integer("buffers", cfg.camera.buffers, 4, 32, "buffers");
@@ -132,7 +132,7 @@ void read_camera_section(YamlSection c, Config& cfg) {
   c.finish();
 }
 
-void read_exposure_section(YamlSection e, Config& cfg) {
+void read_exposure_section(formats::YamlSection e, Config& cfg) {
   e.number("width_min_px", cfg.exposure.width_min_px, 0.5, 100.0, "px");
   e.number("width_max_px", cfg.exposure.width_max_px, 0.5, 100.0, "px");
   if (cfg.exposure.width_min_px >= cfg.exposure.width_max_px)
@@ -141,7 +141,7 @@ void read_exposure_section(YamlSection e, Config& cfg) {
   e.finish();
 }
 
-void read_gpio_section(YamlSection g, Config& cfg) {
+void read_gpio_section(formats::YamlSection g, Config& cfg) {
   g.choice("backend", cfg.gpio.backend, {"sim", "gpiod"});
   g.text("chip", cfg.gpio.chip);
   g.integer("laser_line", cfg.gpio.laser_line, 0, 1023, "");
@@ -158,7 +158,7 @@ void read_gpio_section(YamlSection g, Config& cfg) {
   g.finish();
 }
 
-void read_modbus_section(YamlSection m, Config& cfg) {
+void read_modbus_section(formats::YamlSection m, Config& cfg) {
   m.text("bind_address", cfg.modbus.bind_address);
   // libmodbus listens on a numeric IPv4 address only: a host name or a bad address would fail at `run` time.
   in_addr parsed{};
@@ -175,12 +175,12 @@ void read_modbus_section(YamlSection m, Config& cfg) {
   m.finish();
 }
 
-void read_support_section(YamlSection s, Config& cfg) {
+void read_support_section(formats::YamlSection s, Config& cfg) {
   s.number("distance_threshold_mm", cfg.support.distance_threshold_mm, 0.1, 100.0, "mm");
   s.finish();
 }
 
-void read_svm_section(YamlSection s, Config& cfg) {
+void read_svm_section(formats::YamlSection s, Config& cfg) {
   s.number("sa_start_temperature", cfg.svm.sa_start_temperature, 1e-6, 1e6, "");
   s.number("sa_cooling_ratio", cfg.svm.sa_cooling_ratio, 0.5, 0.9999, "");
   s.integer("sa_iterations", cfg.svm.sa_iterations, 1, 100000, "");
@@ -194,7 +194,7 @@ void read_svm_section(YamlSection s, Config& cfg) {
   s.finish();
 }
 
-void read_perfect_match_section(YamlSection s, Config& cfg) {
+void read_perfect_match_section(formats::YamlSection s, Config& cfg) {
   s.number("lc_m", cfg.pm.lc_m, 1e-4, 10.0, "m");
   s.number("fit_lc_m", cfg.pm.fit_lc_m, 0.0, 10.0, "m");
   s.number("eta_plus", cfg.pm.eta_plus, 1.0, 5.0, "");
@@ -221,7 +221,7 @@ void read_perfect_match_section(YamlSection s, Config& cfg) {
   }
 }
 
-void read_cascade_section(YamlSection s, Config& cfg) {
+void read_cascade_section(formats::YamlSection s, Config& cfg) {
   s.number("accept_p1", cfg.cascade.accept_p1, 0.0, 1.0, "");
   s.number("accept_p2_max", cfg.cascade.accept_p2_max, 0.0, 1.0, "");
   s.integer("pm_candidates", cfg.cascade.pm_candidates, 1, 64, "classes");
@@ -255,7 +255,7 @@ void read_cascade_section(YamlSection s, Config& cfg) {
   s.finish();
 }
 
-void read_runtime_section(YamlSection s, Config& cfg) {
+void read_runtime_section(formats::YamlSection s, Config& cfg) {
   s.integer("deadline_ms", cfg.runtime.deadline_ms, 10, 60000, "ms");
   s.boolean("lock_memory", cfg.runtime.lock_memory);
   s.integer("realtime_priority", cfg.runtime.realtime_priority, 0, 99, "");
@@ -264,7 +264,7 @@ void read_runtime_section(YamlSection s, Config& cfg) {
 }
 
 // The sections after the rig and the simulator, in the order of the shipped file.
-void read_rest(YamlSection& root, Config& cfg) {
+void read_rest(formats::YamlSection& root, Config& cfg) {
   read_grid_section(root.section("grid"), cfg);
   read_camera_section(root.section("camera"), cfg);
   read_exposure_section(root.section("exposure"), cfg);
@@ -292,8 +292,8 @@ namespace {
 Expected<Config> config_from_yaml(const YAML::Node& doc, const std::string& path) {
   Config cfg = default_config();
   cfg.source = path;
-  YamlErrors errors(path);
-  YamlSection root(doc, "", &errors);
+  formats::YamlErrors errors(path);
+  formats::YamlSection root(doc, "", &errors);
   int version = 1;
   root.integer("format_version", version, 1, 1, "");
   root.choice("log_level", cfg.log_level, {"debug", "info", "warn", "error", "off"});
@@ -313,13 +313,13 @@ Expected<Config> config_from_yaml(const YAML::Node& doc, const std::string& path
 }  // namespace
 
 Expected<Config> load_config(const std::string& path) {
-  auto doc = load_yaml_file(path);
+  auto doc = formats::load_yaml_file(path);
   if (!doc) return doc.error();
   return config_from_yaml(*doc, path);
 }
 
 Expected<Config> parse_config(const std::string& text, const std::string& path) {
-  auto doc = parse_yaml_text(text, path);
+  auto doc = formats::parse_yaml_text(text, path);
   if (!doc) return doc.error();
   return config_from_yaml(*doc, path);
 }

@@ -49,7 +49,7 @@ Expected<ModelDb> ModelDb::open(const std::string& dir, const algo::GridSpec& gr
   }
   auto bytes = base::read_file(path, kMaxManifestBytes);
   if (!bytes) return bytes.error();
-  auto manifest = parse_manifest(path, *bytes);
+  auto manifest = formats::parse_manifest(path, *bytes);
   if (!manifest) return manifest.error();
   if (!same_grid(manifest->grid, grid)) {
     return make_error(path + ": the database was taught on the grid " + grid_text(manifest->grid) +
@@ -63,7 +63,7 @@ Expected<ModelDb> ModelDb::open(const std::string& dir, const algo::GridSpec& gr
 Expected<ModelDb> ModelDb::open_for_writing(const std::string& dir, const algo::GridSpec& grid, bool create) {
   auto db = open(dir, grid, create);
   if (!db) return db;
-  for (const std::string& path : remove_orphaned_temp_files(dir)) {
+  for (const std::string& path : base::remove_orphaned_temp_files(dir)) {
     CS_LOG_WARN("model_db", "removed %s: the temporary file of a write that was interrupted (killed before its rename)",
                 path.c_str());
   }
@@ -81,12 +81,12 @@ std::vector<std::string> ModelDb::remove_unlisted_files() const {
   // What teach and train write before the manifest that names it (DESIGN.md "Model database": files first, the
   // manifest last): templates/*.dmap, scans/PART/*.ply and svm-*.model in the folder itself.
   std::set<std::string> listed;
-  for (const PartEntry& p : manifest_.parts) {
+  for (const formats::PartEntry& p : manifest_.parts) {
     listed.insert(p.template_file);
-    for (const ScanEntry& s : p.scans) listed.insert(s.file);
+    for (const formats::ScanEntry& s : p.scans) listed.insert(s.file);
   }
   if (manifest_.svm.present) listed.insert(manifest_.svm.file);
-  return remove_files_below(dir_, [&](const fs::path& relative) {
+  return base::remove_files_below(dir_, [&](const fs::path& relative) {
     const std::string name = relative.filename().string();
     const auto depth = std::distance(relative.begin(), relative.end());
     const bool ours = depth == 1   ? name.starts_with("svm-") && name.ends_with(".model")
@@ -96,15 +96,15 @@ std::vector<std::string> ModelDb::remove_unlisted_files() const {
   });
 }
 
-const PartEntry* ModelDb::find(std::string_view name) const {
-  for (const PartEntry& p : manifest_.parts) {
+const formats::PartEntry* ModelDb::find(std::string_view name) const {
+  for (const formats::PartEntry& p : manifest_.parts) {
     if (p.name == name) return &p;
   }
   return nullptr;
 }
 
-PartEntry* ModelDb::find(std::string_view name) {
-  for (PartEntry& p : manifest_.parts) {
+formats::PartEntry* ModelDb::find(std::string_view name) {
+  for (formats::PartEntry& p : manifest_.parts) {
     if (p.name == name) return &p;
   }
   return nullptr;
@@ -112,9 +112,9 @@ PartEntry* ModelDb::find(std::string_view name) {
 
 std::string ModelDb::parts_fingerprint() const {
   std::string identity;
-  for (const PartEntry& p : manifest_.parts) {
+  for (const formats::PartEntry& p : manifest_.parts) {
     identity += p.name + "#" + std::to_string(p.id) + ":";
-    for (const ScanEntry& s : p.scans) identity += formats::hex32(s.crc32) + ",";
+    for (const formats::ScanEntry& s : p.scans) identity += formats::hex32(s.crc32) + ",";
     identity += ";";
   }
   return formats::hex32(base::crc32(identity)) + "-" + std::to_string(manifest_.parts.size());
@@ -130,7 +130,7 @@ std::string ModelDb::svm_stale_reason() const {
   if (manifest_.svm.parts_fingerprint != parts_fingerprint()) {
     return "parts or scans changed since the last training (" + manifest_.svm.trained_at + "): run 'cellsight train'";
   }
-  for (const PartEntry& p : manifest_.parts) {
+  for (const formats::PartEntry& p : manifest_.parts) {
     if (!p.thresholds.learnt) return "part '" + p.name + "' has no learnt thresholds: run 'cellsight train'";
   }
   return {};
@@ -140,14 +140,14 @@ Status ModelDb::save() const {
   std::error_code ec;
   std::filesystem::create_directories(dir_, ec);
   if (ec) return make_error(dir_ + ": cannot create the model database folder: " + ec.message());
-  return write_file_atomic(manifest_path(), manifest_text(manifest_));
+  return base::write_file_atomic(manifest_path(), formats::manifest_text(manifest_));
 }
 
 Status ModelDb::delete_part(std::string_view name) {
-  PartEntry* p = find(name);
+  formats::PartEntry* p = find(name);
   if (p == nullptr) return make_error("no part '" + std::string(name) + "' in " + manifest_path());
-  const PartEntry removed = *p;
-  std::erase_if(manifest_.parts, [&](const PartEntry& e) { return e.name == name; });
+  const formats::PartEntry removed = *p;
+  std::erase_if(manifest_.parts, [&](const formats::PartEntry& e) { return e.name == name; });
   if (auto ok = save(); !ok) {
     manifest_.parts.push_back(removed);
     return ok;
@@ -155,7 +155,7 @@ Status ModelDb::delete_part(std::string_view name) {
   // The manifest no longer refers to them; a failure here leaves harmless orphans, reported.
   std::error_code ec;
   std::filesystem::remove(path_of(removed.template_file), ec);
-  for (const ScanEntry& s : removed.scans) std::filesystem::remove(path_of(s.file), ec);
+  for (const formats::ScanEntry& s : removed.scans) std::filesystem::remove(path_of(s.file), ec);
   std::filesystem::remove(path_of("scans/" + removed.name), ec);
   if (ec)
     return make_error("part '" + removed.name +

@@ -34,13 +34,13 @@ class ModelDb {
                                                           bool create);
 
   [[nodiscard]] const std::string& dir() const { return dir_; }
-  [[nodiscard]] const Manifest& manifest() const { return manifest_; }
-  [[nodiscard]] Manifest& manifest() { return manifest_; }
+  [[nodiscard]] const formats::Manifest& manifest() const { return manifest_; }
+  [[nodiscard]] formats::Manifest& manifest() { return manifest_; }
   [[nodiscard]] std::string path_of(const std::string& relative) const { return dir_ + "/" + relative; }
   [[nodiscard]] std::string manifest_path() const { return dir_ + "/manifest.yaml"; }
 
-  [[nodiscard]] const PartEntry* find(std::string_view name) const;
-  [[nodiscard]] PartEntry* find(std::string_view name);
+  [[nodiscard]] const formats::PartEntry* find(std::string_view name) const;
+  [[nodiscard]] formats::PartEntry* find(std::string_view name);
 
   // Identity of the taught parts and scans (names, ids, scan checksums): what a trained SVM depends on.
   [[nodiscard]] std::string parts_fingerprint() const;
@@ -59,7 +59,7 @@ class ModelDb {
 
  private:
   std::string dir_;
-  Manifest manifest_;
+  formats::Manifest manifest_;
 };
 
 }  // namespace cellsight::app

@@ -6,7 +6,7 @@
 #include <limits>
 
 #include "algo/support.hpp"
-#include "app/scan_mode.hpp"
+#include "app/scan_acquisition.hpp"
 #include "base/crc32.hpp"
 #include "base/file_read.hpp"
 #include "drivers/log.hpp"
@@ -147,23 +147,23 @@ algo::CascadeParams cascade_params(const Config& config) {
 LoadedTemplates open_templates(const Config& config, const ModelDb& db) {
   LoadedTemplates out;
   const algo::GridSpec grid = grid_spec(config);
-  const Manifest& m = db.manifest();
+  const formats::Manifest& m = db.manifest();
   out.files.reserve(m.parts.size());  // the models borrow from the files: no reallocation after the first
   for (std::size_t c = 0; c < m.parts.size(); ++c) {
-    const PartEntry& p = m.parts[c];
+    const formats::PartEntry& p = m.parts[c];
     algo::TemplateModel model;
     model.class_index = static_cast<int>(c);
     model.part_id = p.id;
     model.thresholds = {p.thresholds.max_error,       p.thresholds.max_missing_area_m2, p.thresholds.max_extra_area_m2,
                         p.thresholds.max_uncovered,   p.thresholds.max_outliers,        p.thresholds.size_centre_x_m,
                         p.thresholds.size_centre_y_m, p.thresholds.max_size_dev_m};
-    auto file = TemplateFile::open(db.path_of(p.template_file), grid);
+    auto file = formats::TemplateFile::open(db.path_of(p.template_file), grid);
     if (!file) {
       out.problems.push_back("part '" + p.name + "' disabled: " + file.error().message);
       out.files.emplace_back(std::nullopt);
     } else {
       out.files.emplace_back(std::move(*file));
-      const TemplateFile& t = *out.files.back();
+      const formats::TemplateFile& t = *out.files.back();
       model.map = t.view();
       model.centroid_m = t.centroid_m();
       model.surface_points = t.surface_points();
@@ -185,7 +185,7 @@ LoadedTemplates open_templates(const Config& config, const ModelDb& db) {
 }
 
 Expected<algo::SvmModel> load_svm(const ModelDb& db) {
-  const Manifest& m = db.manifest();
+  const formats::Manifest& m = db.manifest();
   const std::string svm_path = db.path_of(m.svm.file);
   auto blob = base::read_file(svm_path, kMaxSvmModelBytes);
   if (!blob) return blob.error();
@@ -201,7 +201,7 @@ Expected<algo::SvmModel> load_svm(const ModelDb& db) {
                       " parts, the manifest " + std::to_string(m.parts.size()) + "; run 'cellsight train'");
   }
   for (std::size_t c = 0; c < m.parts.size(); ++c) {
-    const PartEntry& p = m.parts[c];
+    const formats::PartEntry& p = m.parts[c];
     if (svm->classes()[c].name != p.name || svm->classes()[c].id != p.id) {
       return make_error(svm_path + ": class " + std::to_string(c) + " is '" + svm->classes()[c].name +
                         "' in the model, '" + p.name + "' in the manifest; run 'cellsight train'");
@@ -211,7 +211,7 @@ Expected<algo::SvmModel> load_svm(const ModelDb& db) {
 }
 
 Expected<LoadedModels> load_models(const Config& config, const ModelDb& db) {
-  const Manifest& m = db.manifest();
+  const formats::Manifest& m = db.manifest();
   if (const std::string stale = db.svm_stale_reason(); !stale.empty()) {
     return make_error("model database " + db.dir() + ": " + stale);
   }
@@ -219,7 +219,7 @@ Expected<LoadedModels> load_models(const Config& config, const ModelDb& db) {
   auto svm = load_svm(db);
   if (!svm) return svm.error();
   out.svm = std::move(*svm);
-  for (const PartEntry& p : m.parts) out.class_names.push_back(p.name);
+  for (const formats::PartEntry& p : m.parts) out.class_names.push_back(p.name);
   out.templates = open_templates(config, db);
   return out;
 }
@@ -227,7 +227,7 @@ Expected<LoadedModels> load_models(const Config& config, const ModelDb& db) {
 namespace {
 
 // The production recogniser: everything sized here, recognise() allocates nothing.
-class ModelRecogniser final : public Recogniser {
+class ModelRecogniser final : public runtime::Recogniser {
  public:
   ModelRecogniser(const Config& config, const algo::Plane& support, LoadedModels models, RecogniserMode mode)
       : preparer_(config, support, scan_builder_params_max_points(config)),
@@ -319,9 +319,21 @@ class ModelRecogniser final : public Recogniser {
 
 }  // namespace
 
-Expected<std::unique_ptr<Recogniser>> make_recogniser(const Config& config, const std::string& models_dir,
-                                                      const std::string& calibration_path, RecogniserMode mode) {
-  auto record = load_calibration(calibration_path);
+Expected<algo::Plane> load_support_plane(const std::string& calibration_path) {
+  auto record = formats::load_calibration(calibration_path);
+  if (!record)
+    return make_error(record.error().message + "\n(run scripts/calibrate.sh, or cellsight calibrate, first)");
+  if (!record->has_support) {
+    return make_error(calibration_path +
+                      ": no support section: scan the empty carrier and run 'cellsight calibrate support' first");
+  }
+  return record->support;
+}
+
+Expected<std::unique_ptr<runtime::Recogniser>> make_recogniser(const Config& config, const std::string& models_dir,
+                                                               const std::string& calibration_path,
+                                                               RecogniserMode mode) {
+  auto record = formats::load_calibration(calibration_path);
   if (!record)
     return make_error(record.error().message + "\n(run scripts/calibrate.sh, or cellsight calibrate, first)");
   if (!record->has_support) {
@@ -332,7 +344,7 @@ Expected<std::unique_ptr<Recogniser>> make_recogniser(const Config& config, cons
   auto models = load_models(config, *db);
   if (!models) return models.error();
   for (const std::string& p : models->templates.problems) CS_LOG_ERROR("models", "%s", p.c_str());
-  return std::unique_ptr<Recogniser>(
+  return std::unique_ptr<runtime::Recogniser>(
       std::make_unique<ModelRecogniser>(config, record->support, std::move(*models), mode));
 }
 

@@ -22,8 +22,8 @@
 #include "algo/svm.hpp"
 #include "app/config.hpp"
 #include "app/model_db.hpp"
-#include "app/recogniser.hpp"
 #include "formats/template_file.hpp"
+#include "runtime/recogniser.hpp"
 
 namespace cellsight::app {
 
@@ -99,7 +99,7 @@ class ScanPreparer {
 // The memory-mapped templates of every part, by class index (manifest order). A template that is missing or refused
 // leaves an empty map in `models` (its class can never be accepted) and a line in `problems`.
 struct LoadedTemplates {
-  std::vector<std::optional<TemplateFile>> files;
+  std::vector<std::optional<formats::TemplateFile>> files;
   std::vector<std::vector<int>> confusable;  // class indices; the models' spans borrow them
   std::vector<algo::TemplateModel> models;
   std::vector<std::string> problems;
@@ -125,10 +125,13 @@ enum class RecogniserMode : std::uint8_t {
   kPmOnly,   // debug: Perfect Match against every template, lowest error that passes its thresholds
 };
 
+// The support plane the scans are cleaned with: calibration.yaml's support section (cellsight calibrate support).
+[[nodiscard]] Expected<algo::Plane> load_support_plane(const std::string& calibration_path);
+
 // Opens the model database at `models_dir` (manifest, SVM model, templates, calibration's support plane) and builds
 // the recogniser. A missing, stale or corrupt database is a clear error that says what to run.
-[[nodiscard]] Expected<std::unique_ptr<Recogniser>> make_recogniser(const Config& config, const std::string& models_dir,
-                                                                    const std::string& calibration_path,
-                                                                    RecogniserMode mode = RecogniserMode::kCascade);
+[[nodiscard]] Expected<std::unique_ptr<runtime::Recogniser>> make_recogniser(
+    const Config& config, const std::string& models_dir, const std::string& calibration_path,
+    RecogniserMode mode = RecogniserMode::kCascade);
 
 }  // namespace cellsight::app

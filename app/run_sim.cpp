@@ -15,7 +15,7 @@
 
 #include "app/model_db.hpp"
 #include "app/recognition.hpp"
-#include "app/sim_mode.hpp"
+#include "app/sim_setup.hpp"
 #include "drivers/log.hpp"
 #include "formats/template_file.hpp"
 
@@ -70,7 +70,7 @@ Expected<SimFeed> draw_passes(const sim::SimCell& cell, std::uint64_t seed, std:
 
 // --sim-oracle: the simulator's truth of the pass under the sensor as the decision, so the runtime (loop, Modbus,
 // handshake, truth log) can be tested end to end before a model database exists. PLC id = catalogue index + 1.
-class SimOracle final : public Recogniser {
+class SimOracle final : public runtime::Recogniser {
  public:
   SimOracle(const sim::SimLine& line, const sim::SimCell& cell, const SimFeed& feed)
       : line_(line), cell_(cell), feed_(feed) {}
@@ -169,15 +169,15 @@ void write_template_truth(std::FILE* file, const Config& config, const sim::SimC
     return;
   }
   constexpr std::string_view kSimSeed = "sim seed ";
-  for (const PartEntry& part : db->manifest().parts) {
+  for (const formats::PartEntry& part : db->manifest().parts) {
     std::fprintf(file, "{\"template\": \"%s\", \"part_id\": %d", part.name.c_str(), part.id);
     const sim::PartSpec* spec = cell.find_part(part.name);
     std::uint64_t seed = 0;
-    const ScanEntry* source = part.template_scan_entry();  // the pass the template was built from
+    const formats::ScanEntry* source = part.template_scan_entry();  // the pass the template was built from
     const bool from_sim = spec != nullptr && source != nullptr && source->source.rfind(kSimSeed, 0) == 0 &&
                           parse_u64(source->source.substr(kSimSeed.size()), seed);
     auto pass = from_sim ? cell.random_pass(part.name, seed) : Expected<sim::PassSpec>(make_error("not simulated"));
-    auto info = read_template_info(db->path_of(part.template_file));
+    auto info = formats::read_template_info(db->path_of(part.template_file));
     if (pass && info) {
       const Eigen::Vector3d c0 = cell.nominal_centre(*spec);
       std::fprintf(file,
@@ -260,7 +260,7 @@ Status SimRun::enable_replay() {
   return {};
 }
 
-std::unique_ptr<Recogniser> SimRun::make_oracle() const {
+std::unique_ptr<runtime::Recogniser> SimRun::make_oracle() const {
   return std::make_unique<SimOracle>(*state_->line, *state_->cell, state_->feed);
 }
 

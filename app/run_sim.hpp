@@ -11,12 +11,12 @@
 
 #include "algo/result.hpp"
 #include "app/config.hpp"
-#include "app/recogniser.hpp"
-#include "app/run_mode.hpp"
+#include "app/run_options.hpp"
 #include "drivers/digital_io.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "drivers/sim/sim_faults.hpp"
 #include "runtime/loop_types.hpp"
+#include "runtime/recogniser.hpp"
 
 namespace cellsight::app {
 
@@ -39,7 +39,7 @@ class SimRun {
   [[nodiscard]] Status enable_replay();
   [[nodiscard]] sim::SimLine& line() { return *line_; }
   // --sim-oracle: decisions from the simulator's truth of the pass under the sensor.
-  [[nodiscard]] std::unique_ptr<Recogniser> make_oracle() const;
+  [[nodiscard]] std::unique_ptr<runtime::Recogniser> make_oracle() const;
   // --truth-log: the loop observer that writes it (after the template truth of models_dir when not an oracle run);
   // nullptr without --truth-log.
   [[nodiscard]] runtime::LoopObserver* truth_observer(const Config& config, const std::string& models_dir);

@@ -258,7 +258,7 @@ namespace {
 // Date, database, dataset and the verdict against the target accuracy.
 void append_summary_header(std::string& s, const algo::TrainingReport& report, const TrainReportContext& context) {
   const algo::ClassifierReport& svm = report.svm;
-  const std::string date = context.date.empty() ? local_time_text() : context.date;
+  const std::string date = context.date.empty() ? base::local_time_text() : context.date;
   const std::size_t k = report.class_names.size();
   s += "cellsight training report\n=========================\n";
   s += "Date:            " + date + "\n";
@@ -459,14 +459,14 @@ Expected<std::string> write_training_report(const std::string& dir, const algo::
                                             const TrainReportContext& context) {
   if (Status s = validate_report(report); !s) return s.error();
   TrainReportContext ctx = context;
-  if (ctx.date.empty()) ctx.date = local_time_text();
+  if (ctx.date.empty()) ctx.date = base::local_time_text();
   auto target = resolve_target(dir, ctx);
   if (!target) return target.error();
-  auto staged = StagedDirectory::create(*target);
+  auto staged = base::StagedDirectory::create(*target);
   if (!staged) return staged.error();
   const fs::path folder = staged->path();
   auto put = [&](const std::string& name, std::string_view content) {
-    return write_file_atomic((folder / name).string(), content);
+    return base::write_file_atomic((folder / name).string(), content);
   };
   if (Status s = put("summary.txt", training_summary_text(report, ctx)); !s) return s.error();
   if (Status s = put("report.yaml", training_report_yaml(report, ctx)); !s) return s.error();

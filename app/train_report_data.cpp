@@ -87,7 +87,7 @@ std::string training_report_yaml(const algo::TrainingReport& report, const Train
       "columns the predicted class, both in the order of `classes`");
   out << YAML::BeginMap;
   out << YAML::Key << "format_version" << YAML::Value << kReportFormatVersion;
-  out << YAML::Key << "date" << YAML::Value << (context.date.empty() ? local_time_text() : context.date);
+  out << YAML::Key << "date" << YAML::Value << (context.date.empty() ? base::local_time_text() : context.date);
   out << YAML::Key << "model_db" << YAML::Value << context.model_db_path;
   out << YAML::Key << "dataset" << YAML::Value << context.dataset;
   out << YAML::Key << "feature_version" << YAML::Value << context.feature_version;

@@ -11,7 +11,7 @@
 #include <cstring>
 #include <filesystem>
 
-namespace cellsight::app {
+namespace cellsight::base {
 namespace {
 
 namespace fs = std::filesystem;
@@ -167,4 +167,4 @@ Status StagedDirectory::commit() {
   return fsync_path(parent_of(target_), O_RDONLY | O_DIRECTORY);
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::base

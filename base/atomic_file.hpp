@@ -9,9 +9,7 @@
 
 #include "base/result.hpp"
 
-// Namespace app until the command-line and runtime files that call it have moved out of app/ (issue 12); then
-// base.
-namespace cellsight::app {
+namespace cellsight::base {
 
 enum class Overwrite { kReplace, kRefuse };
 
@@ -58,4 +56,4 @@ class StagedDirectory {
   bool committed_ = false;
 };
 
-}  // namespace cellsight::app
+}  // namespace cellsight::base

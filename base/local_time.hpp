@@ -4,9 +4,7 @@
 #include <ctime>
 #include <string>
 
-// Namespace app until the command-line and runtime files that call it have moved out of app/ (issue 12); then
-// base.
-namespace cellsight::app {
+namespace cellsight::base {
 
 // Now, formatted by strftime (thread-safe: localtime_r). Default "YYYY-MM-DD HH:MM:SS".
 [[nodiscard]] inline std::string local_time_text(const char* format = "%Y-%m-%d %H:%M:%S") {
@@ -18,4 +16,4 @@ namespace cellsight::app {
   return buf;
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::base

@@ -1,12 +1,12 @@
 // Expected-style result for start-up and tool paths: a value or an Error with a message for a person. In base/ so
-// that every layer (base, algo, drivers, app) returns the same type.
+// that every layer (base, algo, drivers, formats, runtime, app, cli) returns the same type.
 #pragma once
 
 #include <string>
 #include <utility>
 #include <variant>
 
-namespace cellsight {
+namespace cellsight::base {
 
 // A failure that a user reads: say what, where and what to do. Built only off the real-time path.
 struct Error {
@@ -54,4 +54,13 @@ inline Error make_error(std::string message) {
   return Error{std::move(message)};
 }
 
+}  // namespace cellsight::base
+
+// The result vocabulary of every layer (algo, drivers, formats, runtime, app, cli), written unqualified there: also
+// declared in cellsight itself, where each layer's namespace finds it.
+namespace cellsight {
+using base::Error;
+using base::Expected;
+using base::make_error;
+using base::Status;
 }  // namespace cellsight

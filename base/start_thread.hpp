@@ -11,7 +11,7 @@
 
 #include "base/result.hpp"
 
-namespace cellsight {
+namespace cellsight::base {
 
 // Starts `body` on a new thread in `out` (which must not hold a running thread). `name` (at most 15 characters,
 // the kernel's limit) shows in `top -H`, gdb and the journal, so a stuck thread can be told apart from the others.
@@ -26,4 +26,4 @@ template <class Body>
   return {};
 }
 
-}  // namespace cellsight
+}  // namespace cellsight::base

@@ -14,7 +14,7 @@
 #include "formats/yaml_reader.hpp"
 #include "formats/yaml_text.hpp"
 
-namespace cellsight::app {
+namespace cellsight::formats {
 namespace {
 
 namespace fs = std::filesystem;
@@ -260,15 +260,15 @@ Expected<std::string> save_calibration(const std::string& path, const Calibratio
   if (fs::exists(path, ec)) {
     auto old = base::read_file(path, kMaxCalibrationBytes);
     if (!old) return make_error(old.error().message + " (needed for the backup; nothing was changed)");
-    const std::string stem = path + "." + local_time_text("%Y%m%d-%H%M%S");
+    const std::string stem = path + "." + base::local_time_text("%Y%m%d-%H%M%S");
     backup = stem + ".bak";
     for (int n = 2; fs::exists(backup, ec); ++n) backup = stem + "-" + std::to_string(n) + ".bak";
-    if (auto ok = write_file_atomic(backup, *old); !ok) {
+    if (auto ok = base::write_file_atomic(backup, *old); !ok) {
       return make_error(ok.error().message + " (the backup failed; nothing was changed)");
     }
   }
-  if (auto ok = write_file_atomic(path, calibration_yaml(record)); !ok) return ok.error();
+  if (auto ok = base::write_file_atomic(path, calibration_yaml(record)); !ok) return ok.error();
   return backup;
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::formats

@@ -7,7 +7,7 @@
 #include "algo/result.hpp"
 #include "algo/sensor_model.hpp"
 
-namespace cellsight::app {
+namespace cellsight::formats {
 
 // What calibration.yaml holds. Each section is written by its own `cellsight calibrate` step and may be absent
 // until that step has run; production needs all three (load_sensor_calibration).
@@ -45,4 +45,4 @@ constexpr int kCalibrationFormatVersion = 1;
 // path ("" when there was no previous file). On failure the previous file is untouched.
 [[nodiscard]] Expected<std::string> save_calibration(const std::string& path, const CalibrationRecord& record);
 
-}  // namespace cellsight::app
+}  // namespace cellsight::formats

@@ -8,7 +8,7 @@
 
 #include "base/file_read.hpp"
 
-namespace cellsight::app {
+namespace cellsight::formats {
 namespace {
 
 constexpr const char* kScanIsPly = "; a scan is a PLY file";
@@ -19,7 +19,7 @@ struct CheckedPly {
 };
 
 // Opens `path` into `in`, reads at most limits.max_header_bytes and checks the header against the file's size.
-Expected<CheckedPly> open_ply(const std::string& path, std::ifstream& in, const algo::PlyLimits& limits) {
+Expected<CheckedPly> open_ply(const std::string& path, std::ifstream& in, const formats::PlyLimits& limits) {
   auto size = base::regular_file_size(path, kScanIsPly);
   if (!size) return size.error();
   in.open(path, std::ios::binary);
@@ -30,7 +30,7 @@ Expected<CheckedPly> open_ply(const std::string& path, std::ifstream& in, const 
   in.read(out.bytes.data(), static_cast<std::streamsize>(out.bytes.size()));
   if (in.bad()) return make_error(path + ": read failed");
   out.bytes.resize(static_cast<std::size_t>(in.gcount()));
-  auto header = algo::parse_ply_header(out.bytes, limits);
+  auto header = formats::parse_ply_header(out.bytes, limits);
   if (!header) return make_error(path + ": " + header.error().message);
   const std::size_t after_header = out.file_bytes - std::min(out.file_bytes, header->data_start);
   if (header->min_data_bytes > after_header) {
@@ -50,14 +50,14 @@ Status check_regular_file(const std::string& path, const std::string& what) {
   return {};
 }
 
-Status check_ply_file(const std::string& path, const algo::PlyLimits& limits) {
+Status check_ply_file(const std::string& path, const formats::PlyLimits& limits) {
   std::ifstream in;
   auto ply = open_ply(path, in, limits);
   if (!ply) return ply.error();
   return {};
 }
 
-Expected<std::string> read_ply_file(const std::string& path, const algo::PlyLimits& limits) {
+Expected<std::string> read_ply_file(const std::string& path, const formats::PlyLimits& limits) {
   std::ifstream in;
   auto ply = open_ply(path, in, limits);
   if (!ply) return ply.error();
@@ -70,12 +70,12 @@ Expected<std::string> read_ply_file(const std::string& path, const algo::PlyLimi
   return bytes;
 }
 
-Expected<std::vector<algo::ScanPoint>> load_ply_file(const std::string& path, const algo::PlyLimits& limits) {
+Expected<std::vector<algo::ScanPoint>> load_ply_file(const std::string& path, const formats::PlyLimits& limits) {
   auto bytes = read_ply_file(path, limits);
   if (!bytes) return bytes.error();
-  auto points = algo::parse_ply(*bytes, limits);
+  auto points = formats::parse_ply(*bytes, limits);
   if (!points) return make_error(path + ": " + points.error().message);
   return points;
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::formats

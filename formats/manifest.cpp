@@ -12,7 +12,7 @@
 #include "formats/yaml_reader.hpp"
 #include "formats/yaml_text.hpp"
 
-namespace cellsight::app {
+namespace cellsight::formats {
 namespace {
 
 using formats::hex32;
@@ -289,4 +289,4 @@ bool valid_part_name(std::string_view name) {
   return true;
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::formats

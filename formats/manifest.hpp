@@ -10,7 +10,7 @@
 #include "algo/grid.hpp"
 #include "algo/result.hpp"
 
-namespace cellsight::app {
+namespace cellsight::formats {
 
 inline constexpr int kManifestFormatVersion = 1;
 
@@ -84,4 +84,4 @@ struct Manifest {
 // Part names become file names: letters, digits, '_' and '-' only, 1..64 characters.
 [[nodiscard]] bool valid_part_name(std::string_view name);
 
-}  // namespace cellsight::app
+}  // namespace cellsight::formats

@@ -11,7 +11,7 @@
 #include <limits>
 #include <sstream>
 
-namespace cellsight::algo {
+namespace cellsight::formats {
 namespace {
 
 enum class Type { kInt8, kUint8, kInt16, kUint16, kInt32, kUint32, kFloat32, kFloat64, kInvalid };
@@ -296,7 +296,7 @@ std::size_t min_data_bytes(const ParsedHeader& h) {
 
 // Appends the vertex whose property values are `values`. False when a coordinate is not finite or lies beyond the
 // range of the float a scan point stores (a larger double would become an infinity, or undefined behaviour).
-bool add_vertex(const std::vector<double>& values, const ParsedHeader& h, std::vector<ScanPoint>& points) {
+bool add_vertex(const std::vector<double>& values, const ParsedHeader& h, std::vector<algo::ScanPoint>& points) {
   const double xyz[3] = {values[static_cast<std::size_t>(h.ix)], values[static_cast<std::size_t>(h.iy)],
                          values[static_cast<std::size_t>(h.iz)]};
   for (const double v : xyz) {
@@ -318,7 +318,7 @@ Expected<PlyHeader> parse_ply_header(std::string_view bytes, const PlyLimits& li
   return PlyHeader{h->binary, h->data_start, h->elements[h->vertex_index].count, min_data_bytes(*h)};
 }
 
-Expected<std::vector<ScanPoint>> parse_ply(std::string_view bytes, const PlyLimits& limits) {
+Expected<std::vector<algo::ScanPoint>> parse_ply(std::string_view bytes, const PlyLimits& limits) {
   auto parsed = parse_header(bytes, limits);
   if (!parsed) return parsed.error();
   const bool binary = parsed->binary;
@@ -328,7 +328,7 @@ Expected<std::vector<ScanPoint>> parse_ply(std::string_view bytes, const PlyLimi
 
   // --- data: skip the elements before vertex, then read vertices ---
   const std::string_view data = bytes.substr(parsed->data_start);
-  std::vector<ScanPoint> points;
+  std::vector<algo::ScanPoint> points;
   // The count is the header's word: reserve no more than the data could hold (a vertex takes at least 6 bytes, "1 2 3"
   // and a separator; 12 in binary), so a short text claiming 20 M vertices does not allocate 320 MB to be refused.
   constexpr std::size_t kMinVertexBytes = 6;
@@ -427,13 +427,13 @@ std::string header(std::size_t count, const char* format) {
 }
 }  // namespace
 
-std::string write_ply_binary(std::span<const ScanPoint> points) {
+std::string write_ply_binary(std::span<const algo::ScanPoint> points) {
   std::string out = header(points.size(), "binary_little_endian");
   constexpr std::size_t kRecord = 3 * sizeof(float) + 2 * sizeof(std::uint16_t);
   const std::size_t start = out.size();
   out.resize(start + points.size() * kRecord);
   char* p = out.data() + start;
-  for (const ScanPoint& s : points) {  // x86-64 and aarch64 Linux are little-endian, as the format says
+  for (const algo::ScanPoint& s : points) {  // x86-64 and aarch64 Linux are little-endian, as the format says
     std::memcpy(p, &s.x, 4);
     std::memcpy(p + 4, &s.y, 4);
     std::memcpy(p + 8, &s.z, 4);
@@ -444,12 +444,13 @@ std::string write_ply_binary(std::span<const ScanPoint> points) {
   return out;
 }
 
-std::string write_ply_ascii(std::span<const ScanPoint> points) {
+std::string write_ply_ascii(std::span<const algo::ScanPoint> points) {
   std::ostringstream out;
   out << header(points.size(), "ascii");
   out.precision(9);
-  for (const ScanPoint& s : points) out << s.x << ' ' << s.y << ' ' << s.z << ' ' << s.frame << ' ' << s.row << '\n';
+  for (const algo::ScanPoint& s : points)
+    out << s.x << ' ' << s.y << ' ' << s.z << ' ' << s.frame << ' ' << s.row << '\n';
   return out.str();
 }
 
-}  // namespace cellsight::algo
+}  // namespace cellsight::formats

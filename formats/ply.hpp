@@ -10,7 +10,7 @@
 #include "algo/result.hpp"
 #include "algo/scan.hpp"
 
-namespace cellsight::algo {
+namespace cellsight::formats {
 
 struct PlyLimits {
   std::size_t max_vertices = 20'000'000;  // a scan is ~0.5 M points; anything far larger is not a scan
@@ -30,10 +30,10 @@ struct PlyHeader {
 
 // Every malformed input (bad magic, unsupported format, missing x/y/z, truncated data, non-finite coordinates,
 // counts that do not fit) is refused with a message that says what is wrong; nothing is half-returned.
-[[nodiscard]] Expected<std::vector<ScanPoint>> parse_ply(std::string_view bytes, const PlyLimits& limits = {});
+[[nodiscard]] Expected<std::vector<algo::ScanPoint>> parse_ply(std::string_view bytes, const PlyLimits& limits = {});
 
 // Binary little-endian PLY with float x, y, z and ushort frame, row (readers that do not know them skip them).
-[[nodiscard]] std::string write_ply_binary(std::span<const ScanPoint> points);
-[[nodiscard]] std::string write_ply_ascii(std::span<const ScanPoint> points);
+[[nodiscard]] std::string write_ply_binary(std::span<const algo::ScanPoint> points);
+[[nodiscard]] std::string write_ply_ascii(std::span<const algo::ScanPoint> points);
 
-}  // namespace cellsight::algo
+}  // namespace cellsight::formats

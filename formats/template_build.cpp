@@ -9,7 +9,7 @@
 #include "formats/template_file.hpp"
 #include "formats/template_grid.hpp"
 
-namespace cellsight::app {
+namespace cellsight::formats {
 namespace {
 
 using template_grid::dims_of;
@@ -160,4 +160,4 @@ Expected<TemplateModel> build_template(std::span<const algo::ScanPoint> points, 
   return model;
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::formats

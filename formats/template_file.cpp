@@ -27,7 +27,7 @@
 #include "base/crc32.hpp"
 #include "formats/template_grid.hpp"
 
-namespace cellsight::app {
+namespace cellsight::formats {
 namespace {
 
 using template_grid::dims_of;
@@ -388,7 +388,7 @@ Status write_template(const std::string& path, const TemplateModel& model, const
   h.header_crc32 = header_crc(h);
 
   // Streaming atomic save: temp beside the target, fsync, rename, fsync of the folder (as base/atomic_file).
-  std::string temp = atomic_temp_template(path);
+  std::string temp = base::atomic_temp_template(path);
   UniqueFd fd(::mkstemp(temp.data()));
   if (fd.get() < 0) return fail("cannot create a temporary file beside it: " + errno_text(errno));
   TempFileGuard guard(temp);
@@ -505,4 +505,4 @@ Expected<TemplateFile> TemplateFile::open(const std::string& path, const algo::G
   return file;
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::formats

@@ -14,7 +14,7 @@
 #include "algo/result.hpp"
 #include "algo/scan.hpp"
 
-namespace cellsight::app {
+namespace cellsight::formats {
 
 // File layout, version 1 (all numbers little-endian, the types exactly as in memory):
 //   [0, 256)               TemplateHeader: magic, version, sizes, grid, quantization, centroid, counts, offsets,
@@ -151,4 +151,4 @@ class TemplateFile {
   TemplateLoadTiming timing_{};
 };
 
-}  // namespace cellsight::app
+}  // namespace cellsight::formats

@@ -10,7 +10,7 @@
 #include "algo/grid.hpp"
 #include "algo/result.hpp"
 
-namespace cellsight::app::template_grid {
+namespace cellsight::formats::template_grid {
 
 inline algo::GridDims dims_of(const algo::GridSpec& grid) {
   return {grid.nx, grid.ny, grid.nz, grid.resolution_m};
@@ -29,4 +29,4 @@ inline Status validate_grid(const algo::GridSpec& grid) {
   return {};
 }
 
-}  // namespace cellsight::app::template_grid
+}  // namespace cellsight::formats::template_grid

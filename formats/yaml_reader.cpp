@@ -10,7 +10,7 @@
 
 #include "formats/input_file.hpp"
 
-namespace cellsight::app {
+namespace cellsight::formats {
 namespace {
 
 std::string scalar_text(const YAML::Node& node) {
@@ -314,4 +314,4 @@ Expected<YAML::Node> parse_yaml_text(const std::string& text, const std::string&
   return parse_yaml_stream(in, path);
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::formats

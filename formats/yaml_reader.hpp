@@ -13,7 +13,7 @@
 
 #include "algo/result.hpp"
 
-namespace cellsight::app {
+namespace cellsight::formats {
 
 class YamlErrors {
  public:
@@ -79,4 +79,4 @@ class YamlSection {
 // load_yaml_file on text already in memory; `path` only names it in messages (the fuzz target's entry point).
 [[nodiscard]] Expected<YAML::Node> parse_yaml_text(const std::string& text, const std::string& path);
 
-}  // namespace cellsight::app
+}  // namespace cellsight::formats

@@ -49,7 +49,7 @@ bool LogQueue::vpush(log::Level level, const char* component, const char* format
 Status LogQueue::start_writer() {
   if (writer_.joinable()) return make_error("log queue: start_writer() called twice");
   stop_.store(false, std::memory_order_release);
-  return start_thread(writer_, "cs-log", [this] { writer_thread(); });
+  return base::start_thread(writer_, "cs-log", [this] { writer_thread(); });
 }
 
 void LogQueue::stop_writer() {

@@ -9,9 +9,9 @@
 #include <string_view>
 
 #include "algo/decision.hpp"
-#include "app/recogniser.hpp"
 #include "base/result.hpp"
 #include "drivers/modbus/plc_link.hpp"
+#include "runtime/recogniser.hpp"
 
 namespace cellsight::runtime {
 
@@ -135,6 +135,6 @@ class LoopObserver {
 
 // Loads the recogniser when the loop starts without one or after "model database invalid" (CLEAR_ERROR,
 // SELECT_MODELS or every models_retry_ms). Runs on the recognition thread; may allocate (fault path only).
-using RecogniserLoader = std::function<Expected<std::unique_ptr<app::Recogniser>>()>;
+using RecogniserLoader = std::function<Expected<std::unique_ptr<Recogniser>>()>;
 
 }  // namespace cellsight::runtime

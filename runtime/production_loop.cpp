@@ -42,7 +42,7 @@ ProductionLoop::~ProductionLoop() {
   join();
 }
 
-void ProductionLoop::set_recogniser(std::unique_ptr<app::Recogniser> recogniser) {
+void ProductionLoop::set_recogniser(std::unique_ptr<Recogniser> recogniser) {
   worker_.set_recogniser(std::move(recogniser));
 }
 void ProductionLoop::set_recogniser_loader(RecogniserLoader loader) {
@@ -83,7 +83,7 @@ Status ProductionLoop::start() {
     enter_fault(ErrorCode::kModelDatabaseInvalid, "no recogniser (model database not loaded)");
   Status started = log_.start_writer();
   if (started) started = worker_.start();
-  if (started) started = start_thread(loop_thread_, "cs-loop", [this] { loop_thread(); });
+  if (started) started = base::start_thread(loop_thread_, "cs-loop", [this] { loop_thread(); });
   if (!started) {
     request_stop();
     join();

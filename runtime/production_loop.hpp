@@ -4,8 +4,8 @@
 //
 // Rooms: the state machine is split per state (loop_pass.cpp idle + scanning, loop_recognise.cpp, loop_publish.cpp,
 // loop_fault.cpp, loop_commands.cpp); recognition runs on RecognitionWorker (atomic mailbox); what the PLC sees is
-// plc_mapping; log lines go through LogQueue to a writer thread; real-time set-up is realtime.cpp; Config -> LoopConfig
-// is loop_wiring.cpp.
+// plc_mapping; log lines go through LogQueue to a writer thread; real-time set-up is realtime.cpp. Config -> LoopConfig
+// is app/loop_wiring.cpp, above this layer.
 #pragma once
 
 #include <atomic>
@@ -16,7 +16,6 @@
 
 #include "algo/decision.hpp"
 #include "algo/scan_builder.hpp"
-#include "app/recogniser.hpp"
 #include "base/result.hpp"
 #include "drivers/camera.hpp"
 #include "drivers/digital_io.hpp"
@@ -24,6 +23,7 @@
 #include "runtime/log_queue.hpp"
 #include "runtime/loop_types.hpp"
 #include "runtime/pass_acquirer.hpp"
+#include "runtime/recogniser.hpp"
 #include "runtime/recognition_worker.hpp"
 
 namespace cellsight::runtime {
@@ -43,7 +43,7 @@ class ProductionLoop {
   ProductionLoop& operator=(const ProductionLoop&) = delete;
 
   // Before start(). Without a recogniser the loop starts in fault "model database invalid" and uses the loader.
-  void set_recogniser(std::unique_ptr<app::Recogniser> recogniser);
+  void set_recogniser(std::unique_ptr<Recogniser> recogniser);
   void set_recogniser_loader(RecogniserLoader loader);
   void set_observer(LoopObserver* observer);   // borrowed; must outlive the loop threads
   void set_service(ServiceNotifier* service);  // borrowed; WATCHDOG=1 while healthy
@@ -126,38 +126,39 @@ class ProductionLoop {
   LoopObserver* observer_ = nullptr;
   ServiceNotifier* service_ = nullptr;
 
+  // Here and in the next block the members go from the widest to the narrowest: no padding between them.
   std::thread loop_thread_;
-  std::atomic<bool> stop_{false};
-  std::atomic<bool> finished_{false};
+  std::atomic<std::int64_t> last_iteration_ns_{0};
   // Rung when finished_ or stop_ change: wait_finished() sleeps on it (a futex; the loop takes no lock to ring).
   std::atomic<std::uint32_t> waiters_bell_{0};
+  std::atomic<bool> stop_{false};
+  std::atomic<bool> finished_{false};
   std::atomic<LoopState> state_{LoopState::kIdle};
-  std::atomic<std::int64_t> last_iteration_ns_{0};
   std::atomic<bool> recogniser_hung_{false};
 
   // Loop thread only.
+  Clock::time_point fault_since_{};
+  Clock::time_point next_retry_{};
+  Clock::time_point cycle_start_{};
+  Clock::time_point deadline_{};
+  double recognise_ms_ = 0.0;
+  std::uint32_t pending_sw_triggers_ = 0;
+  std::uint32_t acq_id_ = 0;
+  std::uint32_t missed_since_result_ = 0;
+  std::uint32_t trigger_count_ = 0;
+  std::uint32_t missed_count_ = 0;  // MISSED_TRIGGERS (reset by RESET_COUNTERS)
+  int consecutive_timeouts_ = 0;
   drivers::ErrorCode fault_cause_ = drivers::ErrorCode::kNone;
   drivers::ErrorCode error_ = drivers::ErrorCode::kNone;  // what ERROR_CODE shows
   drivers::WarningCode warning_ = drivers::WarningCode::kNone;
   std::uint16_t flags_ = 0;  // StatusFlag bits as last sent
+  TriggerSource pass_trigger_ = TriggerSource::kPartPresent;
   bool flags_sent_ = false;
   bool trigger_enable_ = false;
-  std::uint32_t pending_sw_triggers_ = 0;
   bool clear_requested_ = false;
   bool models_reload_requested_ = false;
   bool load_in_flight_ = false;
-  Clock::time_point fault_since_{};
-  Clock::time_point next_retry_{};
-  std::uint32_t acq_id_ = 0;
-  TriggerSource pass_trigger_ = TriggerSource::kPartPresent;
-  Clock::time_point cycle_start_{};
-  Clock::time_point deadline_{};
   bool timeout_published_ = false;  // the deadline passed: "timeout" is out, the recogniser's answer is not wanted
-  double recognise_ms_ = 0.0;
-  int consecutive_timeouts_ = 0;
-  std::uint32_t missed_since_result_ = 0;
-  std::uint32_t trigger_count_ = 0;
-  std::uint32_t missed_count_ = 0;  // MISSED_TRIGGERS (reset by RESET_COUNTERS)
   bool exposure_at_limit_ = false;
 
   // Counters (loop thread writes, any thread reads).

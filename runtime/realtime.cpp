@@ -12,7 +12,7 @@ namespace cellsight::runtime {
 
 namespace {
 // Stack the loop thread touches at start so its page faults happen before the first part (with mlockall).
-constexpr std::size_t kStackPrefaultBytes = 64 * 1024;
+constexpr std::size_t kStackPrefaultBytes = std::size_t{64} * 1024;
 constexpr std::size_t kPageBytes = 4096;
 }  // namespace
 

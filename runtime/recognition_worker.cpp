@@ -15,7 +15,7 @@ RecognitionWorker::~RecognitionWorker() {
   stop();
 }
 
-void RecognitionWorker::set_recogniser(std::unique_ptr<app::Recogniser> recogniser) {
+void RecognitionWorker::set_recogniser(std::unique_ptr<Recogniser> recogniser) {
   recogniser_ = std::move(recogniser);
   has_recogniser_.store(recogniser_ != nullptr, std::memory_order_release);
 }
@@ -27,7 +27,7 @@ void RecognitionWorker::set_loader(RecogniserLoader loader) {
 Status RecognitionWorker::start() {
   if (thread_.joinable()) return make_error("recognition worker: start() called twice");
   exit_.store(false, std::memory_order_release);
-  return start_thread(thread_, "cs-recognise", [this] { run(); });
+  return base::start_thread(thread_, "cs-recognise", [this] { run(); });
 }
 
 void RecognitionWorker::stop() {

@@ -12,9 +12,9 @@
 
 #include "algo/decision.hpp"
 #include "algo/scan.hpp"
-#include "app/recogniser.hpp"
 #include "base/result.hpp"
 #include "runtime/loop_types.hpp"
+#include "runtime/recogniser.hpp"
 
 namespace cellsight::runtime {
 
@@ -43,7 +43,7 @@ class RecognitionWorker {
   RecognitionWorker& operator=(const RecognitionWorker&) = delete;
 
   // Before start().
-  void set_recogniser(std::unique_ptr<app::Recogniser> recogniser);
+  void set_recogniser(std::unique_ptr<Recogniser> recogniser);
   void set_loader(RecogniserLoader loader);
 
   [[nodiscard]] Status start();
@@ -73,7 +73,7 @@ class RecognitionWorker {
   void run();
   void post(WorkerJob job);
 
-  std::unique_ptr<app::Recogniser> recogniser_;  // the worker's while a job runs; replaced only by kLoad
+  std::unique_ptr<Recogniser> recogniser_;  // the worker's while a job runs; replaced only by kLoad
   RecogniserLoader loader_;
   std::thread thread_;
 

@@ -12,8 +12,8 @@
 #include <sstream>
 
 #include "algo/calibration.hpp"
-#include "app/calibrate_mode.hpp"
-#include "app/cli.hpp"
+#include "cli/calibrate_mode.hpp"
+#include "cli/cli.hpp"
 #include "drivers/sim/board.hpp"
 #include "formats/calibration_file.hpp"
 #include "tests/scratch_dir.hpp"
@@ -85,7 +85,7 @@ Run calibrate(const std::vector<std::string>& args, const app::Config& config) {
   std::FILE* err = std::tmpfile();
   REQUIRE(out != nullptr);
   REQUIRE(err != nullptr);
-  const int code = app::run_calibrate(args, config, out, err);
+  const int code = cli::run_calibrate(args, config, out, err);
   return {code, drain(out), drain(err)};
 }
 
@@ -165,9 +165,9 @@ double angle_deg(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
 }
 
 // A complete, plausible calibration file to start the bad-input cases from.
-app::CalibrationRecord sample_record() {
+formats::CalibrationRecord sample_record() {
   const sim::Rig rig = sim::make_rig(truth_config().rig);
-  app::CalibrationRecord r;
+  formats::CalibrationRecord r;
   r.has_camera = r.has_laser = r.has_conveyor = true;
   r.sensor.intrinsics = rig.params.camera.intrinsics;
   r.sensor.camera_pose = rig.camera_pose;
@@ -200,21 +200,21 @@ TEST_CASE("The technician procedure on the simulated cell recovers camera, laser
   // WHEN the three steps run on rendered board pictures only (--sim renders, then calibrates from the folder)
   const Run camera = calibrate({"camera", "--sim", "--out", tmp.file("camera"), "--calibration", file}, config);
   INFO(camera.out << camera.err);
-  REQUIRE(camera.code == app::kExitOk);
+  REQUIRE(camera.code == cli::kExitOk);
   const std::string after_camera = read_file(file);
-  auto cam = app::load_calibration(file);
+  auto cam = formats::load_calibration(file);
   REQUIRE(cam.ok());
   CHECK(cam->has_camera);
   CHECK_FALSE(cam->has_laser);
 
   const Run laser = calibrate({"laser", "--sim", "--out", tmp.file("laser"), "--calibration", file}, config);
   INFO(laser.out << laser.err);
-  REQUIRE(laser.code == app::kExitOk);
+  REQUIRE(laser.code == cli::kExitOk);
   const Run conveyor = calibrate({"conveyor", "--sim", "--out", tmp.file("conveyor"), "--calibration", file}, config);
   INFO(conveyor.out << conveyor.err);
-  REQUIRE(conveyor.code == app::kExitOk);
+  REQUIRE(conveyor.code == cli::kExitOk);
 
-  auto result = app::load_sensor_calibration(file);
+  auto result = formats::load_sensor_calibration(file);
   REQUIRE(result.ok());
   const algo::SensorCalibration& c = *result;
 
@@ -251,7 +251,7 @@ TEST_CASE("The technician procedure on the simulated cell recovers camera, laser
   CHECK(std::abs(scale_err_pct) < 0.2);
 
   // AND each later step kept the camera section and left the previous file as a dated backup
-  auto final_record = app::load_calibration(file);
+  auto final_record = formats::load_calibration(file);
   REQUIRE(final_record.ok());
   auto camera_section = [](const std::string& text) {
     const std::size_t from = text.find("\ncamera:");
@@ -487,14 +487,14 @@ TEST_CASE("calibration.yaml round-trips exactly and refuses truncated, corrupt a
           "[calibration][file]") {
   TempDir tmp;
   const std::string file = tmp.file("calibration.yaml");
-  const app::CalibrationRecord record = sample_record();
-  const std::string text = app::calibration_yaml(record);
+  const formats::CalibrationRecord record = sample_record();
+  const std::string text = formats::calibration_yaml(record);
 
   SECTION("a saved file loads back to the same numbers") {
-    auto backup = app::save_calibration(file, record);
+    auto backup = formats::save_calibration(file, record);
     REQUIRE(backup.ok());
     CHECK(backup->empty());  // nothing to back up the first time
-    auto loaded = app::load_calibration(file);
+    auto loaded = formats::load_calibration(file);
     REQUIRE(loaded.ok());
     CHECK(loaded->sensor.intrinsics.fx_px == record.sensor.intrinsics.fx_px);
     CHECK(loaded->sensor.intrinsics.k2 == record.sensor.intrinsics.k2);
@@ -504,20 +504,20 @@ TEST_CASE("calibration.yaml round-trips exactly and refuses truncated, corrupt a
     CHECK(loaded->sensor.mm_per_count == record.sensor.mm_per_count);
   }
   SECTION("a second save keeps the first file as a dated backup") {
-    REQUIRE(app::save_calibration(file, record).ok());
-    app::CalibrationRecord changed = record;
+    REQUIRE(formats::save_calibration(file, record).ok());
+    formats::CalibrationRecord changed = record;
     changed.sensor.mm_per_count = 0.2;
-    auto backup = app::save_calibration(file, changed);
+    auto backup = formats::save_calibration(file, changed);
     REQUIRE(backup.ok());
     CHECK_THAT(*backup, Catch::StartsWith(file + ".") && Catch::EndsWith(".bak"));
     CHECK(read_file(*backup) == text);
-    CHECK(app::load_calibration(file)->sensor.mm_per_count == 0.2);
+    CHECK(formats::load_calibration(file)->sensor.mm_per_count == 0.2);
   }
   SECTION("every truncation of the file is refused, never half-used") {
     // Everything short of the final newline loses data (the newline alone carries none).
     for (std::size_t length = 0; length + 1 < text.size(); length += 7) {
       write_file(file, text.substr(0, length));
-      auto loaded = app::load_calibration(file);
+      auto loaded = formats::load_calibration(file);
       INFO("truncated to " << length << " bytes");
       CHECK_FALSE(loaded.ok());
     }
@@ -528,7 +528,7 @@ TEST_CASE("calibration.yaml round-trips exactly and refuses truncated, corrupt a
     REQUIRE(at != std::string::npos);
     bad.replace(at, bad.find('\n', at) - at, "  fx_px: -3");
     write_file(file, bad);
-    auto loaded = app::load_calibration(file);
+    auto loaded = formats::load_calibration(file);
     REQUIRE_FALSE(loaded.ok());
     const auto line = std::count(bad.begin(), bad.begin() + static_cast<std::ptrdiff_t>(at), '\n') + 1;
     CHECK_THAT(loaded.error().message,
@@ -536,16 +536,16 @@ TEST_CASE("calibration.yaml round-trips exactly and refuses truncated, corrupt a
   }
   SECTION("a laser or support normal that is not a unit vector is refused, even in a well-sealed file") {
     // Triangulation and support removal read n . p = offset as metres only when |n| = 1.
-    app::CalibrationRecord long_laser = record;
+    formats::CalibrationRecord long_laser = record;
     long_laser.sensor.laser_normal *= 0.999;  // each component stays within [-1, 1]: only the length is wrong
-    app::CalibrationRecord long_support = record;
+    formats::CalibrationRecord long_support = record;
     long_support.has_support = true;
     long_support.support = {Eigen::Vector3d(0.0, 0.0, 0.999), 0.05};
     long_support.support_date = record.laser_date;
     long_support.support_points = 5000;
     for (const auto& [bad, key] : {std::pair{long_laser, "laser.normal"}, std::pair{long_support, "support.normal"}}) {
-      REQUIRE(app::save_calibration(file, bad).ok());
-      auto loaded = app::load_calibration(file);
+      REQUIRE(formats::save_calibration(file, bad).ok());
+      auto loaded = formats::load_calibration(file);
       REQUIRE_FALSE(loaded.ok());
       CHECK_THAT(loaded.error().message,
                  Catch::Contains(file + ":") && Catch::Contains(std::string(key) + ": must be a unit vector"));
@@ -557,16 +557,16 @@ TEST_CASE("calibration.yaml round-trips exactly and refuses truncated, corrupt a
     REQUIRE(at != std::string::npos);
     edited.replace(at, std::string("  mm_per_count: 0.1013").size(), "  mm_per_count: 0.1014");
     write_file(file, edited);
-    auto loaded = app::load_calibration(file);
+    auto loaded = formats::load_calibration(file);
     REQUIRE_FALSE(loaded.ok());
     CHECK_THAT(loaded.error().message, Catch::Contains("checksum_fnv1a64") && Catch::Contains("backup"));
   }
   SECTION("production refuses a file without every section") {
-    app::CalibrationRecord camera_only = record;
+    formats::CalibrationRecord camera_only = record;
     camera_only.has_laser = camera_only.has_conveyor = false;
-    REQUIRE(app::save_calibration(file, camera_only).ok());
-    REQUIRE(app::load_calibration(file).ok());
-    auto sensor = app::load_sensor_calibration(file);
+    REQUIRE(formats::save_calibration(file, camera_only).ok());
+    REQUIRE(formats::load_calibration(file).ok());
+    auto sensor = formats::load_sensor_calibration(file);
     REQUIRE_FALSE(sensor.ok());
     CHECK_THAT(sensor.error().message, Catch::Contains("calibrate laser"));
   }
@@ -580,7 +580,7 @@ TEST_CASE("Bad calibration input is refused with one line saying what to do, and
   const app::Config config = truth_config();
   TempDir tmp;
   const std::string file = tmp.file("calibration.yaml");
-  REQUIRE(app::save_calibration(file, sample_record()).ok());
+  REQUIRE(formats::save_calibration(file, sample_record()).ok());
   const std::string before = read_file(file);
   const std::string dir = tmp.file("pictures");
   fs::create_directory(dir);
@@ -597,7 +597,7 @@ TEST_CASE("Bad calibration input is refused with one line saying what to do, and
 
   auto expect_refused = [&](const Run& run, const std::string& what) {
     INFO(run.out << run.err);
-    CHECK(run.code == app::kExitUsage);
+    CHECK(run.code == cli::kExitUsage);
     CHECK_THAT(run.err, Catch::Contains(what));
     CHECK(std::count(run.err.begin(), run.err.end(), '\n') == 1);  // one line
     CHECK(read_file(file) == before);
@@ -633,7 +633,7 @@ TEST_CASE("Bad calibration input is refused with one line saying what to do, and
     write_file(file, truncated);
     const Run run = calibrate({"laser", "--images", dir, "--calibration", file}, config);
     INFO(run.err);
-    CHECK(run.code == app::kExitUsage);
+    CHECK(run.code == cli::kExitUsage);
     CHECK_THAT(run.err, Catch::Contains("existing calibration is refused") && Catch::Contains("truncated"));
     CHECK(read_file(file) == truncated);
   }
@@ -642,14 +642,14 @@ TEST_CASE("Bad calibration input is refused with one line saying what to do, and
     corrupt.replace(corrupt.find("  cy_px: "), 9, "  cy_px: [");
     write_file(file, corrupt);
     const Run run = calibrate(camera_args, config);
-    CHECK(run.code == app::kExitUsage);
+    CHECK(run.code == cli::kExitUsage);
     CHECK_THAT(run.err, Catch::Contains(file + ":") && Catch::Contains("copy a backup over it"));
     CHECK(read_file(file) == corrupt);
   }
   SECTION("the laser step before any camera calibration") {
     fs::remove(file);
     const Run run = calibrate({"laser", "--images", dir, "--calibration", file}, config);
-    CHECK(run.code == app::kExitUsage);
+    CHECK(run.code == cli::kExitUsage);
     CHECK_THAT(run.err, Catch::Contains("run 'cellsight calibrate camera' first"));
     CHECK_FALSE(fs::exists(file));
   }
@@ -657,7 +657,7 @@ TEST_CASE("Bad calibration input is refused with one line saying what to do, and
     for (const auto& args : std::vector<std::vector<std::string>>{
              {}, {"support"}, {"camera"}, {"camera", "--sim"}, {"camera", "--images", dir, "--sim", "--out", dir}}) {
       const Run run = calibrate(args, config);
-      CHECK(run.code == app::kExitUsage);
+      CHECK(run.code == cli::kExitUsage);
       CHECK(std::count(run.err.begin(), run.err.end(), '\n') == 1);
     }
     CHECK(read_file(file) == before);

@@ -14,7 +14,8 @@
 
 #include "app/catalogue.hpp"
 #include "app/config.hpp"
-#include "app/sim_mode.hpp"
+#include "app/sim_setup.hpp"
+#include "cli/sim_mode.hpp"
 #include "tests/scratch_dir.hpp"
 
 using namespace cellsight;
@@ -246,17 +247,17 @@ TEST_CASE("Given catalogue mistakes, when the catalogue is loaded, then each is 
 }
 
 TEST_CASE("Given pose texts, when parsed, then metres and degrees are read and malformed ones refused") {
-  auto pose = app::parse_pose("0.01,-0.02,3");
+  auto pose = cli::parse_pose("0.01,-0.02,3");
   REQUIRE(pose.ok());
   CHECK(pose->x_m == 0.01);
   CHECK(pose->y_m == -0.02);
   CHECK(pose->theta_rad == Approx(3 * std::numbers::pi / 180.0));
   CHECK(pose->swing_rad == 0.0);
-  CHECK_FALSE(app::parse_pose("1,2").ok());
-  CHECK_FALSE(app::parse_pose("a,b,c").ok());
-  CHECK_FALSE(app::parse_pose("0.01,0.02,3,4,5").ok());
-  CHECK_FALSE(app::parse_pose("0.5,0,0").ok());  // 0.5 m is not a pose error, it is a typo for mm
-  CHECK(app::parse_pose("0.01,,3").error().message.find("'' is not a number") != std::string::npos);
+  CHECK_FALSE(cli::parse_pose("1,2").ok());
+  CHECK_FALSE(cli::parse_pose("a,b,c").ok());
+  CHECK_FALSE(cli::parse_pose("0.01,0.02,3,4,5").ok());
+  CHECK_FALSE(cli::parse_pose("0.5,0,0").ok());  // 0.5 m is not a pose error, it is a typo for mm
+  CHECK(cli::parse_pose("0.01,,3").error().message.find("'' is not a number") != std::string::npos);
 }
 
 TEST_CASE(

@@ -17,7 +17,7 @@
 #include "algo/grid.hpp"
 #include "algo/scan.hpp"
 #include "app/config.hpp"
-#include "app/sim_mode.hpp"
+#include "app/sim_setup.hpp"
 #include "tests/support/alloc_counter.hpp"
 
 using namespace cellsight;

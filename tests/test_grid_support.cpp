@@ -8,7 +8,7 @@
 #include "algo/grid.hpp"
 #include "algo/support.hpp"
 #include "app/config.hpp"
-#include "app/sim_mode.hpp"
+#include "app/sim_setup.hpp"
 
 using namespace cellsight;
 

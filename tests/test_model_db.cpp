@@ -80,7 +80,7 @@ struct SmallCell {
     REQUIRE(loaded.ok());
     config = *loaded;
     const sim::Rig rig = sim::make_rig(config.rig);
-    app::CalibrationRecord record;
+    formats::CalibrationRecord record;
     record.has_camera = record.has_laser = record.has_conveyor = record.has_support = true;
     record.sensor = test::true_calibration(rig);
     record.camera_date = record.laser_date = record.conveyor_date = record.support_date = "2026-12-01 12:00:00";
@@ -89,7 +89,7 @@ struct SmallCell {
     record.support_points = 1000;
     record.support.normal = Eigen::Vector3d::UnitZ();
     record.support.offset_m = config.rig.carrier.plane_z_m;
-    REQUIRE(app::save_calibration((dir / "calibration.yaml").string(), record).ok());
+    REQUIRE(formats::save_calibration((dir / "calibration.yaml").string(), record).ok());
     models = (dir / "models").string();
   }
 
@@ -261,7 +261,7 @@ TEST_CASE("parts taught from PLY files under their own names are recognised, not
 TEST_CASE("teach refuses bad scans and keeps the database as it was") {
   const SmallCell cell = SmallCell::named("bad");
   const fs::path empty = cell.dir / "empty.ply";
-  std::ofstream(empty, std::ios::binary) << algo::write_ply_binary({});
+  std::ofstream(empty, std::ios::binary) << formats::write_ply_binary({});
   Run r = cell.run("teach --part empty_part --id 7 " + empty.string());
   CHECK(r.exit_code == 2);
   CHECK(r.output.find("no point") != std::string::npos);
@@ -274,7 +274,7 @@ TEST_CASE("teach refuses bad scans and keeps the database as it was") {
         {2.0F + 0.001F * static_cast<float>(i % 200), 0.3F + 0.001F * static_cast<float>(i / 200), 0.1F, 0, 0});
   }
   const fs::path outside = cell.dir / "outside.ply";
-  std::ofstream(outside, std::ios::binary) << algo::write_ply_binary(shifted);
+  std::ofstream(outside, std::ios::binary) << formats::write_ply_binary(shifted);
   r = cell.run("teach --part far_away " + outside.string());
   CHECK(r.exit_code == 2);
   CHECK(r.output.find("does not fit the grid") != std::string::npos);
@@ -299,8 +299,8 @@ TEST_CASE("teach refuses bad scans and keeps the database as it was") {
 namespace {
 
 // Part "plate" (PLC id 3) with `scan_count` scan records whose checksums are 0x1234abcd, 0x1234abce, ...
-app::PartEntry plate_entry(int scan_count) {
-  app::PartEntry p;
+formats::PartEntry plate_entry(int scan_count) {
+  formats::PartEntry p;
   p.name = "plate";
   p.id = 3;
   p.template_file = "templates/plate.dmap";
@@ -345,8 +345,8 @@ TEST_CASE(
     "text is the same (fuzz_manifest finding)") {
   // Found by tests/fuzz/fuzz_manifest: parts_fingerprint was written between quotes without escaping, so a manifest
   // that read fine (a quote in a plain scalar, checksum right) was saved as one that no longer parsed.
-  app::Manifest m;
-  app::PartEntry p;
+  formats::Manifest m;
+  formats::PartEntry p;
   p.name = "plate";
   p.id = 3;
   p.template_file = "templates/plate.dmap";
@@ -358,8 +358,8 @@ TEST_CASE(
   m.svm.trained_at = "then";
   m.svm.parts_fingerprint = "deadbeef\"-2\\";
   m.svm.hyper = "rbf \"C\"=1";
-  const auto back = app::parse_manifest("manifest.yaml", app::manifest_text(m));
-  INFO(app::manifest_text(m));
+  const auto back = formats::parse_manifest("manifest.yaml", formats::manifest_text(m));
+  INFO(formats::manifest_text(m));
   REQUIRE(back.ok());
   CHECK(back->svm.parts_fingerprint == m.svm.parts_fingerprint);
   CHECK(back->svm.hyper == m.svm.hyper);
@@ -390,7 +390,7 @@ TEST_CASE("a part taught with few scans lowers the folds; too few for any test i
 TEST_CASE("scans flagged at training survive a save and must name scans of the part", "[model_db]") {
   const SmallCell cell = SmallCell::named("flagged");
   app::ModelDb db = *app::ModelDb::open(cell.models, app::grid_spec(cell.config), true);
-  app::PartEntry p = plate_entry(2);
+  formats::PartEntry p = plate_entry(2);
   p.flagged = {"scans/plate/00002.ply"};
   db.manifest().parts.push_back(p);
   REQUIRE(db.save().ok());
@@ -476,15 +476,16 @@ TEST_CASE("parts list checks every template and the SVM as loading them does, ma
   for (int i = 0; i < 60; ++i) {
     for (int j = 0; j < 60; ++j) plate.push_back({0.25F + 0.002F * i, 0.45F + 0.002F * j, 0.1F, 0, 0});
   }
-  auto model = app::build_template(plate, grid);
+  auto model = formats::build_template(plate, grid);
   REQUIRE(model.ok());
   for (const std::string name : {"good", "bad"}) {
-    app::PartEntry p;
+    formats::PartEntry p;
     p.name = name;
     p.id = name == "good" ? 1 : 2;
     p.template_file = "templates/" + name + ".dmap";
     p.thresholds.learnt = true;
-    REQUIRE(app::write_template(db.path_of(p.template_file), *model, {name, static_cast<std::uint32_t>(p.id), 0}).ok());
+    REQUIRE(
+        formats::write_template(db.path_of(p.template_file), *model, {name, static_cast<std::uint32_t>(p.id), 0}).ok());
     db.manifest().parts.push_back(p);
   }
   // ... a trained SVM on them whose file does not match its checksum ...
@@ -589,9 +590,9 @@ TEST_CASE(
   auto db = app::ModelDb::open(cell.models, app::grid_spec(cell.config), false);
   REQUIRE(db.ok());
   std::set<std::string> named = {"manifest.yaml", db->manifest().svm.file};
-  for (const app::PartEntry& p : db->manifest().parts) {
+  for (const formats::PartEntry& p : db->manifest().parts) {
     named.insert(p.template_file);
-    for (const app::ScanEntry& sc : p.scans) named.insert(sc.file);
+    for (const formats::ScanEntry& sc : p.scans) named.insert(sc.file);
   }
   CHECK(files() == named);
   CHECK(cell.run("parts list").exit_code == 0);

@@ -28,7 +28,7 @@ void append(std::string& s, T v) {
 }
 
 std::string parse_error(const std::string& text) {
-  auto r = algo::parse_ply(text);
+  auto r = formats::parse_ply(text);
   REQUIRE_FALSE(r.ok());
   return r.error().message;
 }
@@ -37,8 +37,8 @@ std::string parse_error(const std::string& text) {
 
 TEST_CASE("Given points, when written as binary or ASCII PLY and read back, then x, y, z are unchanged") {
   const auto pts = sample_points();
-  for (const std::string& file : {algo::write_ply_binary(pts), algo::write_ply_ascii(pts)}) {
-    auto back = algo::parse_ply(file);
+  for (const std::string& file : {formats::write_ply_binary(pts), formats::write_ply_ascii(pts)}) {
+    auto back = formats::parse_ply(file);
     REQUIRE(back.ok());
     REQUIRE(back->size() == pts.size());
     for (std::size_t i = 0; i < pts.size(); ++i) {
@@ -67,7 +67,7 @@ TEST_CASE(
     append<float>(f, 0.0F);
     append<double>(f, -0.25 * i);
   }
-  auto pts = algo::parse_ply(f);
+  auto pts = formats::parse_ply(f);
   REQUIRE(pts.ok());
   REQUIRE(pts->size() == 3);
   CHECK((*pts)[2].x == Approx(0.2));
@@ -79,7 +79,7 @@ TEST_CASE("Given an ASCII PLY with extra columns and CRLF lines, when read, then
   const std::string f =
       "ply\r\nformat ascii 1.0\r\nelement vertex 2\r\nproperty float z\r\nproperty float intensity\r\n"
       "property float x\r\nproperty float y\r\nend_header\r\n0.3 99 0.1 0.2\r\n-1e-3 5 4 5.5\r\n";
-  auto pts = algo::parse_ply(f);
+  auto pts = formats::parse_ply(f);
   REQUIRE(pts.ok());
   REQUIRE(pts->size() == 2);
   CHECK((*pts)[0].x == Approx(0.1F));
@@ -125,8 +125,8 @@ TEST_CASE("Given malformed PLY files, when read, then each is refused with what 
 TEST_CASE(
     "Given a valid file with random bytes corrupted or cut, when read, then it either parses or is refused, "
     "never crashes") {
-  const std::string good = algo::write_ply_binary(sample_points());
-  const std::string good_ascii = algo::write_ply_ascii(sample_points());
+  const std::string good = formats::write_ply_binary(sample_points());
+  const std::string good_ascii = formats::write_ply_ascii(sample_points());
   std::mt19937 rng(5);
   int refused = 0;
   for (int trial = 0; trial < 3000; ++trial) {
@@ -134,7 +134,7 @@ TEST_CASE(
     const int edits = 1 + static_cast<int>(rng() % 6);
     for (int e = 0; e < edits; ++e) f[rng() % f.size()] = static_cast<char>(rng() % 256);
     if (trial % 3 == 0) f.resize(rng() % f.size());
-    auto r = algo::parse_ply(f);
+    auto r = formats::parse_ply(f);
     if (!r.ok()) {
       ++refused;
       CHECK(r.error().message.rfind("PLY: ", 0) == 0);
@@ -151,9 +151,9 @@ TEST_CASE(
                            "element vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
                            "1 2 3\n";
   CHECK(parse_error(text) == "PLY: no end_header in the first 65536 bytes: not a PLY scan");
-  CHECK(algo::parse_ply_header(text.substr(0, 65536)).error().message ==
+  CHECK(formats::parse_ply_header(text.substr(0, 65536)).error().message ==
         "PLY: no end_header in the first 65536 bytes: not a PLY scan");
-  CHECK(algo::parse_ply_header("ply\nformat ascii 1.0\nelement vertex 1\n").error().message ==
+  CHECK(formats::parse_ply_header("ply\nformat ascii 1.0\nelement vertex 1\n").error().message ==
         "PLY: no end_header: the header is truncated");
 }
 
@@ -165,19 +165,19 @@ TEST_CASE(
   const std::string head =
       "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
       "property float z\nend_header";
-  const algo::PlyLimits limits{.max_vertices = 16, .max_header_bytes = head.size() + 1};
+  const formats::PlyLimits limits{.max_vertices = 16, .max_header_bytes = head.size() + 1};
   const std::string text = head + "\r\n1 2 3\n";  // '\r' is the last byte within the limit, '\n' the first past it
-  const auto whole = algo::parse_ply(text, limits);
-  const auto first_bytes = algo::parse_ply_header(text.substr(0, limits.max_header_bytes), limits);
+  const auto whole = formats::parse_ply(text, limits);
+  const auto first_bytes = formats::parse_ply_header(text.substr(0, limits.max_header_bytes), limits);
   REQUIRE_FALSE(first_bytes.ok());
   REQUIRE_FALSE(whole.ok());
   CHECK(whole.error().message == first_bytes.error().message);
   CHECK(whole.error().message == "PLY: the end_header line does not end in the first " +
                                      std::to_string(limits.max_header_bytes) + " bytes: not a PLY scan");
   // One byte more of room and both take it.
-  const algo::PlyLimits roomier{.max_vertices = 16, .max_header_bytes = head.size() + 2};
-  CHECK(algo::parse_ply(text, roomier).ok());
-  CHECK(algo::parse_ply_header(text.substr(0, roomier.max_header_bytes), roomier).ok());
+  const formats::PlyLimits roomier{.max_vertices = 16, .max_header_bytes = head.size() + 2};
+  CHECK(formats::parse_ply(text, roomier).ok());
+  CHECK(formats::parse_ply_header(text.substr(0, roomier.max_header_bytes), roomier).ok());
 }
 
 TEST_CASE(
@@ -200,7 +200,7 @@ TEST_CASE(
   const std::string largest =
       "ply\nformat ascii 1.0\nelement vertex 1\nproperty double x\nproperty double y\n"
       "property double z\nend_header\n3.4028234663852886e38 0 -3.4028234663852886e38\n";
-  const auto points = algo::parse_ply(largest);
+  const auto points = formats::parse_ply(largest);
   REQUIRE(points.ok());
   CHECK((*points)[0].x == std::numeric_limits<float>::max());
 }
@@ -220,7 +220,7 @@ TEST_CASE(
       for (const float v : {1.0F, 2.0F, 3.0F}) append<float>(text, v);
     }
     const auto start = std::chrono::steady_clock::now();
-    const auto points = algo::parse_ply(text);
+    const auto points = formats::parse_ply(text);
     CHECK(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() < 1.0);
     REQUIRE(points.ok());
     REQUIRE(points->size() == 1);
@@ -235,25 +235,25 @@ TEST_CASE(
       "ply\nformat binary_little_endian 1.0\nelement face 3\nproperty list uchar int i\n"
       "element vertex 5\nproperty double x\nproperty double y\nproperty double z\n"
       "property uchar red\nend_header\n";
-  auto b = algo::parse_ply_header(binary);
+  auto b = formats::parse_ply_header(binary);
   REQUIRE(b.ok());
   CHECK(b->binary);
   CHECK(b->data_start == binary.size());
   CHECK(b->vertex_count == 5);
   CHECK(b->min_data_bytes == 3 * 1 + 5 * (3 * 8 + 1));  // an empty list is its count byte alone
   // The written file holds exactly what its header declares.
-  const std::string written = algo::write_ply_binary(sample_points());
-  auto w = algo::parse_ply_header(written);
+  const std::string written = formats::write_ply_binary(sample_points());
+  auto w = formats::parse_ply_header(written);
   REQUIRE(w.ok());
   CHECK(w->min_data_bytes == written.size() - w->data_start);
   // ASCII: a digit and a separator per value, the last value without one.
-  auto a = algo::parse_ply_header(
+  auto a = formats::parse_ply_header(
       "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
       "property float z\nend_header\n");
   REQUIRE(a.ok());
   CHECK(a->min_data_bytes == 11);
   // Counts that cannot fit in memory saturate instead of wrapping round to a small number.
-  auto huge = algo::parse_ply_header(
+  auto huge = formats::parse_ply_header(
       "ply\nformat binary_little_endian 1.0\nelement face 18446744073709551615\n"
       "property int i\nelement vertex 1\nproperty float x\nproperty float y\n"
       "property float z\nend_header\n");

@@ -12,7 +12,8 @@
 
 #include "app/catalogue.hpp"
 #include "app/config.hpp"
-#include "app/sim_mode.hpp"
+#include "app/sim_setup.hpp"
+#include "cli/sim_mode.hpp"
 #include "drivers/sim/random_catalogue.hpp"
 #include "tests/scratch_dir.hpp"
 
@@ -304,7 +305,7 @@ TEST_CASE(
   const app::Config config = shipped_config();
   const fs::path dir = fresh_dir();
   const std::string path = (dir / "random.yaml").string();
-  REQUIRE(app::write_random_catalogue(config, 30, 5, path).ok());
+  REQUIRE(cli::write_random_catalogue(config, 30, 5, path).ok());
   const auto loaded = app::load_catalogue(path);
   INFO((loaded.ok() ? std::string() : loaded.error().message));
   REQUIRE(loaded.ok());
@@ -328,7 +329,7 @@ TEST_CASE(
   fs::remove(odd_path);
 
   const auto before = fs::last_write_time(path);
-  const auto again = app::write_random_catalogue(config, 12, 6, path);
+  const auto again = cli::write_random_catalogue(config, 12, 6, path);
   REQUIRE_FALSE(again.ok());
   CHECK(again.error().message.find("refusing to overwrite") != std::string::npos);
   CHECK(fs::last_write_time(path) == before);

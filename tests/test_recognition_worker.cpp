@@ -9,7 +9,7 @@
 #include <thread>
 #include <vector>
 
-#include "app/recogniser.hpp"
+#include "runtime/recogniser.hpp"
 #include "runtime/recognition_worker.hpp"
 #include "tests/support/alloc_counter.hpp"
 
@@ -22,7 +22,7 @@ using Clock = std::chrono::steady_clock;
 using std::chrono::milliseconds;
 
 // Answers with the number of points it was given as the part id, after holding until released (when gated).
-class GatedRecogniser final : public app::Recogniser {
+class GatedRecogniser final : public runtime::Recogniser {
  public:
   explicit GatedRecogniser(int class_offset = 0) : class_offset_(class_offset) {}
   algo::Decision recognise(std::span<const algo::ScanPoint> points, Clock::time_point deadline) override {
@@ -135,12 +135,12 @@ TEST_CASE("recognition worker: a load job puts the loader's recogniser in place;
           "[recognition_worker][thread]") {
   RecognitionWorker worker;
   bool fail_next = true;
-  worker.set_loader([&fail_next]() -> Expected<std::unique_ptr<app::Recogniser>> {
+  worker.set_loader([&fail_next]() -> Expected<std::unique_ptr<runtime::Recogniser>> {
     if (fail_next) {
       fail_next = false;
       return make_error("manifest.yaml: checksum mismatch (test)");
     }
-    return std::unique_ptr<app::Recogniser>(std::make_unique<GatedRecogniser>(1));
+    return std::unique_ptr<runtime::Recogniser>(std::make_unique<GatedRecogniser>(1));
   });
   REQUIRE(worker.start());
   CHECK_FALSE(worker.has_recogniser());

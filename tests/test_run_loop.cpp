@@ -35,18 +35,18 @@
 #include <vector>
 
 #include "app/config.hpp"
-#include "app/recogniser.hpp"
-#include "app/run_mode.hpp"
-#include "app/scan_mode.hpp"
-#include "app/sim_mode.hpp"
+#include "app/loop_wiring.hpp"
+#include "app/scan_acquisition.hpp"
+#include "app/sim_setup.hpp"
+#include "cli/run_mode.hpp"
 #include "drivers/modbus/modbus_server.hpp"
 #include "drivers/modbus/register_map.hpp"
 #include "drivers/modbus/sim_plc_link.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "formats/calibration_file.hpp"
-#include "runtime/loop_wiring.hpp"
 #include "runtime/plc_mapping.hpp"
 #include "runtime/production_loop.hpp"
+#include "runtime/recogniser.hpp"
 #include "runtime/service_notify.hpp"
 #include "sim_test_util.hpp"
 #include "tests/scratch_dir.hpp"
@@ -118,7 +118,7 @@ app::Config small_config() {
 }
 
 runtime::LoopConfig small_loop_config(const app::Config& config) {
-  runtime::LoopConfig c = runtime::loop_config(config);
+  runtime::LoopConfig c = app::loop_config(config);
   c.conveyor_waits_for_ready = true;  // the simulated conveyor
   c.require_trigger_enable = false;
   c.poll_slice_ms = 5;
@@ -137,7 +137,7 @@ struct Script {
 };
 
 // The recognition stage's test double: returns the scripted decision of the n-th call, after its delay.
-class ScriptedRecogniser final : public app::Recogniser {
+class ScriptedRecogniser final : public runtime::Recogniser {
  public:
   static constexpr std::size_t kMaxScripts = 512;
   explicit ScriptedRecogniser(std::vector<Script> scripts) : scripts_(std::move(scripts)) {}
@@ -488,7 +488,7 @@ struct Cell {
   WorldIo io;
   WorldEncoder encoder;
   drivers::SimPlcLink link;
-  std::unique_ptr<app::Recogniser> recogniser;
+  std::unique_ptr<runtime::Recogniser> recogniser;
   ScriptedRecogniser* recogniser_ptr = nullptr;
   Recorder recorder;
   std::optional<runtime::ProductionLoop> loop;
@@ -1138,10 +1138,10 @@ TEST_CASE(
   loop.set_recogniser(nullptr);
   std::atomic<bool> database_ready{false};
   std::atomic<int> loads{0};
-  loop.set_recogniser_loader([&]() -> Expected<std::unique_ptr<app::Recogniser>> {
+  loop.set_recogniser_loader([&]() -> Expected<std::unique_ptr<runtime::Recogniser>> {
     loads.fetch_add(1);
     if (!database_ready.load()) return make_error("models/manifest.yaml is not there (test)");
-    return std::unique_ptr<app::Recogniser>(std::make_unique<ScriptedRecogniser>(std::vector<Script>{Script{}}));
+    return std::unique_ptr<runtime::Recogniser>(std::make_unique<ScriptedRecogniser>(std::vector<Script>{Script{}}));
   });
   REQUIRE(loop.start().ok());
   REQUIRE(wait_until([&] { return plc.error_code() == 6; }, 5000));
@@ -1283,7 +1283,7 @@ TEST_CASE("loop: through a real Modbus server on 127.0.0.1 a libmodbus PLC takes
 // A calibration file with the simulator's true sensor (the production path refuses to run without one).
 std::string write_true_calibration(const app::Config& config, const std::filesystem::path& dir) {
   const sim::Rig rig = sim::make_rig(config.rig);
-  app::CalibrationRecord record;
+  formats::CalibrationRecord record;
   record.has_camera = record.has_laser = record.has_conveyor = true;
   record.sensor = test::true_calibration(rig);
   record.camera_views = 12;
@@ -1295,9 +1295,9 @@ std::string write_true_calibration(const app::Config& config, const std::filesys
   record.support_points = 1000;
   record.support_date = record.camera_date;
   const std::string path = (dir / "calibration.yaml").string();
-  auto saved = app::save_calibration(path, record);
+  auto saved = formats::save_calibration(path, record);
   REQUIRE(saved.ok());
-  REQUIRE(app::load_sensor_calibration(path).ok());
+  REQUIRE(formats::load_sensor_calibration(path).ok());
   return path;
 }
 
@@ -1345,7 +1345,7 @@ TEST_CASE("run: SIGTERM or SIGINT stops a running simulated cell cleanly: exit 0
   std::atomic<int> exit_code{-1};
   std::thread cell([&] {
     exit_code =
-        app::run_run({"--sim", "--sim-oracle", "--calibration", calibration, "--port", std::to_string(port)}, config);
+        cli::run_run({"--sim", "--sim-oracle", "--calibration", calibration, "--port", std::to_string(port)}, config);
   });
   // Serving means the signal handlers are in place (they are installed before the server starts).
   std::uint16_t status[2] = {0, 0};
@@ -1391,7 +1391,7 @@ TEST_CASE(
     config.camera.backend = "v4l2";
     config.camera.device = "/dev/video-cellsight-missing";
     const std::string text = capture_stderr(err, [&] {
-      code = app::run_run({"--calibration", calibration, "--port", "0"}, config);
+      code = cli::run_run({"--calibration", calibration, "--port", "0"}, config);
     });
     CHECK(code == 1);
     CHECK(text.find("/dev/video-cellsight-missing") != std::string::npos);
@@ -1400,21 +1400,21 @@ TEST_CASE(
     config.gpio.backend = "gpiod";
     config.gpio.chip = "gpiochip-cellsight-missing";
     const std::string text = capture_stderr(err, [&] {
-      code = app::run_run({"--calibration", calibration, "--port", "0"}, config);
+      code = cli::run_run({"--calibration", calibration, "--port", "0"}, config);
     });
     CHECK(code == 1);
     CHECK(text.find("gpiochip-cellsight-missing") != std::string::npos);
   }
   SECTION("bad arguments: exit 2") {
-    const std::string text = capture_stderr(err, [&] { code = app::run_run({"--parts", "many"}, config); });
+    const std::string text = capture_stderr(err, [&] { code = cli::run_run({"--parts", "many"}, config); });
     CHECK(code == 2);
     CHECK(text.find("--parts") != std::string::npos);
-    CHECK(app::run_run({"--truth-log", "x.jsonl"}, config) == 2);  // a --sim option without --sim
-    CHECK(app::run_run({"--bogus"}, config) == 2);
+    CHECK(cli::run_run({"--truth-log", "x.jsonl"}, config) == 2);  // a --sim option without --sim
+    CHECK(cli::run_run({"--bogus"}, config) == 2);
   }
   SECTION("an unknown part in --sim-parts: exit 2, the message lists the catalogue") {
     const std::string text = capture_stderr(err, [&] {
-      code = app::run_run({"--sim", "--sim-oracle", "--sim-parts", "plate_4h,no_such_part", "--calibration",
+      code = cli::run_run({"--sim", "--sim-oracle", "--sim-parts", "plate_4h,no_such_part", "--calibration",
                            calibration, "--parts", "1", "--port", "0"},
                           config);
     });
@@ -1424,14 +1424,14 @@ TEST_CASE(
   }
   SECTION("no calibration: exit 2, says what to run") {
     const std::string text = capture_stderr(err, [&] {
-      code = app::run_run({"--sim", "--calibration", (dir / "none.yaml").string(), "--parts", "1"}, config);
+      code = cli::run_run({"--sim", "--calibration", (dir / "none.yaml").string(), "--parts", "1"}, config);
     });
     CHECK(code == 2);
     CHECK(text.find("calibrat") != std::string::npos);
   }
   SECTION("--parts with no model database: exit 2, says what to run") {
     const std::string text = capture_stderr(err, [&] {
-      code = app::run_run({"--sim", "--calibration", calibration, "--parts", "1", "--models",
+      code = cli::run_run({"--sim", "--calibration", calibration, "--parts", "1", "--models",
                            (dir / "no-models").string(), "--port", "0"},
                           config);
     });
@@ -1445,7 +1445,7 @@ TEST_CASE(
     drivers::ModbusServer taken(taken_config);
     REQUIRE(taken.start().ok());
     const std::string text = capture_stderr(err, [&] {
-      code = app::run_run(
+      code = cli::run_run(
           {"--sim", "--sim-oracle", "--calibration", calibration, "--port", std::to_string(taken.bound_port())},
           config);
     });
@@ -1456,7 +1456,7 @@ TEST_CASE(
 }
 
 TEST_CASE("run: arguments", "[run][mode]") {
-  auto parsed = app::parse_run_args({"--sim", "--parts", "20", "--seed", "7", "--sim-parts", "plate_4h,tray",
+  auto parsed = cli::parse_run_args({"--sim", "--parts", "20", "--seed", "7", "--sim-parts", "plate_4h,tray",
                                      "--truth-log", "t.jsonl", "--wait-plc", "--port", "0", "--config", "x.yaml"});
   REQUIRE(parsed.ok());
   CHECK(parsed->sim);
@@ -1475,7 +1475,7 @@ TEST_CASE("run: arguments", "[run][mode]") {
                                                                                    {"--sim-oracle"},
                                                                                    {"run"}}) {
     INFO(bad.front());
-    CHECK_FALSE(app::parse_run_args(bad).ok());
+    CHECK_FALSE(cli::parse_run_args(bad).ok());
   }
 }
 
@@ -1484,7 +1484,7 @@ TEST_CASE("run: --sim --parts N --truth-log writes the simulator's truth of ever
   const auto dir = fresh_dir("truth");
   const std::string calibration = write_true_calibration(config, dir);
   const std::string truth = (dir / "truth.jsonl").string();
-  const int code = app::run_run({"--sim", "--sim-oracle", "--parts", "3", "--seed", "7", "--calibration", calibration,
+  const int code = cli::run_run({"--sim", "--sim-oracle", "--parts", "3", "--seed", "7", "--calibration", calibration,
                                  "--truth-log", truth, "--port", "0"},
                                 config);
   CHECK(code == 0);

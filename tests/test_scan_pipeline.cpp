@@ -8,10 +8,10 @@
 #include "algo/grid.hpp"
 #include "algo/support.hpp"
 #include "app/acquire.hpp"
-#include "app/calibrate_mode.hpp"
 #include "app/config.hpp"
-#include "app/scan_mode.hpp"
-#include "app/sim_mode.hpp"
+#include "app/scan_acquisition.hpp"
+#include "app/sim_setup.hpp"
+#include "cli/calibrate_mode.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "formats/calibration_file.hpp"
 #include "sim_test_util.hpp"
@@ -85,11 +85,11 @@ const algo::SensorCalibration& calibrated_sensor(const app::Config& cfg) {
     const fs::path dir = test::scratch_dir("scan-calib");
     const std::string file = (dir / "calibration.yaml").string();
     for (const char* step : {"camera", "laser", "conveyor"}) {
-      const int rc = app::run_calibrate({step, "--sim", "--out", (dir / step).string(), "--calibration", file}, cfg,
+      const int rc = cli::run_calibrate({step, "--sim", "--out", (dir / step).string(), "--calibration", file}, cfg,
                                         stdout, stderr);
       REQUIRE(rc == 0);
     }
-    auto loaded = app::load_sensor_calibration(file);
+    auto loaded = formats::load_sensor_calibration(file);
     REQUIRE(loaded.ok());
     fs::remove_all(dir);
     return *loaded;

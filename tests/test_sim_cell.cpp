@@ -2,7 +2,7 @@
 #include <catch2/catch.hpp>
 
 #include "app/config.hpp"
-#include "app/sim_mode.hpp"
+#include "app/sim_setup.hpp"
 
 using namespace cellsight;
 

@@ -4,7 +4,7 @@
 #include <thread>
 
 #include "app/config.hpp"
-#include "app/sim_mode.hpp"
+#include "app/sim_setup.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "drivers/sim/sim_faults.hpp"
 

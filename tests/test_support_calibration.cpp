@@ -7,9 +7,9 @@
 #include <random>
 #include <sstream>
 
-#include "app/calibrate_mode.hpp"
 #include "app/config.hpp"
-#include "app/scan_mode.hpp"
+#include "cli/calibrate_mode.hpp"
+#include "cli/scan_mode.hpp"
 #include "formats/calibration_file.hpp"
 #include "formats/ply.hpp"
 #include "tests/scratch_dir.hpp"
@@ -34,11 +34,11 @@ TEST_CASE(
   const fs::path dir = test::scratch_dir("support");
   const std::string file = (dir / "calibration.yaml").string();
   for (const char* step : {"camera", "laser", "conveyor"}) {
-    REQUIRE(app::run_calibrate({step, "--sim", "--out", (dir / step).string(), "--calibration", file}, *cfg, stdout,
+    REQUIRE(cli::run_calibrate({step, "--sim", "--out", (dir / step).string(), "--calibration", file}, *cfg, stdout,
                                stderr) == 0);
   }
-  REQUIRE(app::run_calibrate_support({"--sim", "--calibration", file}, *cfg) == 0);
-  auto record = app::load_calibration(file);
+  REQUIRE(cli::run_calibrate_support({"--sim", "--calibration", file}, *cfg) == 0);
+  auto record = formats::load_calibration(file);
   REQUIRE(record.ok());
   REQUIRE(record->has_support);
   REQUIRE(record->has_camera);  // the other sections are kept
@@ -53,11 +53,11 @@ TEST_CASE(
   std::uniform_real_distribution<float> u(0.0F, 0.6F);
   std::vector<algo::ScanPoint> cloud;
   for (int i = 0; i < 5000; ++i) cloud.push_back({u(rng), u(rng), u(rng), 0, 0});
-  std::ofstream(dir / "cloud.ply", std::ios::binary) << algo::write_ply_binary(cloud);
-  CHECK(app::run_calibrate_support({"--scan", (dir / "cloud.ply").string(), "--calibration", file}, *cfg) == 2);
+  std::ofstream(dir / "cloud.ply", std::ios::binary) << formats::write_ply_binary(cloud);
+  CHECK(cli::run_calibrate_support({"--scan", (dir / "cloud.ply").string(), "--calibration", file}, *cfg) == 2);
   std::ofstream(dir / "broken.ply") << "ply\nformat ascii 1.0\nelement vertex 3\n";
-  CHECK(app::run_calibrate_support({"--scan", (dir / "broken.ply").string(), "--calibration", file}, *cfg) == 2);
-  CHECK(app::run_calibrate_support({"--calibration", file}, *cfg) == 2);  // neither --scan nor --sim
+  CHECK(cli::run_calibrate_support({"--scan", (dir / "broken.ply").string(), "--calibration", file}, *cfg) == 2);
+  CHECK(cli::run_calibrate_support({"--calibration", file}, *cfg) == 2);  // neither --scan nor --sim
   CHECK(read_all(file) == before);
   fs::remove_all(dir);
 }

@@ -32,16 +32,16 @@ using Catch::Matchers::Contains;
 using cellsight::algo::GradientMethod;
 using cellsight::algo::GridSpec;
 using cellsight::algo::ScanPoint;
-using cellsight::app::build_template;
-using cellsight::app::describe_grid;
-using cellsight::app::kTemplateHeaderBytes;
-using cellsight::app::kTemplateSectionAlignment;
-using cellsight::app::read_template_info;
-using cellsight::app::TemplateBuildParams;
-using cellsight::app::TemplateFile;
-using cellsight::app::TemplateIdentity;
-using cellsight::app::TemplateModel;
-using cellsight::app::write_template;
+using cellsight::formats::build_template;
+using cellsight::formats::describe_grid;
+using cellsight::formats::kTemplateHeaderBytes;
+using cellsight::formats::kTemplateSectionAlignment;
+using cellsight::formats::read_template_info;
+using cellsight::formats::TemplateBuildParams;
+using cellsight::formats::TemplateFile;
+using cellsight::formats::TemplateIdentity;
+using cellsight::formats::TemplateModel;
+using cellsight::formats::write_template;
 
 // Offsets of a few header fields (the layout of the version 1 header, written down independently of the code).
 constexpr std::size_t kVersionOffset = 8;

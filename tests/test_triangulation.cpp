@@ -4,7 +4,7 @@
 
 #include "algo/triangulation.hpp"
 #include "app/config.hpp"
-#include "app/sim_mode.hpp"
+#include "app/sim_setup.hpp"
 #include "sim_test_util.hpp"
 
 using namespace cellsight;

@@ -32,8 +32,8 @@
 #include "algo/svm.hpp"
 #include "app/acquire.hpp"
 #include "app/config.hpp"
-#include "app/scan_mode.hpp"
-#include "app/sim_mode.hpp"
+#include "app/scan_acquisition.hpp"
+#include "app/sim_setup.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "tests/sim_test_util.hpp"
 

@@ -20,14 +20,14 @@
 
 #include "../sim_test_util.hpp"
 #include "app/config.hpp"
+#include "app/loop_wiring.hpp"
 #include "app/recognition.hpp"
-#include "app/scan_mode.hpp"
-#include "app/sim_mode.hpp"
+#include "app/scan_acquisition.hpp"
+#include "app/sim_setup.hpp"
 #include "drivers/modbus/modbus_server.hpp"
 #include "drivers/modbus/register_map.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "formats/calibration_file.hpp"
-#include "runtime/loop_wiring.hpp"
 #include "runtime/production_loop.hpp"
 
 using namespace cellsight;
@@ -43,7 +43,7 @@ std::int64_t now_ns() {
 }
 
 // Stand-in recogniser: a fixed decision after a fixed time.
-class FixedRecogniser final : public app::Recogniser {
+class FixedRecogniser final : public runtime::Recogniser {
  public:
   explicit FixedRecogniser(int delay_ms) : delay_ms_(delay_ms) {}
   algo::Decision recognise(std::span<const algo::ScanPoint> /*points*/, Clock::time_point deadline) override {
@@ -143,10 +143,10 @@ int main(int argc, char** argv) {
     return 2;
   }
   algo::SensorCalibration calibration = test::true_calibration(cell->rig());
-  std::unique_ptr<app::Recogniser> recogniser;
+  std::unique_ptr<runtime::Recogniser> recogniser;
   if (!models.empty()) {
     if (calibration_path.empty()) calibration_path = app::default_calibration_path(*config);
-    auto loaded = app::load_sensor_calibration(calibration_path);
+    auto loaded = formats::load_sensor_calibration(calibration_path);
     if (!loaded) {
       std::fprintf(stderr, "%s\n", loaded.error().message.c_str());
       return 2;
@@ -184,7 +184,7 @@ int main(int argc, char** argv) {
     return 1;
   }
 
-  runtime::LoopConfig lc = runtime::loop_config(*config);
+  runtime::LoopConfig lc = app::loop_config(*config);
   lc.conveyor_waits_for_ready = true;
   lc.edge_timestamps_monotonic = false;
   lc.max_parts = static_cast<std::uint64_t>(parts);

@@ -15,7 +15,7 @@
 #include "algo/support.hpp"
 #include "algo/svm.hpp"
 #include "app/config.hpp"
-#include "app/sim_mode.hpp"
+#include "app/sim_setup.hpp"
 
 namespace {
 

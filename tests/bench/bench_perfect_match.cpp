@@ -28,8 +28,8 @@
 #include "app/acquire.hpp"
 #include "app/catalogue.hpp"
 #include "app/config.hpp"
-#include "app/scan_mode.hpp"
-#include "app/sim_mode.hpp"
+#include "app/scan_acquisition.hpp"
+#include "app/sim_setup.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "formats/template_file.hpp"
 #include "tests/sim_test_util.hpp"
@@ -85,7 +85,7 @@ struct Stats {
   int converged = 0;
 };
 
-Stats run(const Variant& v, const app::TemplateModel& model, const std::vector<Case>& cases) {
+Stats run(const Variant& v, const formats::TemplateModel& model, const std::vector<Case>& cases) {
   PerfectMatcher pm(v.params);
   Stats s;
   const algo::DistanceMapView map = model.map.view();
@@ -173,7 +173,7 @@ std::vector<Variant> variants() {
 
 // Where the used points of a scan lie against the template at the true pose: share beyond 2 / 5 / 20 mm and the
 // mean x, y, z of those beyond 5 mm (what a robust Lc has to ignore).
-void diagnose(const app::TemplateModel& model, const Case& c) {
+void diagnose(const formats::TemplateModel& model, const Case& c) {
   PerfectMatcher pm;
   pm.set_scan(c.scan);
   const algo::DistanceMapView map = model.map.view();
@@ -359,9 +359,9 @@ int main(int argc, char** argv) {
       if (part == nullptr) continue;
       const auto points = surface_points(*part, centre, 0.0015, 0.5);
       const auto other = surface_points(*part, centre, 0.0012, 0.23);
-      app::TemplateBuildParams build;
+      formats::TemplateBuildParams build;
       build.gradient_method = method;
-      auto model = app::build_template(points, spec, build);
+      auto model = formats::build_template(points, spec, build);
       if (!model) {
         std::fprintf(stderr, "%s: %s\n", name.c_str(), model.error().message.c_str());
         return 1;
@@ -404,7 +404,7 @@ int main(int argc, char** argv) {
     auto first = make_pass(1);
     std::vector<ScanPoint> points;
     if (!first || !scanner.scan(*first, points)) return 1;
-    auto model = app::build_template(points, spec, {});
+    auto model = formats::build_template(points, spec, {});
     if (!model) {
       std::fprintf(stderr, "%s: %s\n", name.c_str(), model.error().message.c_str());
       return 1;

@@ -8,8 +8,8 @@
 #include "../sim_test_util.hpp"
 #include "algo/scan_builder.hpp"
 #include "app/config.hpp"
-#include "app/scan_mode.hpp"
-#include "app/sim_mode.hpp"
+#include "app/scan_acquisition.hpp"
+#include "app/sim_setup.hpp"
 
 using Clock = std::chrono::steady_clock;
 using namespace cellsight;

@@ -8,7 +8,7 @@
 #include <vector>
 
 #include "app/config.hpp"
-#include "app/sim_mode.hpp"
+#include "app/sim_setup.hpp"
 
 // Thread CPU time: the figure stays meaningful when other work shares the machine (wall time would not).
 double cpu_ms() {

@@ -15,7 +15,6 @@
 #include "app/config.hpp"
 #include "app/model_db.hpp"
 #include "app/recognition.hpp"
-#include "app/train_mode.hpp"
 #include "base/file_read.hpp"
 #include "formats/calibration_file.hpp"
 #include "formats/ply.hpp"
@@ -74,7 +73,7 @@ int main(int argc, char** argv) {
   for (const fs::path& f : files) {
     auto bytes = base::read_file(f.string(), app::kMaxTaughtScanBytes);
     if (!bytes) continue;
-    auto points = algo::parse_ply(*bytes);
+    auto points = formats::parse_ply(*bytes);
     if (!points) continue;
     const algo::Decision d =
         (*recogniser)->recognise(*points, std::chrono::steady_clock::now() + std::chrono::hours(1));
@@ -117,7 +116,7 @@ int main(int argc, char** argv) {
   if (auto support = app::load_support_plane(cal != nullptr ? cal : app::default_calibration_path(*config));
       support && !files.empty()) {
     auto bytes = base::read_file(files.front().string(), app::kMaxTaughtScanBytes);
-    auto points = bytes ? algo::parse_ply(*bytes) : Expected<std::vector<algo::ScanPoint>>(make_error("unread"));
+    auto points = bytes ? formats::parse_ply(*bytes) : Expected<std::vector<algo::ScanPoint>>(make_error("unread"));
     if (points) {
       app::ScanPreparer preparer(*config, *support, points->size() + 1);
       const algo::GridSpec spec = app::grid_spec(*config);

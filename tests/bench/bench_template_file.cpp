@@ -56,14 +56,14 @@ int main(int argc, char** argv) {
   const std::string path = (folder / "bench_template_file.dmap").string();
   const cellsight::algo::GridSpec grid;  // defaults: the thesis grid
   const auto pts = sheet_part(grid);
-  std::printf("grid %s, %zu points\n", cellsight::app::describe_grid(grid).c_str(), pts.size());
+  std::printf("grid %s, %zu points\n", cellsight::formats::describe_grid(grid).c_str(), pts.size());
 
   for (const auto method :
        {cellsight::algo::GradientMethod::kSobelAveraged, cellsight::algo::GradientMethod::kCentralDifference}) {
-    cellsight::app::TemplateBuildParams params;
+    cellsight::formats::TemplateBuildParams params;
     params.gradient_method = method;
     auto t = Clock::now();
-    auto model = cellsight::app::build_template(pts, grid, params);
+    auto model = cellsight::formats::build_template(pts, grid, params);
     const double build_ms = ms_since(t);
     if (!model) {
       std::fprintf(stderr, "%s\n", model.error().message.c_str());
@@ -75,9 +75,9 @@ int main(int argc, char** argv) {
   }
 
   {
-    const auto model = cellsight::app::build_template(pts, grid);
+    const auto model = cellsight::formats::build_template(pts, grid);
     const auto t = Clock::now();
-    if (auto w = cellsight::app::write_template(path, *model, {"bench-sheet", 1, 0}); !w) {
+    if (auto w = cellsight::formats::write_template(path, *model, {"bench-sheet", 1, 0}); !w) {
       std::fprintf(stderr, "%s\n", w.error().message.c_str());
       return 1;
     }
@@ -86,14 +86,14 @@ int main(int argc, char** argv) {
   }  // releases the in-memory map
 
   auto t = Clock::now();
-  const auto info = cellsight::app::read_template_info(path);
+  const auto info = cellsight::formats::read_template_info(path);
   std::printf("header only (read_template_info): %.3f ms (%s)\n", ms_since(t), info ? "ok" : "failed");
 
   for (int run = 0; run < 6; ++run) {
     const bool cold = run < 3;
     if (cold && !evict(path)) std::printf("(could not evict the file from the page cache)\n");
     t = Clock::now();
-    const auto file = cellsight::app::TemplateFile::open(path, grid);
+    const auto file = cellsight::formats::TemplateFile::open(path, grid);
     const double total_ms = ms_since(t);
     if (!file) {
       std::fprintf(stderr, "%s\n", file.error().message.c_str());

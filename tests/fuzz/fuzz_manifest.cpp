@@ -26,15 +26,15 @@ void repair_checksum(std::string& text) {
   text = body + line;
 }
 
-bool same_manifest(const app::Manifest& a, const app::Manifest& b) {
+bool same_manifest(const formats::Manifest& a, const formats::Manifest& b) {
   if (a.format_version != b.format_version || a.feature_version != b.feature_version || a.grid.nx != b.grid.nx ||
       a.grid.ny != b.grid.ny || a.grid.nz != b.grid.nz || a.grid.resolution_m != b.grid.resolution_m ||
       a.grid.origin_m != b.grid.origin_m || a.parts.size() != b.parts.size()) {
     return false;
   }
   for (std::size_t i = 0; i < a.parts.size(); ++i) {
-    const app::PartEntry& p = a.parts[i];
-    const app::PartEntry& q = b.parts[i];
+    const formats::PartEntry& p = a.parts[i];
+    const formats::PartEntry& q = b.parts[i];
     if (p.name != q.name || p.id != q.id || p.template_file != q.template_file || p.taught_at != q.taught_at ||
         p.template_scan != q.template_scan || p.confusable != q.confusable || p.flagged != q.flagged ||
         p.scans.size() != q.scans.size() || p.thresholds.learnt != q.thresholds.learnt ||
@@ -48,8 +48,8 @@ bool same_manifest(const app::Manifest& a, const app::Manifest& b) {
       }
     }
   }
-  const app::SvmEntry& s = a.svm;
-  const app::SvmEntry& t = b.svm;
+  const formats::SvmEntry& s = a.svm;
+  const formats::SvmEntry& t = b.svm;
   return s.present == t.present && s.file == t.file && s.crc32 == t.crc32 && s.trained_at == t.trained_at &&
          s.parts_fingerprint == t.parts_fingerprint && s.hyper == t.hyper && s.train_scans == t.train_scans;
 }
@@ -60,9 +60,9 @@ bool same_manifest(const app::Manifest& a, const app::Manifest& b) {
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
   fuzz::ChecksummedInput in = fuzz::split_mode_byte(data, size);
   if (in.repair) repair_checksum(in.file);
-  auto manifest = app::parse_manifest("manifest.yaml", in.file);
+  auto manifest = formats::parse_manifest("manifest.yaml", in.file);
   if (!manifest) return 0;
-  auto again = app::parse_manifest("manifest.yaml", app::manifest_text(*manifest));
+  auto again = formats::parse_manifest("manifest.yaml", formats::manifest_text(*manifest));
   CS_FUZZ_EXPECT(again.ok() && same_manifest(*manifest, *again));
   return 0;
 }

@@ -23,18 +23,18 @@ bool same_points(const std::vector<algo::ScanPoint>& a, const std::vector<algo::
   return true;
 }
 
-void check(std::string_view bytes, const std::string& path, const algo::PlyLimits& limits) {
-  const auto in_memory = algo::parse_ply(bytes, limits);
-  const auto from_file = app::load_ply_file(path, limits);
+void check(std::string_view bytes, const std::string& path, const formats::PlyLimits& limits) {
+  const auto in_memory = formats::parse_ply(bytes, limits);
+  const auto from_file = formats::load_ply_file(path, limits);
   // The file checks refuse only what the parser would refuse too (they judge the header and the size alone).
   CS_FUZZ_EXPECT(in_memory.ok() == from_file.ok());
   if (!in_memory) return;
   CS_FUZZ_EXPECT(same_points(*in_memory, *from_file));
-  CS_FUZZ_EXPECT(app::check_ply_file(path, limits).ok());
+  CS_FUZZ_EXPECT(formats::check_ply_file(path, limits).ok());
   for (const algo::ScanPoint& p : *in_memory)
     CS_FUZZ_EXPECT(std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z));
   // What cellsight writes of an accepted scan reads back as the same points (scan --out, perturb).
-  const auto again = algo::parse_ply(algo::write_ply_binary(*in_memory));
+  const auto again = formats::parse_ply(formats::write_ply_binary(*in_memory));
   CS_FUZZ_EXPECT(again.ok() && same_points(*again, *in_memory));
 }
 
@@ -45,9 +45,9 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   static fuzz::ScratchFile file("cellsight-fuzz-ply");
   const std::string_view bytes(reinterpret_cast<const char*>(data), size);
   const std::string& path = file.write(bytes);
-  check(bytes, path, algo::PlyLimits{});
+  check(bytes, path, formats::PlyLimits{});
   // Small limits too, so that the limit checks themselves are reached by small inputs.
-  constexpr algo::PlyLimits kTight{.max_vertices = 16, .max_header_bytes = 200};
+  constexpr formats::PlyLimits kTight{.max_vertices = 16, .max_header_bytes = 200};
   check(bytes, path, kTight);
   return 0;
 }

@@ -15,17 +15,17 @@ namespace {
 
 using namespace cellsight;
 
-constexpr std::size_t kHeaderCrcOffset = app::kTemplateHeaderBytes - 4;  // the header's last 4 bytes
+constexpr std::size_t kHeaderCrcOffset = formats::kTemplateHeaderBytes - 4;  // the header's last 4 bytes
 constexpr std::size_t kMaxSamples = 256;
 
 void repair_checksums(std::string& file) {
-  if (file.size() < app::kTemplateHeaderBytes) return;
+  if (file.size() < formats::kTemplateHeaderBytes) return;
   const std::string_view bytes(file);
-  fuzz::store_u32(file, app::kTemplateBodyCrcOffset, base::crc32(bytes.substr(app::kTemplateHeaderBytes)));
+  fuzz::store_u32(file, formats::kTemplateBodyCrcOffset, base::crc32(bytes.substr(formats::kTemplateHeaderBytes)));
   fuzz::store_u32(file, kHeaderCrcOffset, base::crc32(bytes.substr(0, kHeaderCrcOffset)));
 }
 
-void sample(const app::TemplateFile& t) {
+void sample(const formats::TemplateFile& t) {
   const algo::DistanceMapView& view = t.view();
   (void)view.sample(t.centroid_m().x(), t.centroid_m().y(), 0.0);
   const auto points = t.surface_points();
@@ -42,13 +42,13 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   fuzz::ChecksummedInput in = fuzz::split_mode_byte(data, size);
   if (in.repair) repair_checksums(in.file);
   const std::string& path = file.write(in.file);
-  const auto info = app::read_template_info(path);
+  const auto info = formats::read_template_info(path);
   // As run and classify open it: against the configured grid.
-  if (auto opened = app::TemplateFile::open(path, fuzz::seed_template_grid())) {
+  if (auto opened = formats::TemplateFile::open(path, fuzz::seed_template_grid())) {
     CS_FUZZ_EXPECT(info.ok() && opened->surface_points().size() == info->surface_point_count);
     sample(*opened);
   }
   // Against the grid the header names, so that headers for other grids reach the checks behind the grid's.
-  if (info) (void)app::TemplateFile::open(path, info->grid);
+  if (info) (void)formats::TemplateFile::open(path, info->grid);
   return 0;
 }

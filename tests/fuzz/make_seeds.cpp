@@ -52,15 +52,15 @@ bool ply_seeds(const fs::path& dir) {
       "ply\r\nformat ascii 1.0\r\ncomment other scanner\r\nelement face 1\r\nproperty list uchar int vertex_indices\r\n"
       "element vertex 2\r\nproperty double x\r\nproperty double y\r\nproperty uchar intensity\r\nproperty double z\r\n"
       "end_header\r\n3 0 1 1\r\n0.1 0.2 7 0.3\r\n-0.5 1e-3 255 2.5\r\n";
-  return put(dir / "binary.ply", algo::write_ply_binary(points)) &&
-         put(dir / "ascii.ply", algo::write_ply_ascii(points)) && put(dir / "foreign.ply", foreign);
+  return put(dir / "binary.ply", formats::write_ply_binary(points)) &&
+         put(dir / "ascii.ply", formats::write_ply_ascii(points)) && put(dir / "foreign.ply", foreign);
 }
 
 Expected<std::string> template_file(const fs::path& scratch) {
-  auto model = app::build_template(small_scan(), fuzz::seed_template_grid());
+  auto model = formats::build_template(small_scan(), fuzz::seed_template_grid());
   if (!model) return model.error();
   const std::string path = (scratch / "seed.dmap").string();
-  if (Status written = app::write_template(path, *model, {"seed_part", 7, 1700000000}); !written) {
+  if (Status written = formats::write_template(path, *model, {"seed_part", 7, 1700000000}); !written) {
     return written.error();
   }
   constexpr std::size_t kMaxSeedTemplateBytes = std::size_t{64} << 20;  // an 8 x 8 x 8 grid's: a few kB
@@ -89,11 +89,11 @@ Expected<std::string> svm_file() {
 }
 
 std::string manifest_file() {
-  app::Manifest m;
+  formats::Manifest m;
   m.feature_version = algo::kFeatureVersion;
   m.grid = fuzz::seed_template_grid();
   for (int p = 0; p < 2; ++p) {
-    app::PartEntry e;
+    formats::PartEntry e;
     e.name = p == 0 ? "seed_a" : "seed_b";
     e.id = p + 1;
     e.template_file = "templates/" + e.name + ".dmap";
@@ -107,7 +107,7 @@ std::string manifest_file() {
     m.parts.push_back(e);
   }
   m.svm = {true, "svm.bin", 0x0badf00dU, "2024-01-02 03:04:06", "deadbeef-2", 0.9, 0.85, 4, 2, 3, "rbf C=1"};
-  return app::manifest_text(m);
+  return formats::manifest_text(m);
 }
 
 std::string frame(std::initializer_list<int> bytes) {

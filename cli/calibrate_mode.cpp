@@ -1,5 +1,5 @@
 // `cellsight calibrate`: views.yaml + pictures -> algo/calibration -> calibration.yaml (or the simulated cell first).
-#include "app/calibrate_mode.hpp"
+#include "cli/calibrate_mode.hpp"
 
 #include <algorithm>
 #include <cerrno>
@@ -12,15 +12,15 @@
 #include <set>
 
 #include "algo/calibration.hpp"
-#include "app/cli.hpp"
 #include "base/atomic_file.hpp"
 #include "base/local_time.hpp"
+#include "cli/cli.hpp"
 #include "drivers/sim/board.hpp"
 #include "drivers/sim/random.hpp"
 #include "formats/calibration_file.hpp"
 #include "formats/yaml_reader.hpp"
 
-namespace cellsight::app {
+namespace cellsight::cli {
 
 const char* const kCalibrateUsage =
     "  calibrate camera   (--images DIR | --sim --out DIR [--seed S]) [--calibration FILE]\n"
@@ -110,7 +110,7 @@ Expected<Options> parse_options(const std::vector<std::string>& args) {
 
 // --- views.yaml ---------------------------------------------------------------------------------------------
 
-void read_board(YamlSection s, algo::BoardSpec& b) {
+void read_board(formats::YamlSection s, algo::BoardSpec& b) {
   s.integer("rows", b.rows, 3, 99, "dot rows");
   s.integer("cols", b.cols, 2, 99, "dots per row");
   s.number("spacing_mm", b.spacing_mm, 1.0, 1000.0, "mm");
@@ -132,13 +132,13 @@ Expected<ViewsDoc> open_views(const fs::path& dir) {
   doc.path = (dir / kViewsFile).string();
   std::error_code ec;
   if (!fs::is_directory(dir, ec)) return make_error(dir.string() + ": no such folder of calibration pictures");
-  auto node = load_yaml_file(doc.path);
+  auto node = formats::load_yaml_file(doc.path);
   if (!node) return node.error();
   doc.node = *node;
   return doc;
 }
 
-void read_header(YamlSection& root, const std::string& step, algo::BoardSpec& board) {
+void read_header(formats::YamlSection& root, const std::string& step, algo::BoardSpec& board) {
   root.require("format_version");
   int version = kViewsFormatVersion;
   root.integer("format_version", version, kViewsFormatVersion, kViewsFormatVersion, "");
@@ -186,15 +186,15 @@ Expected<std::vector<Eigen::Vector2d>> find_board(const fs::path& file, const cv
 
 // --- Steps --------------------------------------------------------------------------------------------------
 
-Expected<std::string> camera_step(const fs::path& dir, CalibrationRecord& record) {
+Expected<std::string> camera_step(const fs::path& dir, formats::CalibrationRecord& record) {
   auto doc = open_views(dir);
   if (!doc) return doc.error();
-  YamlErrors errors(doc->path);
-  YamlSection root(doc->node, "", &errors);
+  formats::YamlErrors errors(doc->path);
+  formats::YamlSection root(doc->node, "", &errors);
   algo::BoardSpec board;
   read_header(root, "camera", board);
   std::vector<std::string> files;
-  for (YamlSection v : root.list("views")) {
+  for (formats::YamlSection v : root.list("views")) {
     std::string file;
     v.require("file");
     v.text("file", file);
@@ -202,7 +202,7 @@ Expected<std::string> camera_step(const fs::path& dir, CalibrationRecord& record
     files.push_back(file);
   }
   root.require("reference");
-  YamlSection ref = root.section("reference");
+  formats::YamlSection ref = root.section("reference");
   std::string ref_file;
   Eigen::Vector3d dot0 = Eigen::Vector3d::Zero();
   ref.require("file");
@@ -245,7 +245,7 @@ Expected<std::string> camera_step(const fs::path& dir, CalibrationRecord& record
   if (!pose) return make_error(ref_file + ": " + pose.error().message);
 
   record.has_camera = true;
-  record.camera_date = local_time_text();
+  record.camera_date = base::local_time_text();
   record.camera_views = static_cast<int>(views.size());
   record.sensor.intrinsics = intrinsics->intrinsics;
   record.sensor.camera_pose = pose->camera_pose;
@@ -270,17 +270,17 @@ Expected<std::string> camera_step(const fs::path& dir, CalibrationRecord& record
   return s;
 }
 
-Expected<std::string> laser_step(const fs::path& dir, CalibrationRecord& record) {
+Expected<std::string> laser_step(const fs::path& dir, formats::CalibrationRecord& record) {
   auto doc = open_views(dir);
   if (!doc) return doc.error();
-  YamlErrors errors(doc->path);
-  YamlSection root(doc->node, "", &errors);
+  formats::YamlErrors errors(doc->path);
+  formats::YamlSection root(doc->node, "", &errors);
   algo::BoardSpec board;
   read_header(root, "laser", board);
   double exposure_us = 0.0;  // of the laser pictures: a note for the record, not used in the computation
   root.number("exposure_us", exposure_us, 1.0, 1e6, "us");
   std::vector<std::pair<std::string, std::string>> files;
-  for (YamlSection v : root.list("views")) {
+  for (formats::YamlSection v : root.list("views")) {
     std::pair<std::string, std::string> f;
     v.require("board");
     v.require("laser");
@@ -316,7 +316,7 @@ Expected<std::string> laser_step(const fs::path& dir, CalibrationRecord& record)
   if (!plane) return plane.error();
 
   record.has_laser = true;
-  record.laser_date = local_time_text();
+  record.laser_date = base::local_time_text();
   record.sensor.laser_normal = plane->normal;
   record.sensor.laser_offset_m = plane->offset_m;
   record.sensor.laser_residual_mm = plane->residual_rms_mm;
@@ -337,15 +337,15 @@ Expected<std::string> laser_step(const fs::path& dir, CalibrationRecord& record)
   return s + per_view + "\n";
 }
 
-Expected<std::string> conveyor_step(const fs::path& dir, CalibrationRecord& record) {
+Expected<std::string> conveyor_step(const fs::path& dir, formats::CalibrationRecord& record) {
   auto doc = open_views(dir);
   if (!doc) return doc.error();
-  YamlErrors errors(doc->path);
-  YamlSection root(doc->node, "", &errors);
+  formats::YamlErrors errors(doc->path);
+  formats::YamlSection root(doc->node, "", &errors);
   algo::BoardSpec board;
   read_header(root, "conveyor", board);
   std::vector<std::pair<std::string, std::int64_t>> files;
-  for (YamlSection v : root.list("views")) {
+  for (formats::YamlSection v : root.list("views")) {
     std::pair<std::string, std::int64_t> f{"", 0};
     v.require("file");
     v.require("encoder_counts");
@@ -376,7 +376,7 @@ Expected<std::string> conveyor_step(const fs::path& dir, CalibrationRecord& reco
   if (!scale) return scale.error();
 
   record.has_conveyor = true;
-  record.conveyor_date = local_time_text();
+  record.conveyor_date = base::local_time_text();
   record.sensor.mm_per_count = scale->mm_per_count;
   record.conveyor_angle_deg = scale->angle_to_x_deg;
 
@@ -411,11 +411,11 @@ std::string board_yaml(const algo::BoardSpec& b) {
 
 }  // namespace
 
-Status write_sim_calibration_views(const Config& config, const std::string& step, const std::string& out_dir,
+Status write_sim_calibration_views(const app::Config& config, const std::string& step, const std::string& out_dir,
                                    std::uint64_t seed) {
   if (step != "camera" && step != "laser" && step != "conveyor")
     return make_error("unknown calibration step '" + step + "'");
-  auto staged = StagedDirectory::create(out_dir);
+  auto staged = base::StagedDirectory::create(out_dir);
   if (!staged) return staged.error();
   const fs::path dir = staged->path();
   const sim::Rig rig = sim::make_rig(config.rig);
@@ -467,22 +467,22 @@ Status write_sim_calibration_views(const Config& config, const std::string& step
       yaml += std::string("  - {file: ") + name + ", encoder_counts: " + std::to_string(v.encoder_counts) + "}\n";
     }
   }
-  if (auto ok = write_file_atomic((dir / kViewsFile).string(), yaml); !ok) return ok;
+  if (auto ok = base::write_file_atomic((dir / kViewsFile).string(), yaml); !ok) return ok;
   return staged->commit();
 }
 
-int run_calibrate(const std::vector<std::string>& args, const Config& config) {
+int run_calibrate(const std::vector<std::string>& args, const app::Config& config) {
   return run_calibrate(args, config, stdout, stderr);
 }
 
-int run_calibrate(const std::vector<std::string>& args, const Config& config, std::FILE* out, std::FILE* err) {
+int run_calibrate(const std::vector<std::string>& args, const app::Config& config, std::FILE* out, std::FILE* err) {
   auto options = parse_options(args);
   if (!options) {
     std::fprintf(err, "cellsight calibrate: %s (see 'cellsight help')\n", options.error().message.c_str());
     return kExitUsage;
   }
   const Options& o = *options;
-  const std::string path = o.calibration.empty() ? default_calibration_path(config) : o.calibration;
+  const std::string path = o.calibration.empty() ? app::default_calibration_path(config) : o.calibration;
   const std::string prefix = "cellsight calibrate " + o.step + ": ";
   auto refuse = [&](int code, const std::string& message) {
     std::fprintf(err, "%s%s (%s unchanged)\n", prefix.c_str(), message.c_str(), path.c_str());
@@ -491,10 +491,10 @@ int run_calibrate(const std::vector<std::string>& args, const Config& config, st
 
   // The previous calibration must be readable: its other sections are kept, and a damaged file is never
   // silently replaced (the technician decides: restore a backup or move it away).
-  CalibrationRecord record;
+  formats::CalibrationRecord record;
   std::error_code ec;
   if (fs::exists(path, ec)) {
-    auto loaded = load_calibration(path);
+    auto loaded = formats::load_calibration(path);
     if (!loaded) {
       return refuse(kExitUsage, "the existing calibration is refused: " + first_line(loaded.error().message) +
                                     "; copy a backup over it, or move it away to calibrate from scratch");
@@ -522,7 +522,7 @@ int run_calibrate(const std::vector<std::string>& args, const Config& config, st
                                                       : conveyor_step(dir, record);
   if (!summary) return refuse(kExitUsage, summary.error().message);
   std::fputs(summary->c_str(), out);
-  auto backup = save_calibration(path, record);
+  auto backup = formats::save_calibration(path, record);
   if (!backup) return refuse(kExitFailure, "cannot save: " + backup.error().message);
   if (backup->empty()) {
     std::fprintf(out, "saved %s\n", path.c_str());
@@ -532,4 +532,4 @@ int run_calibrate(const std::vector<std::string>& args, const Config& config, st
   return kExitOk;
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::cli

@@ -1,5 +1,5 @@
 // `cellsight run` implementation: start-up wiring, the simulated conveyor's feed, signals and shutdown.
-#include "app/run_mode.hpp"
+#include "cli/run_mode.hpp"
 
 #include <pthread.h>
 #include <signal.h>
@@ -22,23 +22,22 @@
 #include <string_view>
 #include <thread>
 
-#include "app/cli.hpp"
 #include "app/devices.hpp"
+#include "app/loop_wiring.hpp"
 #include "app/model_db.hpp"
 #include "app/recognition.hpp"
 #include "app/run_sim.hpp"
-#include "app/scan_mode.hpp"
-#include "app/sim_mode.hpp"
+#include "app/scan_acquisition.hpp"
+#include "cli/cli.hpp"
 #include "drivers/log.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "drivers/sim/sim_faults.hpp"
 #include "formats/calibration_file.hpp"
 #include "formats/template_file.hpp"
-#include "runtime/loop_wiring.hpp"
 #include "runtime/production_loop.hpp"
 #include "runtime/service_notify.hpp"
 
-namespace cellsight::app {
+namespace cellsight::cli {
 
 using runtime::LoopConfig;
 using runtime::LoopObserver;
@@ -128,8 +127,8 @@ class StopSignalsBlocked {
 
 }  // namespace
 
-Expected<RunOptions> parse_run_args(const std::vector<std::string>& args) {
-  RunOptions options;
+Expected<app::RunOptions> parse_run_args(const std::vector<std::string>& args) {
+  app::RunOptions options;
   bool seed_given = false;
   for (std::size_t i = 0; i < args.size(); ++i) {
     const std::string& a = args[i];
@@ -151,12 +150,12 @@ Expected<RunOptions> parse_run_args(const std::vector<std::string>& args) {
       auto value = need_value();
       if (!value) return value.error();
       std::uint64_t number = 0;
-      if (!parse_u64(*value, number)) return make_error(a + " '" + *value + "': expected a whole number >= 0");
+      if (!app::parse_u64(*value, number)) return make_error(a + " '" + *value + "': expected a whole number >= 0");
       if (a == "--parts") {
         options.parts = number;
       } else if (a == "--sim-replay") {
-        if (number == 0 || number > kPregeneratedPasses) {
-          return make_error("--sim-replay " + *value + ": 1.." + std::to_string(kPregeneratedPasses) + " passes");
+        if (number == 0 || number > app::kPregeneratedPasses) {
+          return make_error("--sim-replay " + *value + ": 1.." + std::to_string(app::kPregeneratedPasses) + " passes");
         }
         options.sim_replay = number;
       } else if (a == "--seed") {
@@ -200,7 +199,7 @@ Expected<RunOptions> parse_run_args(const std::vector<std::string>& args) {
   return options;
 }
 
-drivers::ModbusServerConfig modbus_server_config(const Config& config) {
+drivers::ModbusServerConfig modbus_server_config(const app::Config& config) {
   drivers::ModbusServerConfig c;
   c.bind_address = config.modbus.bind_address;
   c.port = static_cast<std::uint16_t>(std::clamp(config.modbus.port, 0, kPortMax));
@@ -216,13 +215,13 @@ namespace {
 // The recogniser the loop starts with: the model database's (and a loader that retries it), or the simulator's
 // oracle. An error is the user's (exit 2): with --parts there is no point in a run that cannot recognise.
 struct RecogniserSetup {
-  std::unique_ptr<Recogniser> recogniser;
+  std::unique_ptr<runtime::Recogniser> recogniser;
   RecogniserLoader loader;
 };
 
-Expected<RecogniserSetup> set_up_recogniser(const Config& config, const RunOptions& options,
+Expected<RecogniserSetup> set_up_recogniser(const app::Config& config, const app::RunOptions& options,
                                             const std::string& models_dir, const std::string& calibration_path,
-                                            const SimRun* sim) {
+                                            const app::SimRun* sim) {
   RecogniserSetup setup;
   if (options.sim_oracle) {
     CS_LOG_WARN(kComponent, "--sim-oracle: decisions come from the simulator's truth, not from recognition");
@@ -230,7 +229,7 @@ Expected<RecogniserSetup> set_up_recogniser(const Config& config, const RunOptio
     return setup;
   }
   setup.loader = [config, models_dir, calibration_path]() {
-    return make_recogniser(config, models_dir, calibration_path);
+    return app::make_recogniser(config, models_dir, calibration_path);
   };
   auto made = setup.loader();
   if (made) {
@@ -245,8 +244,8 @@ Expected<RecogniserSetup> set_up_recogniser(const Config& config, const RunOptio
   return setup;
 }
 
-LoopConfig run_loop_settings(const Config& config, const RunOptions& options, bool sim) {
-  LoopConfig settings = runtime::loop_config(config);
+LoopConfig run_loop_settings(const app::Config& config, const app::RunOptions& options, bool sim) {
+  LoopConfig settings = app::loop_config(config);
   settings.max_parts = options.parts;
   if (sim) {
     settings.conveyor_waits_for_ready = true;
@@ -261,7 +260,8 @@ LoopConfig run_loop_settings(const Config& config, const RunOptions& options, bo
 
 // Until SIGTERM/SIGINT or the loop's --parts (with --wait-plc: until the PLC acknowledged them all). True when the
 // PLC took every result.
-bool serve(ProductionLoop& loop, const drivers::ModbusServer& server, SimRun* sim, const RunOptions& options) {
+bool serve(ProductionLoop& loop, const drivers::ModbusServer& server, app::SimRun* sim,
+           const app::RunOptions& options) {
   while (SignalScope::caught() == 0) {
     if (sim != nullptr) sim->feed(loop.finished());
     if (loop.finished()) {
@@ -279,8 +279,8 @@ bool serve(ProductionLoop& loop, const drivers::ModbusServer& server, SimRun* si
   return false;
 }
 
-void log_run_summary(double seconds, const LoopStats& stats, const drivers::LinkStats& link, const RunOptions& options,
-                     bool all_taken) {
+void log_run_summary(double seconds, const LoopStats& stats, const drivers::LinkStats& link,
+                     const app::RunOptions& options, bool all_taken) {
   CS_LOG_INFO(kComponent,
               "stopped after %.1f s: %" PRIu64 " parts, %" PRIu64 " results (%" PRIu64 " timeouts, %" PRIu64
               " late decisions, %" PRIu64 " aborted scans, %" PRIu64 " rejected), %" PRIu64 " faults (%" PRIu64
@@ -313,12 +313,12 @@ int fail(int code, const std::string& why) {
 
 }  // namespace
 
-int run_run(const std::vector<std::string>& args, const Config& config) {
+int run_run(const std::vector<std::string>& args, const app::Config& config) {
   // First: a SIGTERM that arrives while starting up must stop the run, not kill it half-way.
   SignalScope signals;
   auto parsed = parse_run_args(args);
   if (!parsed) return fail(kExitUsage, parsed.error().message);
-  const RunOptions options = *parsed;
+  const app::RunOptions options = *parsed;
   const bool sim = options.sim || config.camera.backend == "sim" || config.gpio.backend == "sim";
   if (!options.sim && sim) {
     CS_LOG_INFO(kComponent, "the configuration names simulated devices (camera.backend %s, gpio.backend %s)",
@@ -327,28 +327,28 @@ int run_run(const std::vector<std::string>& args, const Config& config) {
 
   // ---- calibration: required, never the simulator's true rig ----
   const std::string calibration_path =
-      options.calibration_path.empty() ? default_calibration_path(config) : options.calibration_path;
-  auto calibration = load_sensor_calibration(calibration_path);
+      options.calibration_path.empty() ? app::default_calibration_path(config) : options.calibration_path;
+  auto calibration = formats::load_sensor_calibration(calibration_path);
   if (!calibration) {
     return fail(kExitUsage,
                 calibration.error().message + "\n(run scripts/calibrate.sh, or cellsight calibrate, first)");
   }
 
   // ---- the simulated cell (run_sim.cpp): conveyor feed, faults, oracle, truth log ----
-  std::unique_ptr<SimRun> sim_run;
+  std::unique_ptr<app::SimRun> sim_run;
   if (sim) {
-    auto made = SimRun::create(config, options);
+    auto made = app::SimRun::create(config, options);
     if (!made) return fail(kExitUsage, made.error().message);
     sim_run = std::move(*made);
     if (auto ok = sim_run->enable_replay(); !ok) return fail(kExitFailure, ok.error().message);
   }
 
   // ---- devices ----
-  auto devices = make_devices(config, sim_run ? &sim_run->line() : nullptr, options.sim);
+  auto devices = app::make_devices(config, sim_run ? &sim_run->line() : nullptr, options.sim);
   if (!devices) return fail(kExitUsage, devices.error().message);
   if (auto ok = devices->open(); !ok) return fail(kExitFailure, ok.error().message);
   struct DevicesCloser {
-    Devices& devices;
+    app::Devices& devices;
     ~DevicesCloser() { devices.close(); }
   } devices_closer{*devices};
 
@@ -365,7 +365,7 @@ int run_run(const std::vector<std::string>& args, const Config& config) {
   // ---- the loop ----
   ServiceNotifier service;
   ProductionLoop loop(run_loop_settings(config, options, sim), *devices->camera, *devices->io, *devices->encoder,
-                      scan_builder_params(config), *calibration, server);
+                      app::scan_builder_params(config), *calibration, server);
   loop.set_recogniser(std::move(recognition->recogniser));
   if (recognition->loader) loop.set_recogniser_loader(recognition->loader);
   loop.set_service(&service);
@@ -402,4 +402,4 @@ int run_run(const std::vector<std::string>& args, const Config& config) {
   return kExitOk;
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::cli

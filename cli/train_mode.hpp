@@ -15,13 +15,11 @@
 #include "app/model_db.hpp"
 #include "app/recognition.hpp"
 
-namespace cellsight::app {
-
-// The support plane the scans are cleaned with: calibration.yaml's support section (cellsight calibrate support).
-[[nodiscard]] Expected<algo::Plane> load_support_plane(const std::string& calibration_path);
+namespace cellsight::cli {
 
 // Reads a taught scan: checksum against the manifest, then the PLY parser.
-[[nodiscard]] Expected<std::vector<algo::ScanPoint>> load_taught_scan(const ModelDb& db, const ScanEntry& scan);
+[[nodiscard]] Expected<std::vector<algo::ScanPoint>> load_taught_scan(const app::ModelDb& db,
+                                                                      const formats::ScanEntry& scan);
 
 struct TaughtData {
   algo::Dataset data;
@@ -32,10 +30,11 @@ struct TaughtData {
 // `threads` threads; any bad scan (checksum, empty, no part, outside the grid) stops it with an error naming
 // the file.
 // With `templates`, every scan is also matched against its own template (for the acceptance thresholds).
-[[nodiscard]] Expected<TaughtData> build_dataset(const Config& config, const ModelDb& db, const algo::Plane& support,
-                                                 int threads, const std::atomic<bool>* stop,
-                                                 const LoadedTemplates* templates);
+[[nodiscard]] Expected<TaughtData> build_dataset(const app::Config& config, const app::ModelDb& db,
+                                                 const algo::Plane& support, int threads, const std::atomic<bool>* stop,
+                                                 const app::LoadedTemplates* templates);
 
-[[nodiscard]] int run_train(const std::vector<std::string>& args, const Config& config, const std::string& models_dir);
+[[nodiscard]] int run_train(const std::vector<std::string>& args, const app::Config& config,
+                            const std::string& models_dir);
 
-}  // namespace cellsight::app
+}  // namespace cellsight::cli

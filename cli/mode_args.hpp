@@ -10,7 +10,7 @@
 #include <string>
 #include <vector>
 
-namespace cellsight::app {
+namespace cellsight::cli {
 
 struct ModeArgs {
   std::map<std::string, std::string> values;
@@ -63,4 +63,4 @@ struct ModeArgs {
   return true;
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::cli

@@ -8,7 +8,7 @@
 #include "algo/decision.hpp"
 #include "algo/scan.hpp"
 
-namespace cellsight::app {
+namespace cellsight::runtime {
 
 class Recogniser {
  public:
@@ -21,4 +21,4 @@ class Recogniser {
   [[nodiscard]] virtual std::string_view class_name(int class_index) const = 0;
 };
 
-}  // namespace cellsight::app
+}  // namespace cellsight::runtime

@@ -1,6 +1,6 @@
 // cellsight executable entry point.
-#include "app/cli.hpp"
+#include "cli/cli.hpp"
 
 int main(int argc, char** argv) {
-  return cellsight::app::run_cli(argc, argv);
+  return cellsight::cli::run_cli(argc, argv);
 }

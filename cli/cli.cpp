@@ -1,5 +1,5 @@
 // Command-line parsing and mode dispatch.
-#include "app/cli.hpp"
+#include "cli/cli.hpp"
 
 #include <algorithm>
 #include <cerrno>
@@ -11,20 +11,22 @@
 #include <string>
 #include <vector>
 
-#include "app/calibrate_mode.hpp"
-#include "app/classify_mode.hpp"
 #include "app/config.hpp"
-#include "app/mode_args.hpp"
-#include "app/perturb_mode.hpp"
-#include "app/run_mode.hpp"
-#include "app/scan_mode.hpp"
-#include "app/sim_mode.hpp"
-#include "app/teach_mode.hpp"
-#include "app/train_mode.hpp"
+#include "app/scan_acquisition.hpp"
+#include "app/sim_setup.hpp"
+#include "cli/calibrate_mode.hpp"
+#include "cli/classify_mode.hpp"
+#include "cli/mode_args.hpp"
+#include "cli/perturb_mode.hpp"
+#include "cli/run_mode.hpp"
+#include "cli/scan_mode.hpp"
+#include "cli/sim_mode.hpp"
+#include "cli/teach_mode.hpp"
+#include "cli/train_mode.hpp"
 #include "drivers/log.hpp"
 #include "drivers/sim/random_catalogue.hpp"
 
-namespace cellsight::app {
+namespace cellsight::cli {
 namespace {
 
 constexpr const char* kUsage =
@@ -146,7 +148,7 @@ std::string read_seed_and_pose(const Args& args, std::uint64_t& seed, std::optio
   return {};
 }
 
-int run_random_catalogue(const Args& args, const Config& config) {
+int run_random_catalogue(const Args& args, const app::Config& config) {
   if (args.flags.count("--list") != 0 || args.values.count("--part") != 0 || args.values.count("--pose") != 0) {
     return usage_error("sim --random-catalogue takes only --seed and --out");
   }
@@ -170,13 +172,13 @@ int run_random_catalogue(const Args& args, const Config& config) {
   return kExitOk;
 }
 
-int run_sim(const Args& args, const Config& config) {
+int run_sim(const Args& args, const app::Config& config) {
   std::string error;
   if (!check_known(args, {"--part", "--seed", "--pose", "--out", "--random-catalogue"}, {"--list"}, error)) {
     return usage_error(error);
   }
   if (args.values.count("--random-catalogue") != 0) return run_random_catalogue(args, config);
-  auto cell = make_sim_cell(config);
+  auto cell = app::make_sim_cell(config);
   if (!cell) return usage_error(cell.error().message);
   if (args.flags.count("--list") != 0) {
     const auto& parts = cell->catalogue();
@@ -219,13 +221,13 @@ int run_sim(const Args& args, const Config& config) {
   return kExitOk;
 }
 
-int run_scan_mode(const Args& args, const Config& config) {
+int run_scan_mode(const Args& args, const app::Config& config) {
   std::string error;
   if (!check_known(args, {"--part", "--seed", "--pose", "--out", "--calibration"}, {"--sim", "--empty", "--ascii"},
                    error)) {
     return usage_error(error);
   }
-  ScanOptions options;
+  app::ScanOptions options;
   options.sim = args.flags.count("--sim") != 0;
   options.empty_carrier = args.flags.count("--empty") != 0;
   options.ascii = args.flags.count("--ascii") != 0;
@@ -275,7 +277,7 @@ int run_file_mode(const std::string& mode, int argc, char** argv) {
     }
     rest.push_back(a);
   }
-  auto config = find_and_load_config(config_path);
+  auto config = app::find_and_load_config(config_path);
   if (!config) {
     std::fprintf(stderr, "cellsight: bad configuration:\n%s\n", config.error().message.c_str());
     return kExitUsage;
@@ -326,7 +328,7 @@ int run_cli(int argc, char** argv) {
     Args globals;
     if (!parse_args(i, argv, globals, error)) return usage_error(error);
     const auto config_arg = globals.values.find("--config");
-    auto config = find_and_load_config(config_arg == globals.values.end() ? "" : config_arg->second);
+    auto config = app::find_and_load_config(config_arg == globals.values.end() ? "" : config_arg->second);
     if (!config) {
       std::fprintf(stderr, "cellsight: bad configuration:\n%s\n", config.error().message.c_str());
       return kExitUsage;
@@ -351,7 +353,7 @@ int run_cli(int argc, char** argv) {
     return args.mode.empty() ? kExitUsage : kExitOk;
   }
   const auto config_arg = args.values.find("--config");
-  auto config = find_and_load_config(config_arg == args.values.end() ? "" : config_arg->second);
+  auto config = app::find_and_load_config(config_arg == args.values.end() ? "" : config_arg->second);
   if (!config) {
     std::fprintf(stderr, "cellsight: bad configuration:\n%s\n", config.error().message.c_str());
     return kExitUsage;
@@ -370,4 +372,4 @@ int run_cli(int argc, char** argv) {
   return usage_error("unknown mode '" + args.mode + "'");
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::cli

@@ -1,5 +1,5 @@
 // `cellsight classify` (one decision per scan) and `cellsight eval` (labelled scans -> accuracy, confusion, pose).
-#include "app/classify_mode.hpp"
+#include "cli/classify_mode.hpp"
 
 #include <Eigen/Geometry>
 #include <algorithm>
@@ -14,21 +14,21 @@
 #include <optional>
 #include <sstream>
 
-#include "app/cli.hpp"
-#include "app/mode_args.hpp"
 #include "app/model_db.hpp"
-#include "app/perturb_mode.hpp"
 #include "app/recognition.hpp"
-#include "app/scan_mode.hpp"
-#include "app/sim_mode.hpp"
+#include "app/scan_acquisition.hpp"
+#include "app/sim_setup.hpp"
 #include "base/atomic_file.hpp"
+#include "cli/cli.hpp"
+#include "cli/mode_args.hpp"
+#include "cli/perturb_mode.hpp"
 #include "drivers/sim/sim_cell.hpp"
 #include "formats/calibration_file.hpp"
 #include "formats/input_file.hpp"
 #include "formats/ply.hpp"
 #include "formats/template_file.hpp"
 
-namespace cellsight::app {
+namespace cellsight::cli {
 namespace {
 
 namespace fs = std::filesystem;
@@ -132,22 +132,22 @@ std::string unknown_reason_text(const algo::Decision& d, const ClassNames& names
   return out;
 }
 
-ClassNames class_names(const Recogniser& r) {
+ClassNames class_names(const runtime::Recogniser& r) {
   return [&r](int i) { return std::string(r.class_name(i)); };
 }
 
 struct Options {
-  RecogniserMode mode = RecogniserMode::kCascade;
+  app::RecogniserMode mode = app::RecogniserMode::kCascade;
   std::string calibration_path;
 };
 
-Expected<Options> common_options(const ModeArgs& args, const Config& config) {
+Expected<Options> common_options(const ModeArgs& args, const app::Config& config) {
   Options o;
   if (args.has("--svm-only") && args.has("--pm-only")) return make_error("--svm-only and --pm-only exclude each other");
-  if (args.has("--svm-only")) o.mode = RecogniserMode::kSvmOnly;
-  if (args.has("--pm-only")) o.mode = RecogniserMode::kPmOnly;
+  if (args.has("--svm-only")) o.mode = app::RecogniserMode::kSvmOnly;
+  if (args.has("--pm-only")) o.mode = app::RecogniserMode::kPmOnly;
   const std::string* c = args.value("--calibration");
-  o.calibration_path = c != nullptr ? *c : default_calibration_path(config);
+  o.calibration_path = c != nullptr ? *c : app::default_calibration_path(config);
   return o;
 }
 
@@ -232,10 +232,10 @@ algo::PlanarPose relative_pose(const sim::PartPose& scan, const sim::PartPose& t
 // eval --sim: K simulated passes of each listed part (seeds S..S+K-1) written as DIR/<part>/sSEED.ply with
 // DIR/truth.csv; passes of taught parts get their pose relative to the template (whose seed the manifest records).
 // With `perturb` every pass is perturbed before it is written (the truth stays the simulator's).
-Status generate_sim_scans(const Config& config, const ModelDb& db, const std::vector<std::string>& parts, int count,
-                          std::uint64_t first_seed, const std::string& calibration_path, const std::string& dir,
-                          const PassPerturbation* perturb) {
-  auto cell = make_sim_cell(config);
+Status generate_sim_scans(const app::Config& config, const app::ModelDb& db, const std::vector<std::string>& parts,
+                          int count, std::uint64_t first_seed, const std::string& calibration_path,
+                          const std::string& dir, const app::PassPerturbation* perturb) {
+  auto cell = app::make_sim_cell(config);
   if (!cell) return cell.error();
   std::error_code ec;
   fs::create_directories(dir, ec);
@@ -246,10 +246,10 @@ Status generate_sim_scans(const Config& config, const ModelDb& db, const std::ve
     if (spec == nullptr) return make_error("eval --sim: no part '" + part + "' in the simulated catalogue");
     std::optional<sim::PartPose> template_pose;
     Eigen::Vector2d centroid = Eigen::Vector2d::Zero();
-    if (const PartEntry* taught = db.find(part); taught != nullptr && !taught->scans.empty()) {
+    if (const formats::PartEntry* taught = db.find(part); taught != nullptr && !taught->scans.empty()) {
       const std::string& source = taught->template_scan_entry()->source;
       std::int64_t seed = 0;
-      auto info = read_template_info(db.path_of(taught->template_file));
+      auto info = formats::read_template_info(db.path_of(taught->template_file));
       if (source.rfind("sim seed ", 0) == 0 && parse_whole(source.substr(9), 0, INT64_MAX, seed) && info) {
         template_pose = cell->random_pass(part, static_cast<std::uint64_t>(seed))->pose;
         centroid = info->centroid_m;
@@ -259,11 +259,11 @@ Status generate_sim_scans(const Config& config, const ModelDb& db, const std::ve
     fs::create_directories(fs::path(dir) / part, ec);
     // The passes of one part on all cores (each an independent acquisition); truth lines kept in seed order.
     std::vector<std::string> lines(static_cast<std::size_t>(count));
-    auto ok = acquire_sim_passes(
+    auto ok = app::acquire_sim_passes(
         config, part, count, first_seed, calibration_path, "generated " + part,
         [&](int index, std::uint64_t seed, std::vector<algo::ScanPoint>&& points) -> Status {
           const std::string rel = part + "/s" + std::to_string(seed) + ".ply";
-          if (auto written = write_file_atomic(dir + "/" + rel, algo::write_ply_binary(points)); !written)
+          if (auto written = base::write_file_atomic(dir + "/" + rel, formats::write_ply_binary(points)); !written)
             return written;
           if (template_pose) {
             const algo::PlanarPose p =
@@ -278,12 +278,12 @@ Status generate_sim_scans(const Config& config, const ModelDb& db, const std::ve
     if (!ok) return ok;
     for (const std::string& line : lines) truth += line;
   }
-  return write_file_atomic(dir + "/truth.csv", truth);
+  return base::write_file_atomic(dir + "/truth.csv", truth);
 }
 
 }  // namespace
 
-int run_classify(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
+int run_classify(const std::vector<std::string>& words, const app::Config& config, const std::string& models_dir) {
   ModeArgs args;
   std::string error;
   if (!parse_mode_args(words, {"--calibration"}, {"--json", "--svm-only", "--pm-only"}, args, error)) {
@@ -295,7 +295,7 @@ int run_classify(const std::vector<std::string>& words, const Config& config, co
   int failures = 0;
   std::vector<std::string> scans;
   for (const std::string& path : args.positional) {
-    if (Status ok = check_ply_file(path); !ok) {
+    if (Status ok = formats::check_ply_file(path); !ok) {
       std::fprintf(stderr, "cellsight: %s\n", ok.error().message.c_str());
       ++failures;
     } else {
@@ -305,10 +305,10 @@ int run_classify(const std::vector<std::string>& words, const Config& config, co
   if (scans.empty()) return kExitUsage;
   auto options = common_options(args, config);
   if (!options) return fail(kExitUsage, "classify: " + options.error().message);
-  auto recogniser = make_recogniser(config, models_dir, options->calibration_path, options->mode);
+  auto recogniser = app::make_recogniser(config, models_dir, options->calibration_path, options->mode);
   if (!recogniser) return fail(kExitUsage, recogniser.error().message);
   for (const std::string& path : scans) {
-    auto points = load_ply_file(path);
+    auto points = formats::load_ply_file(path);
     if (!points) {
       std::fprintf(stderr, "cellsight: %s\n", points.error().message.c_str());
       ++failures;
@@ -337,15 +337,16 @@ namespace {
 
 // eval --sim: generates the labelled set into `dir` first (it stays there: the same scans can be run again, or
 // elsewhere, as PLY). An exit code when it fails (the message printed), nothing when the set is written.
-std::optional<int> generate_eval_set(const ModeArgs& args, const Config& config, const std::string& models_dir,
-                                     const Options& options, const PassPerturbation* perturb, const std::string& dir) {
+std::optional<int> generate_eval_set(const ModeArgs& args, const app::Config& config, const std::string& models_dir,
+                                     const Options& options, const app::PassPerturbation* perturb,
+                                     const std::string& dir) {
   std::int64_t count = 0, seed = 100001;
   const std::string* c = args.value("--count");
   if (c == nullptr || !parse_whole(*c, 1, 100000, count)) return fail(kExitUsage, "eval --sim needs --count K");
   if (const std::string* s = args.value("--seed"); s != nullptr && !parse_whole(*s, 0, INT64_MAX, seed)) {
     return fail(kExitUsage, "eval: --seed '" + *s + "': expected a whole number");
   }
-  auto db = ModelDb::open(models_dir, grid_spec(config), false);
+  auto db = app::ModelDb::open(models_dir, app::grid_spec(config), false);
   if (!db) return fail(kExitUsage, db.error().message);
   std::vector<std::string> parts;
   if (const std::string* list = args.value("--parts")) {
@@ -354,7 +355,7 @@ std::optional<int> generate_eval_set(const ModeArgs& args, const Config& config,
       if (!p.empty()) parts.push_back(p);
     }
   } else {
-    for (const PartEntry& p : db->manifest().parts) parts.push_back(p.name);
+    for (const formats::PartEntry& p : db->manifest().parts) parts.push_back(p.name);
   }
   if (fs::exists(dir) && !fs::is_empty(dir)) return fail(kExitUsage, "eval --sim: " + dir + " is not empty");
   if (auto ok = generate_sim_scans(config, *db, parts, static_cast<int>(count), static_cast<std::uint64_t>(seed),
@@ -389,7 +390,7 @@ std::vector<LabelledScan> labelled_scans(const std::string& dir, const std::map<
 
 // Counts one decision on a labelled scan: right, wrong or unknown, pose error, source, time, what the SVM alone
 // would have said (its rank order is in the decision) and how far the cascade had to go.
-void count_decision(const LabelledScan& s, const algo::Decision& d, const Recogniser& recogniser, bool taught,
+void count_decision(const LabelledScan& s, const algo::Decision& d, const runtime::Recogniser& recogniser, bool taught,
                     EvalTotals& t) {
   const std::string decided = d.class_index >= 0 ? std::string(recogniser.class_name(d.class_index)) : "unknown";
   ++t.scans;
@@ -462,10 +463,10 @@ void print_eval_totals(const EvalTotals& t, const std::string& dir) {
 }
 
 // Rows: the true classes seen; columns: the taught parts in manifest order, then unknown.
-void print_confusion(const EvalTotals& t, const Manifest& manifest) {
+void print_confusion(const EvalTotals& t, const formats::Manifest& manifest) {
   std::printf("confusion (rows: truth, columns: decision)\n");
   std::vector<std::string> columns;
-  for (const PartEntry& p : manifest.parts) columns.push_back(p.name);
+  for (const formats::PartEntry& p : manifest.parts) columns.push_back(p.name);
   columns.push_back("unknown");
   std::printf("  %-20s", "");
   for (std::size_t c = 0; c < columns.size(); ++c) std::printf(" %4zu", c);
@@ -483,7 +484,7 @@ void print_confusion(const EvalTotals& t, const Manifest& manifest) {
 
 }  // namespace
 
-int run_eval(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
+int run_eval(const std::vector<std::string>& words, const app::Config& config, const std::string& models_dir) {
   ModeArgs args;
   std::string error;
   if (!parse_mode_args(words, {"--scans", "--calibration", "--count", "--seed", "--parts", "--perturb"},
@@ -496,7 +497,7 @@ int run_eval(const std::vector<std::string>& words, const Config& config, const 
   if (dir == nullptr) return fail(kExitUsage, "eval needs --scans DIR (DIR/<part>/*.ply, optional DIR/truth.csv)");
   auto options = common_options(args, config);
   if (!options) return fail(kExitUsage, "eval: " + options.error().message);
-  auto perturb = perturbation_option(args, config, options->calibration_path, kPerturbEval);
+  auto perturb = perturbation_option(args, config, options->calibration_path, app::kPerturbEval);
   if (!perturb) return fail(kExitUsage, "eval: " + perturb.error().message);
   if (*perturb && !args.has("--sim")) return fail(kExitUsage, "eval: --perturb applies to --sim only");
   if (args.has("--sim")) {
@@ -510,14 +511,14 @@ int run_eval(const std::vector<std::string>& words, const Config& config, const 
   if (!truth) return fail(kExitUsage, "eval: " + truth.error().message);
   const std::vector<LabelledScan> scans = labelled_scans(*dir, *truth);
   if (scans.empty()) return fail(kExitUsage, "eval: no DIR/<part>/*.ply under " + *dir);
-  auto recogniser = make_recogniser(config, models_dir, options->calibration_path, options->mode);
+  auto recogniser = app::make_recogniser(config, models_dir, options->calibration_path, options->mode);
   if (!recogniser) return fail(kExitUsage, recogniser.error().message);
-  auto db = ModelDb::open(models_dir, grid_spec(config), false);
+  auto db = app::ModelDb::open(models_dir, app::grid_spec(config), false);
   if (!db) return fail(kExitUsage, db.error().message);
 
   EvalTotals t;
   for (const LabelledScan& s : scans) {
-    auto points = load_ply_file(s.path);
+    auto points = formats::load_ply_file(s.path);
     if (!points) return fail(kExitUsage, points.error().message);
     const auto deadline = Clock::now() + std::chrono::milliseconds(config.runtime.deadline_ms);
     const algo::Decision d = (*recogniser)->recognise(*points, deadline);
@@ -533,4 +534,4 @@ int run_eval(const std::vector<std::string>& words, const Config& config, const 
   return kExitOk;
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::cli

@@ -1,10 +1,10 @@
 // Config -> LoopConfig.
-#include "runtime/loop_wiring.hpp"
+#include "app/loop_wiring.hpp"
 
 #include <algorithm>
 #include <cmath>
 
-namespace cellsight::runtime {
+namespace cellsight::app {
 
 namespace {
 // Headroom over the nominal frames of one pass before the photo-eye counts as blocked.
@@ -13,8 +13,8 @@ constexpr int kMaxFramesMargin = 16;
 constexpr double kMmPerM = 1e3;
 }  // namespace
 
-AcquirerParams acquirer_params(const app::Config& config) {
-  AcquirerParams p;
+runtime::AcquirerParams acquirer_params(const Config& config) {
+  runtime::AcquirerParams p;
   p.frame_timeout_ms = config.camera.timeout_ms;
   const auto& conveyor = config.rig.conveyor;
   const double frames_per_pass =
@@ -24,9 +24,9 @@ AcquirerParams acquirer_params(const app::Config& config) {
   return p;
 }
 
-LoopConfig loop_config(const app::Config& config) {
-  LoopConfig c;
-  const AcquirerParams pass = acquirer_params(config);
+runtime::LoopConfig loop_config(const Config& config) {
+  runtime::LoopConfig c;
+  const runtime::AcquirerParams pass = acquirer_params(config);
   c.deadline_ms = config.runtime.deadline_ms;
   c.frame_timeout_ms = pass.frame_timeout_ms;
   c.max_frames = pass.max_frames;
@@ -39,4 +39,4 @@ LoopConfig loop_config(const app::Config& config) {
   return c;
 }
 
-}  // namespace cellsight::runtime
+}  // namespace cellsight::app

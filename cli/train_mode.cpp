@@ -1,5 +1,5 @@
 // `cellsight train`: dataset from the taught scans, training (algo/training), thresholds, atomic database update.
-#include "app/train_mode.hpp"
+#include "cli/train_mode.hpp"
 
 #include <csignal>
 #include <cstdio>
@@ -10,10 +10,8 @@
 
 #include "algo/augment.hpp"
 #include "algo/splitmix.hpp"
-#include "app/cli.hpp"
-#include "app/mode_args.hpp"
 #include "app/recognition.hpp"
-#include "app/scan_mode.hpp"
+#include "app/scan_acquisition.hpp"
 #include "app/train_progress.hpp"
 #include "app/train_report.hpp"
 #include "base/atomic_file.hpp"
@@ -21,11 +19,13 @@
 #include "base/file_read.hpp"
 #include "base/local_time.hpp"
 #include "base/parallel_for.hpp"
+#include "cli/cli.hpp"
+#include "cli/mode_args.hpp"
 #include "drivers/log.hpp"
 #include "formats/calibration_file.hpp"
 #include "formats/ply.hpp"
 
-namespace cellsight::app {
+namespace cellsight::cli {
 namespace {
 
 std::atomic<bool> g_stop{false};  // set by SIGINT/SIGTERM while training: keep the best so far
@@ -57,52 +57,42 @@ class StopOnSignal {
   struct sigaction old_term_ {};
 };
 
-std::size_t max_scan_points(const Config& config) {
-  return scan_builder_params(config).max_points;
+std::size_t max_scan_points(const app::Config& config) {
+  return app::scan_builder_params(config).max_points;
 }
 
 // Seed of variant v of taught scan `scan`: reproducible for svm.seed, different for every scan and variant.
-std::uint64_t augment_seed(const Config& config, std::size_t scan, int variant) {
+std::uint64_t augment_seed(const app::Config& config, std::size_t scan, int variant) {
   return algo::stream_seed(algo::stream_seed(static_cast<std::uint64_t>(config.svm.seed), scan),
                            static_cast<std::uint64_t>(variant));
 }
 
 // What a thread of build_dataset keeps from one scan to the next (built on that thread, at its first scan).
 struct FeatureWorker {
-  FeatureWorker(const Config& config, const algo::Plane& support, bool with_cascade)
+  FeatureWorker(const app::Config& config, const algo::Plane& support, bool with_cascade)
       : preparer(config, support, max_scan_points(config)) {
-    if (with_cascade) cascade.emplace(cascade_params(config), perfect_match_params(config), grid_spec(config));
+    if (with_cascade)
+      cascade.emplace(app::cascade_params(config), app::perfect_match_params(config), app::grid_spec(config));
   }
-  ScanPreparer preparer;
+  app::ScanPreparer preparer;
   std::vector<algo::ScanPoint> origin, variant;
   std::optional<algo::Cascade> cascade;
 };
 
 // ... and a thread of cross_matches.
 struct MatchWorker {
-  MatchWorker(const Config& config, const algo::Plane& support)
+  MatchWorker(const app::Config& config, const algo::Plane& support)
       : preparer(config, support, max_scan_points(config)),
-        cascade(cascade_params(config), perfect_match_params(config), grid_spec(config)) {}
-  ScanPreparer preparer;
+        cascade(app::cascade_params(config), app::perfect_match_params(config), app::grid_spec(config)) {}
+  app::ScanPreparer preparer;
   algo::Cascade cascade;
 };
 
 }  // namespace
 
-Expected<algo::Plane> load_support_plane(const std::string& calibration_path) {
-  auto record = load_calibration(calibration_path);
-  if (!record)
-    return make_error(record.error().message + "\n(run scripts/calibrate.sh, or cellsight calibrate, first)");
-  if (!record->has_support) {
-    return make_error(calibration_path +
-                      ": no support section: scan the empty carrier and run 'cellsight calibrate support' first");
-  }
-  return record->support;
-}
-
-Expected<std::vector<algo::ScanPoint>> load_taught_scan(const ModelDb& db, const ScanEntry& scan) {
+Expected<std::vector<algo::ScanPoint>> load_taught_scan(const app::ModelDb& db, const formats::ScanEntry& scan) {
   const std::string path = db.path_of(scan.file);
-  auto bytes = base::read_file(path, kMaxTaughtScanBytes);
+  auto bytes = base::read_file(path, app::kMaxTaughtScanBytes);
   if (!bytes) return bytes.error();
   const std::uint32_t crc = base::crc32(*bytes);
   if (crc != scan.crc32) {
@@ -110,24 +100,24 @@ Expected<std::vector<algo::ScanPoint>> load_taught_scan(const ModelDb& db, const
                       ": checksum differs from the manifest: the scan was changed or damaged; delete the "
                       "part ('cellsight parts delete') and teach it again");
   }
-  auto points = algo::parse_ply(*bytes);
+  auto points = formats::parse_ply(*bytes);
   if (!points) return make_error(path + ": " + points.error().message);
   return points;
 }
 
-Expected<TaughtData> build_dataset(const Config& config, const ModelDb& db, const algo::Plane& support, int threads,
-                                   const std::atomic<bool>* stop, const LoadedTemplates* templates) {
-  const Manifest& m = db.manifest();
+Expected<TaughtData> build_dataset(const app::Config& config, const app::ModelDb& db, const algo::Plane& support,
+                                   int threads, const std::atomic<bool>* stop, const app::LoadedTemplates* templates) {
+  const formats::Manifest& m = db.manifest();
   struct Job {
     int label;
-    const ScanEntry* scan;
+    const formats::ScanEntry* scan;
   };
   std::vector<Job> jobs;
   TaughtData out;
   algo::Dataset& data = out.data;
   for (std::size_t c = 0; c < m.parts.size(); ++c) {
     data.classes.push_back({m.parts[c].name, m.parts[c].id});
-    for (const ScanEntry& s : m.parts[c].scans) jobs.push_back({static_cast<int>(c), &s});
+    for (const formats::ScanEntry& s : m.parts[c].scans) jobs.push_back({static_cast<int>(c), &s});
   }
   // Features of every taught scan and of its synthetic variants (svm.augment_per_scan; algo/augment), by job.
   const int variants = config.svm.augment_per_scan;
@@ -146,8 +136,8 @@ Expected<TaughtData> build_dataset(const Config& config, const ModelDb& db, cons
         if (!points) {
           error = points.error().message;
         } else {
-          const PrepareReport r = w.preparer.prepare(*points);
-          if (r.status != PrepareStatus::kOk) {
+          const app::PrepareReport r = w.preparer.prepare(*points);
+          if (r.status != app::PrepareStatus::kOk) {
             error =
                 db.path_of(jobs[i].scan->file) + ": " + std::string(to_string(r.status)) + " (" + r.describe() + ")";
           } else {
@@ -160,7 +150,7 @@ Expected<TaughtData> build_dataset(const Config& config, const ModelDb& db, cons
             w.origin.assign(part.begin(), part.end());
             for (int v = 1; v <= variants; ++v) {
               algo::augment_scan(w.origin, algo::AugmentParams{}, augment_seed(config, i, v), w.variant);
-              if (w.preparer.prepare_part(w.variant).status == PrepareStatus::kOk)
+              if (w.preparer.prepare_part(w.variant).status == app::PrepareStatus::kOk)
                 job_features[i].push_back(w.preparer.features());  // a variant that lost the part is left out
             }
           }
@@ -194,18 +184,18 @@ Expected<TaughtData> build_dataset(const Config& config, const ModelDb& db, cons
 
 // The scans of every other class against each template (the runner-ups learn_thresholds() keeps a margin to):
 // result[c] = reports of the other classes' scans against class c's template. Runs on `threads` threads.
-Expected<std::vector<std::vector<algo::MatchReport>>> cross_matches(const Config& config, const ModelDb& db,
+Expected<std::vector<std::vector<algo::MatchReport>>> cross_matches(const app::Config& config, const app::ModelDb& db,
                                                                     const algo::Plane& support, int threads,
-                                                                    const LoadedTemplates& templates,
+                                                                    const app::LoadedTemplates& templates,
                                                                     const std::atomic<bool>* stop) {
-  const Manifest& m = db.manifest();
+  const formats::Manifest& m = db.manifest();
   struct Job {
     std::size_t label;
-    const ScanEntry* scan;
+    const formats::ScanEntry* scan;
   };
   std::vector<Job> jobs;
   for (std::size_t c = 0; c < m.parts.size(); ++c) {
-    for (const ScanEntry& s : m.parts[c].scans) jobs.push_back({c, &s});
+    for (const formats::ScanEntry& s : m.parts[c].scans) jobs.push_back({c, &s});
   }
   const std::size_t classes = m.parts.size();
   // reports[j][c]: scan j against template c (c != its own class).
@@ -217,7 +207,7 @@ Expected<std::vector<std::vector<algo::MatchReport>>> cross_matches(const Config
       [&](int job, MatchWorker& w) {
         const auto i = static_cast<std::size_t>(job);
         auto points = load_taught_scan(db, *jobs[i].scan);
-        if (!points || w.preparer.prepare(*points).status != PrepareStatus::kOk) {
+        if (!points || w.preparer.prepare(*points).status != app::PrepareStatus::kOk) {
           const std::lock_guard<std::mutex> lock(mutex);
           if (first_error.empty()) first_error = db.path_of(jobs[i].scan->file) + ": cannot be prepared";
           return false;
@@ -255,7 +245,8 @@ int report_failure(const TrainFailure& failure) {
 }
 
 // The training parameters: the configuration's, then --iterations, --seed and --compare.
-std::optional<TrainFailure> read_train_params(const ModeArgs& args, const Config& config, algo::TrainParams& params) {
+std::optional<TrainFailure> read_train_params(const ModeArgs& args, const app::Config& config,
+                                              algo::TrainParams& params) {
   params.annealing.start_temperature = config.svm.sa_start_temperature;
   params.annealing.cooling_ratio = config.svm.sa_cooling_ratio;
   params.annealing.iterations = config.svm.sa_iterations;
@@ -283,7 +274,7 @@ std::optional<TrainFailure> read_train_params(const ModeArgs& args, const Config
 // Training scans per part: train_fraction of the fewest scans any part has. Refuses a database that cannot be
 // trained (fewer than two parts, a part with too few scans) before hours of work start, and lowers the folds to
 // the training scans when they are fewer.
-Expected<int> train_scans_per_part(const Manifest& m, const Config& config, const std::string& models_dir,
+Expected<int> train_scans_per_part(const formats::Manifest& m, const app::Config& config, const std::string& models_dir,
                                    algo::TrainParams& params) {
   if (m.parts.size() < 2) {
     return make_error("the database " + models_dir + " has " + std::to_string(m.parts.size()) +
@@ -293,7 +284,7 @@ Expected<int> train_scans_per_part(const Manifest& m, const Config& config, cons
   // being refused: cross-validation needs at least two, and one scan must stay back for the test.
   constexpr int kMinFolds = 2;
   int min_scans = INT32_MAX;
-  for (const PartEntry& p : m.parts) {
+  for (const formats::PartEntry& p : m.parts) {
     const int n = static_cast<int>(p.scans.size());
     const int train_n = static_cast<int>(std::lround(config.svm.train_fraction * n));
     if (train_n < kMinFolds || n - train_n < 1) {
@@ -322,7 +313,7 @@ Expected<int> train_scans_per_part(const Manifest& m, const Config& config, cons
 
 // What training learns for each part beside the SVM (manifest order).
 struct LearntParts {
-  std::vector<PartThresholds> thresholds;
+  std::vector<formats::PartThresholds> thresholds;
   std::vector<algo::TemplateThresholds> template_thresholds;
   std::vector<std::vector<std::string>> flagged;  // taught scans that disagree with the part's others
   std::vector<std::set<std::string>> confusable;  // look-alikes verified with the part
@@ -330,17 +321,17 @@ struct LearntParts {
 
 // Acceptance thresholds of every template from its own taught scans that agree with each other, with a margin to
 // the other parts' scans (the unknown-part decision, algo/cascade); warns about scans that disagree.
-void learn_part_thresholds(const Manifest& m, const Config& config, const TaughtData& taught,
+void learn_part_thresholds(const formats::Manifest& m, const app::Config& config, const TaughtData& taught,
                            const std::vector<std::vector<algo::MatchReport>>& others, LearntParts& learnt_parts) {
   learnt_parts.flagged.assign(m.parts.size(), {});
   for (std::size_t c = 0; c < taught.own_matches.size(); ++c) {
     const algo::ThresholdLearning learnt =
-        algo::learn_thresholds(taught.own_matches[c], others[c], cascade_params(config));
+        algo::learn_thresholds(taught.own_matches[c], others[c], app::cascade_params(config));
     const algo::TemplateThresholds& t = learnt.thresholds;
     learnt_parts.template_thresholds.push_back(t);
     learnt_parts.thresholds.push_back({true, t.max_error, t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered,
                                        t.max_outliers, t.size_centre_x_m, t.size_centre_y_m, t.max_size_dev_m});
-    const PartEntry& part = m.parts[c];
+    const formats::PartEntry& part = m.parts[c];
     for (const int i : learnt.flagged) {
       learnt_parts.flagged[c].push_back(part.scans[static_cast<std::size_t>(i)].file);
       const algo::MatchReport& r = taught.own_matches[c][static_cast<std::size_t>(i)];
@@ -362,7 +353,7 @@ void learn_part_thresholds(const Manifest& m, const Config& config, const Taught
 
 // Look-alikes: a part whose scans came within kNearPassFactor of passing another's template (either way round) is
 // verified with it at run time (algo::CascadeParams, candidate policy).
-void find_look_alikes(const Manifest& m, const std::vector<std::vector<algo::MatchReport>>& others,
+void find_look_alikes(const formats::Manifest& m, const std::vector<std::vector<algo::MatchReport>>& others,
                       LearntParts& learnt_parts) {
   constexpr double kNearPassFactor = 3.0;
   std::vector<std::set<std::string>>& confusable = learnt_parts.confusable;
@@ -390,20 +381,20 @@ void find_look_alikes(const Manifest& m, const std::vector<std::vector<algo::Mat
 
 // Atomic update: the new model under a new name, then the manifest that points at it, then the old one goes.
 // Returns the model's file name (relative to the database).
-Expected<std::string> store_trained_model(ModelDb& db, const algo::TrainingResult& trained,
+Expected<std::string> store_trained_model(app::ModelDb& db, const algo::TrainingResult& trained,
                                           const LearntParts& learnt_parts) {
   const algo::TrainingReport& report = trained.report;
-  const std::string model_file = "svm-" + local_time_text().substr(0, 10) + "-" +
+  const std::string model_file = "svm-" + base::local_time_text().substr(0, 10) + "-" +
                                  std::to_string(static_cast<long long>(std::time(nullptr))) + ".model";
   const std::string blob = trained.model.serialize();
-  if (auto ok = write_file_atomic(db.path_of(model_file), blob); !ok) return ok.error();
+  if (auto ok = base::write_file_atomic(db.path_of(model_file), blob); !ok) return ok.error();
   const std::string old_model = db.manifest().svm.present ? db.manifest().svm.file : "";
-  Manifest& mm = db.manifest();
+  formats::Manifest& mm = db.manifest();
   mm.feature_version = algo::kFeatureVersion;
   mm.svm.present = true;
   mm.svm.file = model_file;
   mm.svm.crc32 = base::crc32(blob);
-  mm.svm.trained_at = local_time_text();
+  mm.svm.trained_at = base::local_time_text();
   mm.svm.parts_fingerprint = db.parts_fingerprint();
   mm.svm.test_accuracy = report.svm.test_accuracy;
   mm.svm.cv_accuracy = report.svm.cv_accuracy;
@@ -446,7 +437,7 @@ void print_training_result(const algo::TrainingResult& trained, const std::strin
 
 }  // namespace
 
-int run_train(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
+int run_train(const std::vector<std::string>& words, const app::Config& config, const std::string& models_dir) {
   ModeArgs args;
   std::string error;
   if (!parse_mode_args(words, {"--report", "--calibration", "--iterations", "--seed"}, {"--compare"}, args, error) ||
@@ -455,9 +446,9 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
                  error.empty() ? ("unexpected argument '" + args.positional.front() + "'").c_str() : error.c_str());
     return kExitUsage;
   }
-  auto db = ModelDb::open_for_writing(models_dir, grid_spec(config), false);
+  auto db = app::ModelDb::open_for_writing(models_dir, app::grid_spec(config), false);
   if (!db) return report_failure({kExitUsage, db.error().message});
-  const Manifest& m = db->manifest();
+  const formats::Manifest& m = db->manifest();
 
   algo::TrainParams params;
   if (auto refused = read_train_params(args, config, params)) return report_failure(*refused);
@@ -465,7 +456,7 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
   if (!train_per_class) return report_failure({kExitUsage, train_per_class.error().message});
 
   const std::string* calibration_arg = args.value("--calibration");
-  auto support = load_support_plane(calibration_arg ? *calibration_arg : default_calibration_path(config));
+  auto support = app::load_support_plane(calibration_arg ? *calibration_arg : app::default_calibration_path(config));
   if (!support) return report_failure({kExitUsage, support.error().message});
 
   StopOnSignal stop_on_signal;
@@ -474,11 +465,11 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
       "computing the features of %zu taught scans of %zu parts...\n",
       [&] {
         std::size_t n = 0;
-        for (const PartEntry& p : m.parts) n += p.scans.size();
+        for (const formats::PartEntry& p : m.parts) n += p.scans.size();
         return n;
       }(),
       m.parts.size());
-  const LoadedTemplates templates = open_templates(config, *db);
+  const app::LoadedTemplates templates = app::open_templates(config, *db);
   if (!templates.problems.empty()) {
     std::string all;
     for (const std::string& p : templates.problems) all += "\n  " + p;
@@ -490,7 +481,7 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
   auto split = algo::split_per_class(taught->data, *train_per_class, params.seed);
   if (!split) return report_failure({kExitUsage, split.error().message});
 
-  ProgressPrinter printer = ProgressPrinter::for_stream(stdout);
+  app::ProgressPrinter printer = app::ProgressPrinter::for_stream(stdout);
   auto trained = algo::train_recogniser(
       *split, params, [&](const algo::TrainingProgress& p) { printer.update(p); }, &g_stop);
   printer.finish();
@@ -509,12 +500,12 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
   if (!model_file) return report_failure({kExitFailure, model_file.error().message});
   print_training_result(*trained, db->path_of(*model_file));
   if (const std::string* dir = args.value("--report")) {
-    TrainReportContext context;
+    app::TrainReportContext context;
     context.model_db_path = db->path_of(*model_file);
     context.dataset = models_dir + ": " + std::to_string(m.parts.size()) + " taught parts, " +
                       std::to_string(taught->data.size()) + " scans";
     context.planned_iterations = params.annealing.iterations;
-    auto written = write_training_report(*dir, report, context);
+    auto written = app::write_training_report(*dir, report, context);
     if (!written) {
       return report_failure({kExitFailure, "the model is saved, but the report failed: " + written.error().message});
     }
@@ -523,4 +514,4 @@ int run_train(const std::vector<std::string>& words, const Config& config, const
   return kExitOk;
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::cli

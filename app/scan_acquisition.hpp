@@ -1,4 +1,5 @@
-// `cellsight scan`: one acquisition -> point cloud (PLY), on the simulated cell or the real one.
+// One acquisition with the calibrated sensor through the device interfaces, and the simulated cell's passes
+// acquired on all cores (optionally perturbed): what the scan, calibrate support, teach and eval modes share.
 #pragma once
 
 #include <cstdint>
@@ -7,6 +8,8 @@
 #include <string>
 #include <vector>
 
+#include "algo/perturb.hpp"
+#include "algo/random.hpp"
 #include "algo/result.hpp"
 #include "algo/scan.hpp"
 #include "algo/scan_builder.hpp"
@@ -39,20 +42,24 @@ struct ScanSummary {
 [[nodiscard]] Expected<std::vector<algo::ScanPoint>> acquire_scan(const Config& config, const ScanOptions& options,
                                                                   ScanSummary& summary);
 
-// `cellsight calibrate support (--scan EMPTY.ply | --sim [--seed S]) [--calibration FILE]`: fits the carrier plane
-// on an empty-carrier scan and stores it in calibration.yaml (after a dated backup; other sections kept).
-[[nodiscard]] int run_calibrate_support(const std::vector<std::string>& args, const Config& config);
+// Salts of the perturbation seeds: a taught and a test pass with the same pass seed never share a draw.
+inline constexpr std::uint64_t kPerturbTeach = 0x7EAC;
+inline constexpr std::uint64_t kPerturbEval = 0xE7A1;
 
-// One acquisition with the calibrated sensor -> PLY written atomically. Never uses the simulator's true rig for
-// reconstruction: the calibration file is required.
-[[nodiscard]] Expected<ScanSummary> run_scan(const Config& config, const ScanOptions& options);
+// What teach and eval --sim apply to every generated pass before it is stored or written.
+struct PassPerturbation {
+  algo::PerturbSpec spec;
+  algo::Plane support;
+  std::uint64_t purpose = 0;  // kPerturbTeach or kPerturbEval
+
+  [[nodiscard]] std::uint64_t seed_for(std::uint64_t pass_seed) const { return algo::mix_seed(pass_seed, purpose); }
+};
 
 // Acquires passes of `part` on the simulated cell, seeds first_seed .. first_seed + count - 1, on all cores, and hands
 // each to take(index, seed, points), one call at a time (under a lock), in completion order. Progress "  <label> n /
 // count" on stdout: redrawn in place on a terminal, otherwise a line every 10th and the last (log files, journald).
 // The first failure (of an acquisition or of take) stops the others and is returned. With `perturb`, each pass is
 // perturbed (seed from its pass seed) before take sees it.
-struct PassPerturbation;
 using PassConsumer = std::function<Status(int index, std::uint64_t seed, std::vector<algo::ScanPoint>&& points)>;
 [[nodiscard]] Status acquire_sim_passes(const Config& config, const std::string& part, int count,
                                         std::uint64_t first_seed, const std::string& calibration_path,

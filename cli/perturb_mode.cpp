@@ -1,16 +1,16 @@
 // `cellsight perturb` and the --perturb option: parse the kinds, load the carrier plane, perturb, write.
-#include "app/perturb_mode.hpp"
+#include "cli/perturb_mode.hpp"
 
 #include <cstdio>
 
-#include "app/cli.hpp"
-#include "app/train_mode.hpp"
+#include "app/recognition.hpp"
 #include "base/atomic_file.hpp"
+#include "cli/cli.hpp"
 #include "formats/calibration_file.hpp"
 #include "formats/input_file.hpp"
 #include "formats/ply.hpp"
 
-namespace cellsight::app {
+namespace cellsight::cli {
 namespace {
 
 int fail(int code, const std::string& message) {
@@ -18,7 +18,7 @@ int fail(int code, const std::string& message) {
   return code;
 }
 
-Expected<algo::PerturbSpec> spec_from(const std::string& text, const Config& config) {
+Expected<algo::PerturbSpec> spec_from(const std::string& text, const app::Config& config) {
   auto spec = algo::parse_perturb(text);
   if (!spec) return spec.error();
   spec->carrier_band_m = config.support.distance_threshold_mm * 1e-3;
@@ -27,20 +27,20 @@ Expected<algo::PerturbSpec> spec_from(const std::string& text, const Config& con
 
 }  // namespace
 
-Expected<std::optional<PassPerturbation>> perturbation_option(const ModeArgs& args, const Config& config,
-                                                              const std::string& calibration_path,
-                                                              std::uint64_t purpose) {
+Expected<std::optional<app::PassPerturbation>> perturbation_option(const ModeArgs& args, const app::Config& config,
+                                                                   const std::string& calibration_path,
+                                                                   std::uint64_t purpose) {
   const std::string* text = args.value("--perturb");
-  if (text == nullptr) return std::optional<PassPerturbation>{};
+  if (text == nullptr) return std::optional<app::PassPerturbation>{};
   auto spec = spec_from(*text, config);
   if (!spec) return spec.error();
-  if (spec->empty()) return std::optional<PassPerturbation>{};
-  auto support = load_support_plane(calibration_path);
+  if (spec->empty()) return std::optional<app::PassPerturbation>{};
+  auto support = app::load_support_plane(calibration_path);
   if (!support) return support.error();
-  return std::optional<PassPerturbation>{PassPerturbation{std::move(*spec), *support, purpose}};
+  return std::optional<app::PassPerturbation>{app::PassPerturbation{std::move(*spec), *support, purpose}};
 }
 
-int run_perturb(const std::vector<std::string>& words, const Config& config) {
+int run_perturb(const std::vector<std::string>& words, const app::Config& config) {
   ModeArgs args;
   std::string error;
   if (!parse_mode_args(words, {"--kind", "--seed", "--calibration"}, {}, args, error)) {
@@ -56,14 +56,14 @@ int run_perturb(const std::vector<std::string>& words, const Config& config) {
     return fail(kExitUsage, "perturb: --seed '" + *s + "': expected a whole number >= 0");
   }
   const std::string* calibration = args.value("--calibration");
-  auto support = load_support_plane(calibration != nullptr ? *calibration : default_calibration_path(config));
+  auto support = app::load_support_plane(calibration != nullptr ? *calibration : app::default_calibration_path(config));
   if (!support) return fail(kExitUsage, support.error().message);
   const std::string& in = args.positional[0];
   const std::string& out = args.positional[1];
-  auto points = load_ply_file(in);
+  auto points = formats::load_ply_file(in);
   if (!points) return fail(kExitUsage, points.error().message);
   const algo::PerturbReport r = algo::perturb_scan(*points, *spec, *support, static_cast<std::uint64_t>(seed));
-  if (auto ok = write_file_atomic(out, algo::write_ply_binary(*points)); !ok) {
+  if (auto ok = base::write_file_atomic(out, formats::write_ply_binary(*points)); !ok) {
     return fail(kExitFailure, "perturb: " + ok.error().message);
   }
   std::printf("%s -> %s: %s, seed %lld: %zu -> %zu points (%s)\n", in.c_str(), out.c_str(), spec->text.c_str(),
@@ -71,4 +71,4 @@ int run_perturb(const std::vector<std::string>& words, const Config& config) {
   return kExitOk;
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::cli

@@ -1,19 +1,12 @@
-// `cellsight run`: the production cell — devices (simulated or real), Modbus server, recogniser and the production
-// loop, until SIGTERM/SIGINT or --parts results.
+// The options of `cellsight run`: parsed by the command line (cli/run_mode), read by the production start-up and
+// by the simulated cell behind --sim (app/run_sim).
 #pragma once
 
 #include <cstdint>
 #include <string>
 #include <vector>
 
-#include "algo/result.hpp"
-#include "app/config.hpp"
-#include "drivers/modbus/modbus_server.hpp"
-
 namespace cellsight::app {
-
-// For `cellsight help`: the run lines of the usage text.
-extern const char* const kRunUsage;
 
 struct RunOptions {
   bool sim = false;                    // --sim: the simulated cell's camera, GPIO and conveyor
@@ -31,16 +24,5 @@ struct RunOptions {
   std::string sim_faults;  // --sim-faults SPEC (--sim): faults injected into the simulated devices (the soak test)
   int port = -1;           // --port P: overrides modbus.port (0: any free port, printed in the log)
 };
-
-// Parses the words after "run" (a "--config F" or "--log-level L" pair is skipped: the front end handles those).
-[[nodiscard]] Expected<RunOptions> parse_run_args(const std::vector<std::string>& args);
-
-// modbus.* of the configuration as the server's settings.
-[[nodiscard]] drivers::ModbusServerConfig modbus_server_config(const Config& config);
-
-// The whole mode. Exit codes (app/cli.hpp): 0 done or stopped by SIGTERM/SIGINT; 1 a device or the Modbus port
-// could not be opened, or the run failed; 2 bad arguments, configuration, calibration or (with --parts) model
-// database.
-[[nodiscard]] int run_run(const std::vector<std::string>& args, const Config& config);
 
 }  // namespace cellsight::app

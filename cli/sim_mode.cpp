@@ -1,5 +1,5 @@
 // `cellsight sim` implementation.
-#include "app/sim_mode.hpp"
+#include "cli/sim_mode.hpp"
 
 #include <sys/stat.h>
 #include <yaml-cpp/yaml.h>
@@ -11,11 +11,12 @@
 #include <sstream>
 
 #include "app/catalogue.hpp"
+#include "app/sim_setup.hpp"
 #include "base/atomic_file.hpp"
 #include "drivers/log.hpp"
 #include "drivers/sim/random_catalogue.hpp"
 
-namespace cellsight::app {
+namespace cellsight::cli {
 namespace {
 
 constexpr double kRadToDeg = 180.0 / std::numbers::pi;
@@ -58,43 +59,9 @@ Expected<sim::PartPose> parse_pose(const std::string& text) {
   return pose;
 }
 
-Expected<sim::SimCell> make_sim_cell(const Config& config) {
-  auto catalogue = load_catalogue(config.catalogue_path);
-  if (!catalogue) return catalogue.error();
-  return sim::SimCell(config.rig, std::move(*catalogue), config.sim);
-}
-
-Status check_catalogue_fits_grid(const Config& config, const std::vector<sim::PartSpec>& parts) {
-  const Eigen::Vector3d lo = config.grid.origin_m;
-  const Eigen::Vector3d hi =
-      lo + config.grid.resolution_m * Eigen::Vector3d(config.grid.nx, config.grid.ny, config.grid.nz);
-  const double xy = config.sim.pose_xy_range_m;
-  const double theta = config.sim.pose_theta_range_deg / kRadToDeg;
-  const double swing = config.sim.swing_range_deg / kRadToDeg;
-  constexpr int kPoseCorners = 16;  // x, y, theta, swing each at - or + its range
-  for (const auto& part : parts) {
-    const std::vector<sim::Facet> facets = sim::build_part(part);
-    for (int corner = 0; corner < kPoseCorners; ++corner) {
-      const sim::PartPose pose{(corner & 1 ? xy : -xy), (corner & 2 ? xy : -xy), (corner & 4 ? theta : -theta),
-                               (corner & 8 ? swing : -swing)};
-      const Eigen::Isometry3d placement = sim::placement(config.rig.carrier, part, pose);
-      for (sim::Facet f : facets) {
-        f.transform(placement);
-        if ((f.bounds.min().array() < lo.array()).any() || (f.bounds.max().array() > hi.array()).any()) {
-          std::ostringstream why;
-          why << "part " << part.name << " leaves the grid at the pose x " << pose.x_m << " m, y " << pose.y_m
-              << " m, theta " << pose.theta_rad * kRadToDeg << " deg, swing " << pose.swing_rad * kRadToDeg << " deg";
-          return make_error(why.str());
-        }
-      }
-    }
-  }
-  return {};
-}
-
-Status write_random_catalogue(const Config& config, int count, std::uint64_t seed, const std::string& out_path) {
+Status write_random_catalogue(const app::Config& config, int count, std::uint64_t seed, const std::string& out_path) {
   const sim::RandomCatalogue catalogue = sim::generate_random_catalogue(count, seed);
-  if (auto ok = check_catalogue_fits_grid(config, catalogue.parts); !ok) {
+  if (auto ok = app::check_catalogue_fits_grid(config, catalogue.parts); !ok) {
     return make_error("the generated catalogue does not fit this configuration's grid: " + ok.error().message);
   }
   std::ostringstream header;
@@ -116,7 +83,9 @@ Status write_random_catalogue(const Config& config, int count, std::uint64_t see
     if (p.role == sim::PartRole::kUntaught) header << ' ' << p.name;
   }
   header << "\n";
-  if (auto ok = write_file_atomic(out_path, catalogue_yaml(catalogue.parts, header.str()), Overwrite::kRefuse); !ok) {
+  if (auto ok = base::write_file_atomic(out_path, app::catalogue_yaml(catalogue.parts, header.str()),
+                                        base::Overwrite::kRefuse);
+      !ok) {
     return ok.error();
   }
   CS_LOG_INFO("sim", "random catalogue: %d parts, seed %llu, %zu near-twin pairs -> %s", count,
@@ -124,7 +93,7 @@ Status write_random_catalogue(const Config& config, int count, std::uint64_t see
   return {};
 }
 
-std::string truth_yaml(const Config& config, const sim::SimCell& cell, const std::vector<double>& exposures_us) {
+std::string truth_yaml(const app::Config& config, const sim::SimCell& cell, const std::vector<double>& exposures_us) {
   const sim::Rig& rig = cell.rig();
   const sim::PassSpec& pass = cell.pass();
   YAML::Emitter out;
@@ -214,13 +183,13 @@ std::string truth_yaml(const Config& config, const sim::SimCell& cell, const std
   return std::string(out.c_str()) + "\n";
 }
 
-Status write_sim_pass(const Config& config, sim::SimCell& cell, const SimOptions& options) {
+Status write_sim_pass(const app::Config& config, sim::SimCell& cell, const SimOptions& options) {
   auto pass = cell.random_pass(options.part, options.seed);
   if (!pass) return pass.error();
   if (options.pose) pass->pose = *options.pose;
   if (auto ok = cell.begin_pass(*pass); !ok) return ok.error();
 
-  auto staged = StagedDirectory::create(options.out_dir);
+  auto staged = base::StagedDirectory::create(options.out_dir);
   if (!staged) return staged.error();
   const std::string frames_dir = staged->path() + "/frames";
   if (::mkdir(frames_dir.c_str(), 0755) != 0) return make_error(frames_dir + ": cannot create");
@@ -243,7 +212,7 @@ Status write_sim_pass(const Config& config, sim::SimCell& cell, const SimOptions
     }
     if (!written) return make_error(frames_dir + name + ": cannot write the PNG");
   }
-  if (auto ok = write_file_atomic(staged->path() + "/truth.yaml", truth_yaml(config, cell, exposures_us)); !ok) {
+  if (auto ok = base::write_file_atomic(staged->path() + "/truth.yaml", truth_yaml(config, cell, exposures_us)); !ok) {
     return ok.error();
   }
   if (auto ok = staged->commit(); !ok) return ok.error();
@@ -254,4 +223,4 @@ Status write_sim_pass(const Config& config, sim::SimCell& cell, const SimOptions
   return {};
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::cli

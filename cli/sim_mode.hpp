@@ -7,9 +7,10 @@
 
 #include "algo/result.hpp"
 #include "app/config.hpp"
+#include "app/sim_setup.hpp"
 #include "drivers/sim/sim_cell.hpp"
 
-namespace cellsight::app {
+namespace cellsight::cli {
 
 struct SimOptions {
   std::string part;
@@ -21,23 +22,16 @@ struct SimOptions {
 // Parses "x,y,theta[,swing]" (metres, metres, degrees, degrees).
 [[nodiscard]] Expected<sim::PartPose> parse_pose(const std::string& text);
 
-// Builds the simulated cell from the configuration (loads and validates the catalogue).
-[[nodiscard]] Expected<sim::SimCell> make_sim_cell(const Config& config);
-
 // Renders every frame of the pass into a staged folder and moves it to options.out_dir when complete.
-[[nodiscard]] Status write_sim_pass(const Config& config, sim::SimCell& cell, const SimOptions& options);
-
-// Fails, naming the first part and pose corner, unless every part lies inside the configured occupancy grid at all
-// 16 extremes of the random pose (x, y, theta and swing each at +- their configured range) on the configured carrier.
-[[nodiscard]] Status check_catalogue_fits_grid(const Config& config, const std::vector<sim::PartSpec>& parts);
+[[nodiscard]] Status write_sim_pass(const app::Config& config, sim::SimCell& cell, const SimOptions& options);
 
 // `sim --random-catalogue N --seed S --out FILE`: a generated catalogue (drivers/sim/random_catalogue.hpp), checked
 // against the configured grid, written atomically to a new file (an existing file is never replaced).
-[[nodiscard]] Status write_random_catalogue(const Config& config, int count, std::uint64_t seed,
+[[nodiscard]] Status write_random_catalogue(const app::Config& config, int count, std::uint64_t seed,
                                             const std::string& out_path);
 
 // The truth.yaml text of the current pass (deterministic: no wall-clock data).
-[[nodiscard]] std::string truth_yaml(const Config& config, const sim::SimCell& cell,
+[[nodiscard]] std::string truth_yaml(const app::Config& config, const sim::SimCell& cell,
                                      const std::vector<double>& exposures_us);
 
-}  // namespace cellsight::app
+}  // namespace cellsight::cli

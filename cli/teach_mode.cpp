@@ -1,5 +1,5 @@
 // `cellsight teach` and `cellsight parts`: store scans of a part type, build its template, manage the database.
-#include "app/teach_mode.hpp"
+#include "cli/teach_mode.hpp"
 
 #include <algorithm>
 #include <cmath>
@@ -10,22 +10,21 @@
 #include <optional>
 
 #include "algo/part_isolation.hpp"
-#include "app/cli.hpp"
-#include "app/mode_args.hpp"
-#include "app/perturb_mode.hpp"
 #include "app/recognition.hpp"
-#include "app/scan_mode.hpp"
-#include "app/train_mode.hpp"
+#include "app/scan_acquisition.hpp"
 #include "base/atomic_file.hpp"
 #include "base/crc32.hpp"
 #include "base/local_time.hpp"
+#include "cli/cli.hpp"
+#include "cli/mode_args.hpp"
+#include "cli/perturb_mode.hpp"
 #include "drivers/log.hpp"
 #include "formats/calibration_file.hpp"
 #include "formats/input_file.hpp"
 #include "formats/ply.hpp"
 #include "formats/template_file.hpp"
 
-namespace cellsight::app {
+namespace cellsight::cli {
 namespace {
 
 constexpr std::int64_t kMaxPlcId = 65535;
@@ -49,11 +48,11 @@ std::string scan_file_name(const std::string& part, std::size_t index) {
 
 // Acquires `count` passes of `part` on the simulated cell, seeds first_seed.., on all cores (each perturbed when
 // `perturb` is given).
-Expected<std::vector<TaughtScan>> acquire_sim_scans(const Config& config, const std::string& part, int count,
+Expected<std::vector<TaughtScan>> acquire_sim_scans(const app::Config& config, const std::string& part, int count,
                                                     std::uint64_t first_seed, const std::string& calibration_path,
-                                                    const PassPerturbation* perturb) {
+                                                    const app::PassPerturbation* perturb) {
   std::vector<TaughtScan> scans(static_cast<std::size_t>(count));
-  auto ok = acquire_sim_passes(
+  auto ok = app::acquire_sim_passes(
       config, part, count, first_seed, calibration_path, "scanned",
       [&](int index, std::uint64_t seed, std::vector<algo::ScanPoint>&& points) -> Status {
         scans[static_cast<std::size_t>(index)] = {std::move(points), "sim seed " + std::to_string(seed)};
@@ -67,7 +66,7 @@ Expected<std::vector<TaughtScan>> acquire_sim_scans(const Config& config, const 
 Expected<std::vector<TaughtScan>> import_scans(const std::vector<std::string>& files) {
   std::vector<TaughtScan> scans;
   for (const std::string& f : files) {
-    auto points = load_ply_file(f);
+    auto points = formats::load_ply_file(f);
     if (!points) return points.error();
     scans.push_back({std::move(*points), std::filesystem::absolute(f).lexically_normal().string()});
   }
@@ -75,7 +74,7 @@ Expected<std::vector<TaughtScan>> import_scans(const std::vector<std::string>& f
 }
 
 // The cascade's view of a template being built (class 0: teach checks one part against itself).
-algo::TemplateModel view_of(const TemplateModel& model) {
+algo::TemplateModel view_of(const formats::TemplateModel& model) {
   algo::TemplateModel view;
   view.class_index = 0;
   view.map = model.map.view();
@@ -86,7 +85,7 @@ algo::TemplateModel view_of(const TemplateModel& model) {
 
 struct TemplateChoice {
   std::size_t index = 0;
-  TemplateModel model;
+  formats::TemplateModel model;
 };
 
 // Consensus template (issue 10: "built from the taught scans, not taken blindly from one"): the chosen scan keeps
@@ -102,9 +101,9 @@ struct Consensus {
   std::size_t added_points = 0;
   std::size_t added_cells = 0;
 };
-Consensus consensus_points(const Config& config, ScanPreparer& preparer, algo::Cascade& cascade,
+Consensus consensus_points(const app::Config& config, app::ScanPreparer& preparer, algo::Cascade& cascade,
                            const std::vector<TaughtScan>& scans, const TemplateChoice& chosen) {
-  const algo::GridSpec g = grid_spec(config);
+  const algo::GridSpec g = app::grid_spec(config);
   const auto nx = static_cast<std::size_t>(g.nx), ny = static_cast<std::size_t>(g.ny);
   const double inv = 1.0 / g.resolution_m;
   auto cell_of = [&](double x, double y, std::size_t& out) {
@@ -201,7 +200,7 @@ Consensus consensus_points(const Config& config, ScanPreparer& preparer, algo::C
 // + the two-way check) until one leaves a median evidence within the cascade's area floor; else the best of the
 // tried. Scans that disagree with the chosen one are named (the operator sees it at teach time). Teach time only:
 // allocates a full template per try.
-Expected<TemplateChoice> choose_template(const Config& config, ScanPreparer& preparer,
+Expected<TemplateChoice> choose_template(const app::Config& config, app::ScanPreparer& preparer,
                                          const std::vector<TaughtScan>& scans) {
   constexpr int kMaxTries = 3;
   constexpr double kDisagreeFactor = 4.0;
@@ -219,8 +218,8 @@ Expected<TemplateChoice> choose_template(const Config& config, ScanPreparer& pre
     return std::abs(static_cast<double>(counts[a]) - median_count) <
            std::abs(static_cast<double>(counts[b]) - median_count);
   });
-  const algo::CascadeParams cp = cascade_params(config);
-  algo::Cascade cascade(cp, perfect_match_params(config), grid_spec(config));
+  const algo::CascadeParams cp = app::cascade_params(config);
+  algo::Cascade cascade(cp, app::perfect_match_params(config), app::grid_spec(config));
   std::optional<TemplateChoice> best;
   double best_median = std::numeric_limits<double>::infinity();
   std::vector<double> best_evidence;
@@ -228,7 +227,7 @@ Expected<TemplateChoice> choose_template(const Config& config, ScanPreparer& pre
   for (int t = 0; t < std::min<int>(kMaxTries, static_cast<int>(order.size())); ++t) {
     const std::size_t i = order[static_cast<std::size_t>(t)];
     (void)preparer.prepare(scans[i].points);
-    auto model = build_template(preparer.part_points(), grid_spec(config));
+    auto model = formats::build_template(preparer.part_points(), app::grid_spec(config));
     if (!model) {
       if (first_error.empty()) first_error = scans[i].source + ": " + model.error().message;
       continue;
@@ -261,7 +260,7 @@ Expected<TemplateChoice> choose_template(const Config& config, ScanPreparer& pre
     // Consensus: fill the chosen scan's gaps from the others, then judge every scan against the result.
     auto merged = consensus_points(config, preparer, cascade, scans, *best);
     if (merged.added_points > 0) {
-      auto model = build_template(merged.points, grid_spec(config));
+      auto model = formats::build_template(merged.points, app::grid_spec(config));
       if (model) {
         std::printf(
             "template: completed from the other scans where at least half of them agree and it has none "
@@ -294,11 +293,11 @@ Expected<TemplateChoice> choose_template(const Config& config, ScanPreparer& pre
   return std::move(*best);
 }
 
-void print_part(const ModelDb& db, const PartEntry& p, bool detail) {
+void print_part(const app::ModelDb& db, const formats::PartEntry& p, bool detail) {
   std::printf("%-24s %6d %6zu %7zu  %-5s %s\n", p.name.c_str(), p.id, p.scans.size(), p.flagged.size(),
               p.thresholds.learnt ? "yes" : "no", p.taught_at.c_str());
   if (!detail) return;
-  auto info = read_template_info(db.path_of(p.template_file));
+  auto info = formats::read_template_info(db.path_of(p.template_file));
   if (info) {
     std::printf("  template     %s (%.1f MB, %llu occupied cells, centroid x %.1f mm y %.1f mm)\n",
                 p.template_file.c_str(), static_cast<double>(info->file_bytes) / 1e6,
@@ -307,7 +306,7 @@ void print_part(const ModelDb& db, const PartEntry& p, bool detail) {
   } else {
     std::printf("  template     %s: %s\n", p.template_file.c_str(), info.error().message.c_str());
   }
-  if (const ScanEntry* t = p.template_scan_entry()) {
+  if (const formats::ScanEntry* t = p.template_scan_entry()) {
     std::printf("  built from   %s (%s): poses are relative to this pass\n", t->file.c_str(), t->source.c_str());
   }
   if (!p.confusable.empty()) {
@@ -323,7 +322,7 @@ void print_part(const ModelDb& db, const PartEntry& p, bool detail) {
     std::printf("  size         width and height within %.1f mm of its own scans'\n",
                 p.thresholds.max_size_dev_m * 1e3);
   }
-  for (const ScanEntry& s : p.scans) {
+  for (const formats::ScanEntry& s : p.scans) {
     const bool flagged = std::find(p.flagged.begin(), p.flagged.end(), s.file) != p.flagged.end();
     std::printf("  scan         %s  (%s)%s\n", s.file.c_str(), s.source.c_str(),
                 flagged ? "  FLAGGED: disagrees with the others, left out of the thresholds" : "");
@@ -347,7 +346,7 @@ Expected<TeachArgs> parse_teach_args(const std::vector<std::string>& words) {
   }
   const std::string* part = t.args.value("--part");
   if (part == nullptr) return make_error("teach needs --part NAME");
-  if (!valid_part_name(*part))
+  if (!formats::valid_part_name(*part))
     return make_error("teach: part name '" + *part + "': use 1..64 letters, digits, '_' or '-'");
   t.part = *part;
   t.sim = t.args.has("--sim");
@@ -368,8 +367,8 @@ Expected<TeachArgs> parse_teach_args(const std::vector<std::string>& words) {
 
 // The part's PLC id: --id (unique in the database, and the part's own if it exists), its existing id, or one more
 // than the largest so far.
-Expected<std::int64_t> plc_id_for(const ModeArgs& args, const ModelDb& db, const std::string& part,
-                                  const PartEntry* existing) {
+Expected<std::int64_t> plc_id_for(const ModeArgs& args, const app::ModelDb& db, const std::string& part,
+                                  const formats::PartEntry* existing) {
   std::int64_t id = 0;
   if (const std::string* v = args.value("--id")) {
     if (!parse_whole(*v, 1, kMaxPlcId, id)) return make_error("teach: --id '" + *v + "': expected 1..65535");
@@ -377,7 +376,7 @@ Expected<std::int64_t> plc_id_for(const ModeArgs& args, const ModelDb& db, const
       return make_error("teach: part '" + part + "' already has PLC id " + std::to_string(existing->id) +
                         "; delete it first to change its id");
     }
-    for (const PartEntry& p : db.manifest().parts) {
+    for (const formats::PartEntry& p : db.manifest().parts) {
       if (p.name != part && p.id == id) {
         return make_error("teach: PLC id " + std::to_string(id) + " belongs to part '" + p.name + "'");
       }
@@ -385,14 +384,14 @@ Expected<std::int64_t> plc_id_for(const ModeArgs& args, const ModelDb& db, const
     return id;
   }
   if (existing != nullptr) return static_cast<std::int64_t>(existing->id);
-  for (const PartEntry& p : db.manifest().parts) id = std::max<std::int64_t>(id, p.id);
+  for (const formats::PartEntry& p : db.manifest().parts) id = std::max<std::int64_t>(id, p.id);
   return id + 1;
 }
 
 // The scans to teach: simulated passes (seeds after the ones already taught, unless --seed) or the files given.
-Expected<std::vector<TaughtScan>> gather_scans(const TeachArgs& t, const Config& config, std::int64_t id,
+Expected<std::vector<TaughtScan>> gather_scans(const TeachArgs& t, const app::Config& config, std::int64_t id,
                                                std::size_t already, const std::string& calibration_path,
-                                               const PassPerturbation* perturb) {
+                                               const app::PassPerturbation* perturb) {
   if (!t.sim) return import_scans(t.args.positional);
   std::uint64_t first_seed = already + 1;
   if (const std::string* s = t.args.value("--seed")) {
@@ -409,22 +408,22 @@ Expected<std::vector<TaughtScan>> gather_scans(const TeachArgs& t, const Config&
 // A new part: its entry and its template, built from the taught scan that agrees best with the others (issue 10:
 // the first one may carry a glare band or a stray edge); poses are reported relative to it and `parts show` names
 // it. Returns an exit code (kExitOk: go on); the template file is added to `written`.
-int start_new_part(const Config& config, ModelDb& db, ScanPreparer& preparer, const std::vector<TaughtScan>& scans,
-                   const std::string& part, std::int64_t id, PartEntry& entry, std::size_t& template_index,
-                   std::vector<std::string>& written) {
+int start_new_part(const app::Config& config, app::ModelDb& db, app::ScanPreparer& preparer,
+                   const std::vector<TaughtScan>& scans, const std::string& part, std::int64_t id,
+                   formats::PartEntry& entry, std::size_t& template_index, std::vector<std::string>& written) {
   entry.name = part;
   entry.id = static_cast<int>(id);
   entry.template_file = "templates/" + part + ".dmap";
-  entry.taught_at = local_time_text();
+  entry.taught_at = base::local_time_text();
   auto choice = choose_template(config, preparer, scans);
   if (!choice) return fail(kExitUsage, "teach: template of " + part + ": " + choice.error().message);
   template_index = choice->index;
   std::error_code ec;
   std::filesystem::create_directories(db.path_of("templates"), ec);
-  TemplateIdentity identity;
+  formats::TemplateIdentity identity;
   identity.part_name = part;
   identity.plc_id = static_cast<std::uint32_t>(id);
-  if (auto ok = write_template(db.path_of(entry.template_file), choice->model, identity); !ok) {
+  if (auto ok = formats::write_template(db.path_of(entry.template_file), choice->model, identity); !ok) {
     return fail(kExitFailure, "teach: " + ok.error().message);
   }
   written.push_back(entry.template_file);
@@ -432,8 +431,9 @@ int start_new_part(const Config& config, ModelDb& db, ScanPreparer& preparer, co
 }
 
 // Writes the scans (binary PLY, atomically) and the manifest; on a failure removes every file this teach wrote.
-int store_scans(ModelDb& db, const std::vector<TaughtScan>& scans, const std::string& part, std::size_t already,
-                std::size_t template_index, PartEntry& entry, PartEntry* existing, std::vector<std::string>& written) {
+int store_scans(app::ModelDb& db, const std::vector<TaughtScan>& scans, const std::string& part, std::size_t already,
+                std::size_t template_index, formats::PartEntry& entry, formats::PartEntry* existing,
+                std::vector<std::string>& written) {
   const auto undo = [&] {
     std::error_code ec;
     for (const std::string& f : written) std::filesystem::remove(db.path_of(f), ec);
@@ -447,8 +447,8 @@ int store_scans(ModelDb& db, const std::vector<TaughtScan>& scans, const std::st
     do {
       file = scan_file_name(part, ++index);
     } while (std::filesystem::exists(db.path_of(file)));
-    const std::string bytes = algo::write_ply_binary(s.points);
-    if (auto ok = write_file_atomic(db.path_of(file), bytes); !ok) {
+    const std::string bytes = formats::write_ply_binary(s.points);
+    if (auto ok = base::write_file_atomic(db.path_of(file), bytes); !ok) {
       undo();
       return fail(kExitFailure, "teach: " + ok.error().message);
     }
@@ -470,20 +470,20 @@ int store_scans(ModelDb& db, const std::vector<TaughtScan>& scans, const std::st
 
 }  // namespace
 
-int run_teach(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
+int run_teach(const std::vector<std::string>& words, const app::Config& config, const std::string& models_dir) {
   auto parsed = parse_teach_args(words);
   if (!parsed) return fail(kExitUsage, parsed.error().message);
   const TeachArgs& t = *parsed;
-  auto db = ModelDb::open_for_writing(models_dir, grid_spec(config), true);
+  auto db = app::ModelDb::open_for_writing(models_dir, app::grid_spec(config), true);
   if (!db) return fail(kExitUsage, db.error().message);
-  PartEntry* existing = db->find(t.part);
+  formats::PartEntry* existing = db->find(t.part);
   auto id = plc_id_for(t.args, *db, t.part, existing);
   if (!id) return fail(kExitUsage, id.error().message);
   const std::string* calibration_arg = t.args.value("--calibration");
-  const std::string calibration_path = calibration_arg ? *calibration_arg : default_calibration_path(config);
-  auto support = load_support_plane(calibration_path);
+  const std::string calibration_path = calibration_arg ? *calibration_arg : app::default_calibration_path(config);
+  auto support = app::load_support_plane(calibration_path);
   if (!support) return fail(kExitUsage, support.error().message);
-  auto perturb = perturbation_option(t.args, config, calibration_path, kPerturbTeach);
+  auto perturb = perturbation_option(t.args, config, calibration_path, app::kPerturbTeach);
   if (!perturb) return fail(kExitUsage, "teach: " + perturb.error().message);
 
   const std::size_t already = existing != nullptr ? existing->scans.size() : 0;
@@ -491,17 +491,17 @@ int run_teach(const std::vector<std::string>& words, const Config& config, const
   if (!scans) return fail(kExitUsage, "teach: " + scans.error().message);
 
   // Every scan must show a part that fits the grid before anything is written.
-  ScanPreparer preparer(config, *support, scan_builder_params(config).max_points);
+  app::ScanPreparer preparer(config, *support, app::scan_builder_params(config).max_points);
   for (const TaughtScan& s : *scans) {
-    const PrepareReport r = preparer.prepare(s.points);
-    if (r.status != PrepareStatus::kOk) {
+    const app::PrepareReport r = preparer.prepare(s.points);
+    if (r.status != app::PrepareStatus::kOk) {
       return fail(kExitUsage, "teach: " + s.source + ": " + std::string(to_string(r.status)) + " (" + r.describe() +
                                   "); nothing was stored");
     }
   }
 
   std::vector<std::string> written;
-  PartEntry entry = existing != nullptr ? *existing : PartEntry{};
+  formats::PartEntry entry = existing != nullptr ? *existing : formats::PartEntry{};
   std::size_t template_index = SIZE_MAX;  // of *scans, when this call builds the template
   if (existing == nullptr) {
     const int started = start_new_part(config, *db, preparer, *scans, t.part, *id, entry, template_index, written);
@@ -516,23 +516,23 @@ int run_teach(const std::vector<std::string>& words, const Config& config, const
   return kExitOk;
 }
 
-int run_parts(const std::vector<std::string>& words, const Config& config, const std::string& models_dir) {
+int run_parts(const std::vector<std::string>& words, const app::Config& config, const std::string& models_dir) {
   ModeArgs args;
   std::string error;
   if (!parse_mode_args(words, {}, {}, args, error)) return fail(kExitUsage, "parts: " + error);
   if (args.positional.empty()) return fail(kExitUsage, "parts needs list, show NAME or delete NAME");
   const std::string& action = args.positional.front();
-  auto db = action == "delete" ? ModelDb::open_for_writing(models_dir, grid_spec(config), false)
-                               : ModelDb::open(models_dir, grid_spec(config), false);
+  auto db = action == "delete" ? app::ModelDb::open_for_writing(models_dir, app::grid_spec(config), false)
+                               : app::ModelDb::open(models_dir, app::grid_spec(config), false);
   if (!db) return fail(kExitUsage, db.error().message);
   if (action == "list" && args.positional.size() == 1) {
     // Every file is checked as loading it checks it (a template's header and body checksums, the SVM's checksum,
     // model and classes), so a damaged one shows here and not first in classify.
     int damaged = 0;
     std::printf("%-24s %6s %6s %7s  %-5s %s\n", "part", "id", "scans", "flagged", "thr", "taught");
-    for (const PartEntry& p : db->manifest().parts) {
+    for (const formats::PartEntry& p : db->manifest().parts) {
       print_part(*db, p, false);
-      if (auto t = TemplateFile::open(db->path_of(p.template_file), grid_spec(config)); !t) {
+      if (auto t = formats::TemplateFile::open(db->path_of(p.template_file), app::grid_spec(config)); !t) {
         std::printf("  DAMAGED template %s: %s; classify disables this part\n", p.template_file.c_str(),
                     t.error().message.c_str());
         ++damaged;
@@ -543,7 +543,7 @@ int run_parts(const std::vector<std::string>& words, const Config& config, const
       std::printf("SVM: trained %s, %.2f %% on %d test scans, %s\n", db->manifest().svm.trained_at.c_str(),
                   db->manifest().svm.test_accuracy * 100.0, db->manifest().svm.test_scans,
                   db->manifest().svm.hyper.c_str());
-      if (auto svm = load_svm(*db); !svm) {
+      if (auto svm = app::load_svm(*db); !svm) {
         std::printf("SVM: DAMAGED: %s\n", svm.error().message.c_str());
         ++damaged;
       }
@@ -560,7 +560,7 @@ int run_parts(const std::vector<std::string>& words, const Config& config, const
   }
   if ((action == "show" || action == "delete") && args.positional.size() == 2) {
     const std::string& name = args.positional[1];
-    const PartEntry* p = db->find(name);
+    const formats::PartEntry* p = db->find(name);
     if (p == nullptr) return fail(kExitUsage, "parts: no part '" + name + "' in " + db->manifest_path());
     if (action == "show") {
       print_part(*db, *p, true);
@@ -573,4 +573,4 @@ int run_parts(const std::vector<std::string>& words, const Config& config, const
   return fail(kExitUsage, "parts needs list, show NAME or delete NAME");
 }
 
-}  // namespace cellsight::app
+}  // namespace cellsight::cli
