@@ -86,12 +86,9 @@ PlaneFit fit_sheet(std::span<const ScanPoint> in, std::span<const std::uint32_t>
 
 std::string_view to_string(CanonicalStatus status) {
   switch (status) {
-    case CanonicalStatus::kOk:
-      return "ok";
-    case CanonicalStatus::kEmpty:
-      return "no point inside the grid";
-    case CanonicalStatus::kOutputTooSmall:
-      return "output buffer smaller than the scan";
+    case CanonicalStatus::kOk: return "ok";
+    case CanonicalStatus::kEmpty: return "no point inside the grid";
+    case CanonicalStatus::kOutputTooSmall: return "output buffer smaller than the scan";
   }
   return "invalid";
 }

@@ -169,24 +169,12 @@ constexpr int kSizeFigure = 5;
 }
 void set_limit(TemplateThresholds& t, int figure, double v) {
   switch (figure) {
-    case 0:
-      t.max_error = v;
-      break;
-    case 1:
-      t.max_missing_area_m2 = v;
-      break;
-    case 2:
-      t.max_extra_area_m2 = v;
-      break;
-    case 3:
-      t.max_uncovered = v;
-      break;
-    case 4:
-      t.max_outliers = v;
-      break;
-    default:
-      t.max_size_dev_m = v;
-      break;
+    case 0: t.max_error = v; break;
+    case 1: t.max_missing_area_m2 = v; break;
+    case 2: t.max_extra_area_m2 = v; break;
+    case 3: t.max_uncovered = v; break;
+    case 4: t.max_outliers = v; break;
+    default: t.max_size_dev_m = v; break;
   }
 }
 constexpr RejectReason kFigureReason[kFigures] = {RejectReason::kPmError,   RejectReason::kMissingArea,

@@ -22,18 +22,12 @@ enum class DecisionSource : std::uint8_t {
 
 [[nodiscard]] constexpr std::string_view to_string(DecisionSource source) {
   switch (source) {
-    case DecisionSource::kSvm:
-      return "svm";
-    case DecisionSource::kPm:
-      return "pm";
-    case DecisionSource::kUnknown:
-      return "unknown";
-    case DecisionSource::kTimeout:
-      return "timeout";
-    case DecisionSource::kBadScan:
-      return "bad_scan";
-    case DecisionSource::kNoPart:
-      return "no_part";
+    case DecisionSource::kSvm: return "svm";
+    case DecisionSource::kPm: return "pm";
+    case DecisionSource::kUnknown: return "unknown";
+    case DecisionSource::kTimeout: return "timeout";
+    case DecisionSource::kBadScan: return "bad_scan";
+    case DecisionSource::kNoPart: return "no_part";
   }
   return "invalid";
 }
@@ -63,26 +57,16 @@ enum class RejectReason : std::uint8_t {
 
 [[nodiscard]] constexpr std::string_view to_string(RejectReason reason) {
   switch (reason) {
-    case RejectReason::kNone:
-      return "none";
-    case RejectReason::kNoTemplate:
-      return "no_template";
-    case RejectReason::kPmError:
-      return "pm_error";
-    case RejectReason::kMissingArea:
-      return "missing_area";
-    case RejectReason::kExtraArea:
-      return "extra_area";
-    case RejectReason::kUncovered:
-      return "uncovered";
-    case RejectReason::kOutliers:
-      return "outliers";
-    case RejectReason::kSize:
-      return "size";
-    case RejectReason::kAmbiguous:
-      return "ambiguous";
-    case RejectReason::kNotVerified:
-      return "not_verified";
+    case RejectReason::kNone: return "none";
+    case RejectReason::kNoTemplate: return "no_template";
+    case RejectReason::kPmError: return "pm_error";
+    case RejectReason::kMissingArea: return "missing_area";
+    case RejectReason::kExtraArea: return "extra_area";
+    case RejectReason::kUncovered: return "uncovered";
+    case RejectReason::kOutliers: return "outliers";
+    case RejectReason::kSize: return "size";
+    case RejectReason::kAmbiguous: return "ambiguous";
+    case RejectReason::kNotVerified: return "not_verified";
   }
   return "invalid";
 }

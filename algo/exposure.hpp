@@ -54,20 +54,13 @@ enum class ExposureAction : std::uint8_t {
 
 [[nodiscard]] constexpr const char* to_string(ExposureAction action) {
   switch (action) {
-    case ExposureAction::kHold:
-      return "hold";
-    case ExposureAction::kIncrease:
-      return "increase";
-    case ExposureAction::kDecrease:
-      return "decrease";
-    case ExposureAction::kSaturationDecrease:
-      return "saturation decrease";
-    case ExposureAction::kNoStripeHold:
-      return "no stripe: hold";
-    case ExposureAction::kProbe:
-      return "no stripe: probe";
-    case ExposureAction::kOverExposedDecrease:
-      return "over-exposed: decrease";
+    case ExposureAction::kHold: return "hold";
+    case ExposureAction::kIncrease: return "increase";
+    case ExposureAction::kDecrease: return "decrease";
+    case ExposureAction::kSaturationDecrease: return "saturation decrease";
+    case ExposureAction::kNoStripeHold: return "no stripe: hold";
+    case ExposureAction::kProbe: return "no stripe: probe";
+    case ExposureAction::kOverExposedDecrease: return "over-exposed: decrease";
   }
   return "unknown";
 }

@@ -37,12 +37,9 @@ FeatureParams feature_params_for(const GridSpec& spec) {
 
 std::string_view to_string(FeatureStatus status) {
   switch (status) {
-    case FeatureStatus::kOk:
-      return "ok";
-    case FeatureStatus::kEmptyImage:
-      return "empty depth image (no occupied pixel)";
-    case FeatureStatus::kWrongImage:
-      return "depth image is not CV_8UC1 of the extractor's size";
+    case FeatureStatus::kOk: return "ok";
+    case FeatureStatus::kEmptyImage: return "empty depth image (no occupied pixel)";
+    case FeatureStatus::kWrongImage: return "depth image is not CV_8UC1 of the extractor's size";
   }
   return "unknown";
 }

@@ -466,27 +466,17 @@ PerturbReport perturb_scan(std::vector<ScanPoint>& points, const PerturbSpec& sp
     if (needs_part && l.part_points == 0) continue;
     bool applied = true;
     switch (kind) {
-      case PerturbKind::kSwing:
-        apply_swing(points, l, setting.strength, rng, r);
-        break;
+      case PerturbKind::kSwing: apply_swing(points, l, setting.strength, rng, r); break;
       case PerturbKind::kStrayEdge:
         applied = apply_stray_edge(points, l, support, spec.carrier_band_m, setting.strength, rng, r);
         break;
       case PerturbKind::kStrayPoints:
         apply_stray_points(points, l, support, spec.carrier_band_m, setting.strength, rng, r);
         break;
-      case PerturbKind::kGlare:
-        apply_glare(points, l, setting.strength, rng, r);
-        break;
-      case PerturbKind::kThin:
-        apply_thin(points, setting.strength, r);
-        break;
-      case PerturbKind::kDropout:
-        apply_dropout(points, setting.strength, rng, r);
-        break;
-      case PerturbKind::kNoise:
-        apply_noise(points, setting.strength, rng, r);
-        break;
+      case PerturbKind::kGlare: apply_glare(points, l, setting.strength, rng, r); break;
+      case PerturbKind::kThin: apply_thin(points, setting.strength, r); break;
+      case PerturbKind::kDropout: apply_dropout(points, setting.strength, rng, r); break;
+      case PerturbKind::kNoise: apply_noise(points, setting.strength, rng, r); break;
     }
     r.applied[k] = applied;
   }

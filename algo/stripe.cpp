@@ -733,18 +733,13 @@ class StripeExtractor {
     for (int r = 0; r < height; ++r) {
       const StripeRow& row = out_.rows_[std::size_t(r)];
       switch (row.status) {
-        case StripeStatus::kSaturated:
-          ++s.saturated_rows;
-          [[fallthrough]];
+        case StripeStatus::kSaturated: ++s.saturated_rows; [[fallthrough]];
         case StripeStatus::kValid:
           ++s.valid_rows;
           out_.scratch_[std::size_t(widths++)] = row.width_px;
           break;
-        case StripeStatus::kAmbiguous:
-          ++s.ambiguous_rows;
-          break;
-        case StripeStatus::kNoStripe:
-          break;
+        case StripeStatus::kAmbiguous: ++s.ambiguous_rows; break;
+        case StripeStatus::kNoStripe: break;
       }
     }
     s.too_wide_rows = too_wide_rows_;

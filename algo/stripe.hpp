@@ -55,14 +55,10 @@ enum class StripeStatus : std::uint8_t {
 
 [[nodiscard]] constexpr const char* to_string(StripeStatus status) {
   switch (status) {
-    case StripeStatus::kValid:
-      return "valid";
-    case StripeStatus::kNoStripe:
-      return "no_stripe";
-    case StripeStatus::kSaturated:
-      return "saturated";
-    case StripeStatus::kAmbiguous:
-      return "ambiguous";
+    case StripeStatus::kValid: return "valid";
+    case StripeStatus::kNoStripe: return "no_stripe";
+    case StripeStatus::kSaturated: return "saturated";
+    case StripeStatus::kAmbiguous: return "ambiguous";
   }
   return "unknown";
 }
@@ -141,12 +137,9 @@ enum class [[nodiscard]] StripeResult : std::uint8_t{
 
 [[nodiscard]] constexpr const char* to_string(StripeResult result) {
   switch (result) {
-    case StripeResult::kOk:
-      return "ok";
-    case StripeResult::kInvalidImage:
-      return "invalid image";
-    case StripeResult::kCapacityExceeded:
-      return "profile capacity exceeded";
+    case StripeResult::kOk: return "ok";
+    case StripeResult::kInvalidImage: return "invalid image";
+    case StripeResult::kCapacityExceeded: return "profile capacity exceeded";
   }
   return "unknown";
 }

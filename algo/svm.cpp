@@ -152,10 +152,8 @@ void silence_libsvm() {
 
 std::string_view to_string(KernelType kernel) {
   switch (kernel) {
-    case KernelType::kRbf:
-      return "rbf";
-    case KernelType::kPoly:
-      return "poly";
+    case KernelType::kRbf: return "rbf";
+    case KernelType::kPoly: return "poly";
   }
   return "unknown";
 }

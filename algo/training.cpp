@@ -573,12 +573,9 @@ Status validate_params(const TrainParams& p) {
 
 std::string_view to_string(Classifier classifier) {
   switch (classifier) {
-    case Classifier::kSvm:
-      return "svm";
-    case Classifier::kKnn:
-      return "knn";
-    case Classifier::kMlp:
-      return "mlp";
+    case Classifier::kSvm: return "svm";
+    case Classifier::kKnn: return "knn";
+    case Classifier::kMlp: return "mlp";
   }
   return "unknown";
 }

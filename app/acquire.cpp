@@ -15,18 +15,14 @@ namespace {
 
 AcquireResult result_of(PassAbort abort) {
   switch (abort) {
-    case PassAbort::kCameraTimeout:
-      return AcquireResult::kCameraTimeout;
+    case PassAbort::kCameraTimeout: return AcquireResult::kCameraTimeout;
     case PassAbort::kCamera:
-    case PassAbort::kExposure:
-      return AcquireResult::kCameraFault;
-    case PassAbort::kTooManyFrames:
-      return AcquireResult::kTooManyFrames;
+    case PassAbort::kExposure: return AcquireResult::kCameraFault;
+    case PassAbort::kTooManyFrames: return AcquireResult::kTooManyFrames;
     case PassAbort::kNone:
     case PassAbort::kEncoderUnreadable:
     case PassAbort::kLaser:
-    case PassAbort::kPartPresentInput:
-      return AcquireResult::kIoFault;
+    case PassAbort::kPartPresentInput: return AcquireResult::kIoFault;
   }
   return AcquireResult::kIoFault;
 }

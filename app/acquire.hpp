@@ -21,18 +21,12 @@ enum class [[nodiscard]] AcquireResult : std::uint8_t{
 
 constexpr const char* to_string(AcquireResult r) {
   switch (r) {
-    case AcquireResult::kOk:
-      return "ok";
-    case AcquireResult::kNoPart:
-      return "no part";
-    case AcquireResult::kCameraTimeout:
-      return "camera stopped delivering frames";
-    case AcquireResult::kCameraFault:
-      return "camera fault";
-    case AcquireResult::kIoFault:
-      return "digital I/O or encoder fault";
-    case AcquireResult::kTooManyFrames:
-      return "part-present never fell";
+    case AcquireResult::kOk: return "ok";
+    case AcquireResult::kNoPart: return "no part";
+    case AcquireResult::kCameraTimeout: return "camera stopped delivering frames";
+    case AcquireResult::kCameraFault: return "camera fault";
+    case AcquireResult::kIoFault: return "digital I/O or encoder fault";
+    case AcquireResult::kTooManyFrames: return "part-present never fell";
   }
   return "unknown";
 }

@@ -26,16 +26,11 @@ algo::GridSpec grid_spec(const Config& config) {
 
 std::string_view to_string(PrepareStatus status) {
   switch (status) {
-    case PrepareStatus::kOk:
-      return "ok";
-    case PrepareStatus::kEmpty:
-      return "the scan has no point";
-    case PrepareStatus::kNoPart:
-      return "nothing in front of the carrier";
-    case PrepareStatus::kOutsideGrid:
-      return "the part does not fit the grid";
-    case PrepareStatus::kTooFewPoints:
-      return "too few points for a part";
+    case PrepareStatus::kOk: return "ok";
+    case PrepareStatus::kEmpty: return "the scan has no point";
+    case PrepareStatus::kNoPart: return "nothing in front of the carrier";
+    case PrepareStatus::kOutsideGrid: return "the part does not fit the grid";
+    case PrepareStatus::kTooFewPoints: return "too few points for a part";
   }
   return "invalid";
 }

@@ -38,12 +38,9 @@ std::string percent_text(double fraction) {
 
 std::string classifier_display_name(algo::Classifier classifier) {
   switch (classifier) {
-    case algo::Classifier::kSvm:
-      return "SVM";
-    case algo::Classifier::kKnn:
-      return "kNN";
-    case algo::Classifier::kMlp:
-      return "MLP";
+    case algo::Classifier::kSvm: return "SVM";
+    case algo::Classifier::kKnn: return "kNN";
+    case algo::Classifier::kMlp: return "MLP";
   }
   return "?";
 }

@@ -253,15 +253,11 @@ void draw_legend(cv::Mat& image, const std::vector<LegendEntry>& entries, int x,
   constexpr int kSample = 22, kGap = 8, kSpacing = 24;
   for (const LegendEntry& e : entries) {
     switch (e.mark) {
-      case LegendEntry::Mark::kLine:
-        cv::line(image, {x, y_mid}, {x + kSample, y_mid}, e.color, 2, cv::LINE_AA);
-        break;
+      case LegendEntry::Mark::kLine: cv::line(image, {x, y_mid}, {x + kSample, y_mid}, e.color, 2, cv::LINE_AA); break;
       case LegendEntry::Mark::kDot:
         cv::circle(image, {x + kSample / 2, y_mid}, 3, e.color, cv::FILLED, cv::LINE_AA);
         break;
-      case LegendEntry::Mark::kRing:
-        cv::circle(image, {x + kSample / 2, y_mid}, 3, e.color, 1, cv::LINE_AA);
-        break;
+      case LegendEntry::Mark::kRing: cv::circle(image, {x + kSample / 2, y_mid}, 3, e.color, 1, cv::LINE_AA); break;
     }
     put_text(image, e.label, x + kSample + kGap, y_mid, kTextScale, kBlack);
     x += kSample + kGap + text_size(e.label, kTextScale).width + kSpacing;

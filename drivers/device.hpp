@@ -14,18 +14,12 @@ enum class [[nodiscard]] DeviceStatus{
 
 constexpr const char* to_string(DeviceStatus status) {
   switch (status) {
-    case DeviceStatus::kOk:
-      return "ok";
-    case DeviceStatus::kTimeout:
-      return "timeout";
-    case DeviceStatus::kIoError:
-      return "I/O error";
-    case DeviceStatus::kDeviceLost:
-      return "device lost";
-    case DeviceStatus::kNotStarted:
-      return "not started";
-    case DeviceStatus::kInvalidArgument:
-      return "invalid argument";
+    case DeviceStatus::kOk: return "ok";
+    case DeviceStatus::kTimeout: return "timeout";
+    case DeviceStatus::kIoError: return "I/O error";
+    case DeviceStatus::kDeviceLost: return "device lost";
+    case DeviceStatus::kNotStarted: return "not started";
+    case DeviceStatus::kInvalidArgument: return "invalid argument";
   }
   return "unknown";
 }

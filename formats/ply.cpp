@@ -31,19 +31,14 @@ Type parse_type(std::string_view t) {
 std::size_t type_size(Type t) {
   switch (t) {
     case Type::kInt8:
-    case Type::kUint8:
-      return 1;
+    case Type::kUint8: return 1;
     case Type::kInt16:
-    case Type::kUint16:
-      return 2;
+    case Type::kUint16: return 2;
     case Type::kInt32:
     case Type::kUint32:
-    case Type::kFloat32:
-      return 4;
-    case Type::kFloat64:
-      return 8;
-    case Type::kInvalid:
-      return 0;
+    case Type::kFloat32: return 4;
+    case Type::kFloat64: return 8;
+    case Type::kInvalid: return 0;
   }
   return 0;
 }
@@ -90,8 +85,7 @@ double read_binary(const char* p, Type t) {
       std::memcpy(&v, p, 8);
       return v;
     }
-    case Type::kInvalid:
-      break;
+    case Type::kInvalid: break;
   }
   return 0.0;
 }

@@ -50,9 +50,7 @@ void ProductionLoop::handle_exec(const drivers::PlcCommands& commands) {
       break;
     case CommandCode::kEnterTeach:
     case CommandCode::kLeaveTeach:  // teaching is `cellsight teach`, not the production loop
-    case CommandCode::kNone:
-      ok = false;
-      break;
+    case CommandCode::kNone: ok = false; break;
   }
   CS_QLOG_INFO(log_, kComponent, "command %u (arg %u) from the PLC: %s", static_cast<unsigned>(commands.command_raw),
                static_cast<unsigned>(commands.command_arg), ok ? "done" : "refused");

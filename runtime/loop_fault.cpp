@@ -122,8 +122,7 @@ bool ProductionLoop::fault_probe() {
       }
       return false;
     }
-    default:
-      return false;
+    default: return false;
   }
 }
 

@@ -82,18 +82,11 @@ void ProductionLoop::step_scanning(Clock::time_point now) {
   const PassStatus status = acquirer_.step(now);
   if (acquirer_.frame_added() && observer_ != nullptr) observer_->on_frame(acq_id_, acquirer_.frames() - 1);
   switch (status) {
-    case PassStatus::kScanning:
-      return;
-    case PassStatus::kComplete:
-      finish_scan(edge_time(acquirer_.falling_edge(), acquirer_.falling_seen()));
-      return;
-    case PassStatus::kNoPart:
-      publish_no_part(acquirer_.last_grab_at());
-      return;
+    case PassStatus::kScanning: return;
+    case PassStatus::kComplete: finish_scan(edge_time(acquirer_.falling_edge(), acquirer_.falling_seen())); return;
+    case PassStatus::kNoPart: publish_no_part(acquirer_.last_grab_at()); return;
     case PassStatus::kAborted:
-    case PassStatus::kNotStarted:
-      abort_pass(error_code(acquirer_.abort()), acquirer_.abort_reason());
-      return;
+    case PassStatus::kNotStarted: abort_pass(error_code(acquirer_.abort()), acquirer_.abort_reason()); return;
   }
 }
 

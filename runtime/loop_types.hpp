@@ -26,18 +26,12 @@ enum class LoopState : std::uint8_t {
 
 [[nodiscard]] constexpr const char* to_string(LoopState state) {
   switch (state) {
-    case LoopState::kIdle:
-      return "idle";
-    case LoopState::kScanning:
-      return "scanning";
-    case LoopState::kRecognising:
-      return "recognising";
-    case LoopState::kPublishing:
-      return "publishing";
-    case LoopState::kFault:
-      return "fault";
-    case LoopState::kStopped:
-      return "stopped";
+    case LoopState::kIdle: return "idle";
+    case LoopState::kScanning: return "scanning";
+    case LoopState::kRecognising: return "recognising";
+    case LoopState::kPublishing: return "publishing";
+    case LoopState::kFault: return "fault";
+    case LoopState::kStopped: return "stopped";
   }
   return "invalid";
 }

@@ -10,19 +10,14 @@ using drivers::ErrorCode;
 
 drivers::ErrorCode error_code(PassAbort abort) {
   switch (abort) {
-    case PassAbort::kNone:
-      return ErrorCode::kNone;
-    case PassAbort::kEncoderUnreadable:
-      return ErrorCode::kEncoderFault;
+    case PassAbort::kNone: return ErrorCode::kNone;
+    case PassAbort::kEncoderUnreadable: return ErrorCode::kEncoderFault;
     case PassAbort::kLaser:
     case PassAbort::kPartPresentInput:
-    case PassAbort::kTooManyFrames:
-      return ErrorCode::kIoFault;
+    case PassAbort::kTooManyFrames: return ErrorCode::kIoFault;
     case PassAbort::kExposure:
-    case PassAbort::kCamera:
-      return ErrorCode::kCameraFault;
-    case PassAbort::kCameraTimeout:
-      return ErrorCode::kCameraTimeout;
+    case PassAbort::kCamera: return ErrorCode::kCameraFault;
+    case PassAbort::kCameraTimeout: return ErrorCode::kCameraTimeout;
   }
   return ErrorCode::kInternal;
 }

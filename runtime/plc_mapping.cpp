@@ -55,22 +55,14 @@ drivers::PlcResult to_plc_result(const algo::Decision& decision, std::uint32_t a
       std::lround(std::clamp(std::isfinite(cycle_ms) ? cycle_ms : kMaxCycleMs, 0.0, kMaxCycleMs)));
   switch (decision.source) {
     case algo::DecisionSource::kSvm:
-    case algo::DecisionSource::kPm:
-      map_accepted(decision, r);
-      return r;
+    case algo::DecisionSource::kPm: map_accepted(decision, r); return r;
     case algo::DecisionSource::kUnknown:
       r.code = ResultCode::kUnknownPart;
       r.confidence_permille = permille(decision.probability);
       return r;
-    case algo::DecisionSource::kTimeout:
-      r.code = ResultCode::kTimeout;
-      return r;
-    case algo::DecisionSource::kBadScan:
-      r.code = ResultCode::kBadScan;
-      return r;
-    case algo::DecisionSource::kNoPart:
-      r.code = ResultCode::kNoPart;
-      return r;
+    case algo::DecisionSource::kTimeout: r.code = ResultCode::kTimeout; return r;
+    case algo::DecisionSource::kBadScan: r.code = ResultCode::kBadScan; return r;
+    case algo::DecisionSource::kNoPart: r.code = ResultCode::kNoPart; return r;
   }
   r.code = ResultCode::kBadScan;
   return r;

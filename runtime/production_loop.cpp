@@ -182,22 +182,12 @@ void ProductionLoop::step(Clock::time_point now) {
   if (service_ != nullptr && healthy()) service_->pet_watchdog(to_ns(now));
   handle_commands(link_.take_commands());
   switch (state_.load(std::memory_order_relaxed)) {
-    case LoopState::kIdle:
-      step_idle(now);
-      break;
-    case LoopState::kScanning:
-      step_scanning(now);
-      break;
-    case LoopState::kRecognising:
-      step_recognising(now);
-      break;
-    case LoopState::kFault:
-      step_fault(now);
-      break;
+    case LoopState::kIdle: step_idle(now); break;
+    case LoopState::kScanning: step_scanning(now); break;
+    case LoopState::kRecognising: step_recognising(now); break;
+    case LoopState::kFault: step_fault(now); break;
     case LoopState::kPublishing:  // transient inside publish(); never seen here
-    case LoopState::kStopped:
-      enter(LoopState::kIdle);
-      break;
+    case LoopState::kStopped: enter(LoopState::kIdle); break;
   }
   update_flags();
 }

@@ -252,34 +252,20 @@ class FakeV4L2Device final : public SysSeam {
       return injection.result;
     }
     switch (request) {
-      case VIDIOC_QUERYCAP:
-        return query_capabilities(*static_cast<v4l2_capability*>(arg));
-      case VIDIOC_ENUM_FMT:
-        return enumerate_format(*static_cast<v4l2_fmtdesc*>(arg));
-      case VIDIOC_G_FMT:
-        return get_format(*static_cast<v4l2_format*>(arg));
-      case VIDIOC_S_FMT:
-        return set_format(*static_cast<v4l2_format*>(arg));
-      case VIDIOC_REQBUFS:
-        return request_buffers(*static_cast<v4l2_requestbuffers*>(arg));
-      case VIDIOC_QUERYBUF:
-        return query_buffer(*static_cast<v4l2_buffer*>(arg));
-      case VIDIOC_QBUF:
-        return queue_buffer(*static_cast<v4l2_buffer*>(arg));
-      case VIDIOC_DQBUF:
-        return dequeue_buffer(*static_cast<v4l2_buffer*>(arg));
-      case VIDIOC_STREAMON:
-        return stream(*static_cast<int*>(arg), true);
-      case VIDIOC_STREAMOFF:
-        return stream(*static_cast<int*>(arg), false);
-      case VIDIOC_QUERYCTRL:
-        return query_control(*static_cast<v4l2_queryctrl*>(arg));
-      case VIDIOC_G_CTRL:
-        return get_control(*static_cast<v4l2_control*>(arg));
-      case VIDIOC_S_CTRL:
-        return set_control(*static_cast<v4l2_control*>(arg));
-      default:
-        return -ENOTTY;
+      case VIDIOC_QUERYCAP: return query_capabilities(*static_cast<v4l2_capability*>(arg));
+      case VIDIOC_ENUM_FMT: return enumerate_format(*static_cast<v4l2_fmtdesc*>(arg));
+      case VIDIOC_G_FMT: return get_format(*static_cast<v4l2_format*>(arg));
+      case VIDIOC_S_FMT: return set_format(*static_cast<v4l2_format*>(arg));
+      case VIDIOC_REQBUFS: return request_buffers(*static_cast<v4l2_requestbuffers*>(arg));
+      case VIDIOC_QUERYBUF: return query_buffer(*static_cast<v4l2_buffer*>(arg));
+      case VIDIOC_QBUF: return queue_buffer(*static_cast<v4l2_buffer*>(arg));
+      case VIDIOC_DQBUF: return dequeue_buffer(*static_cast<v4l2_buffer*>(arg));
+      case VIDIOC_STREAMON: return stream(*static_cast<int*>(arg), true);
+      case VIDIOC_STREAMOFF: return stream(*static_cast<int*>(arg), false);
+      case VIDIOC_QUERYCTRL: return query_control(*static_cast<v4l2_queryctrl*>(arg));
+      case VIDIOC_G_CTRL: return get_control(*static_cast<v4l2_control*>(arg));
+      case VIDIOC_S_CTRL: return set_control(*static_cast<v4l2_control*>(arg));
+      default: return -ENOTTY;
     }
   }
 

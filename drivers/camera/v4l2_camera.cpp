@@ -60,12 +60,9 @@ bool names_trigger(const std::uint8_t (&name)[32]) {
 const char* open_hint(int error_number) {
   switch (error_number) {
     case EACCES:
-    case EPERM:
-      return "is the user in the 'video' group?";
-    case EBUSY:
-      return "is another program using the camera?";
-    default:
-      return "is the camera connected?";
+    case EPERM: return "is the user in the 'video' group?";
+    case EBUSY: return "is another program using the camera?";
+    default: return "is the camera connected?";
   }
 }
 

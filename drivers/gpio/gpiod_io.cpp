@@ -127,10 +127,8 @@ void GpiodIo::close() {
 
 GpiodIo::OutputLine* GpiodIo::output(Output line) {
   switch (line) {
-    case Output::kLaserEnable:
-      return &laser_;
-    case Output::kCameraTrigger:
-      return &trigger_;
+    case Output::kLaserEnable: return &laser_;
+    case Output::kCameraTrigger: return &trigger_;
   }
   return nullptr;
 }

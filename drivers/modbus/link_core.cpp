@@ -41,10 +41,8 @@ CommandCode to_command(std::uint16_t raw) {
     case CommandCode::kSelectModels:
     case CommandCode::kEnterTeach:
     case CommandCode::kLeaveTeach:
-    case CommandCode::kResetCounters:
-      return static_cast<CommandCode>(raw);
-    case CommandCode::kNone:
-      break;
+    case CommandCode::kResetCounters: return static_cast<CommandCode>(raw);
+    case CommandCode::kNone: break;
   }
   return CommandCode::kNone;
 }

@@ -65,12 +65,9 @@ enum class [[nodiscard]] PublishStatus : std::uint8_t{
 
 constexpr const char* to_string(PublishStatus status) {
   switch (status) {
-    case PublishStatus::kQueued:
-      return "queued";
-    case PublishStatus::kQueueFull:
-      return "queue full";
-    case PublishStatus::kConcurrent:
-      return "concurrent publish";
+    case PublishStatus::kQueued: return "queued";
+    case PublishStatus::kQueueFull: return "queue full";
+    case PublishStatus::kConcurrent: return "concurrent publish";
   }
   return "invalid";
 }

@@ -151,62 +151,40 @@ enum class CommandCode : std::uint16_t {
 
 constexpr const char* to_string(ResultCode code) {
   switch (code) {
-    case ResultCode::kOk:
-      return "ok";
-    case ResultCode::kNoPart:
-      return "no part";
-    case ResultCode::kUnknownPart:
-      return "unknown part";
-    case ResultCode::kAmbiguous:
-      return "ambiguous";
-    case ResultCode::kPoseOutOfRange:
-      return "pose out of range";
-    case ResultCode::kBadScan:
-      return "bad scan";
-    case ResultCode::kTimeout:
-      return "timeout";
+    case ResultCode::kOk: return "ok";
+    case ResultCode::kNoPart: return "no part";
+    case ResultCode::kUnknownPart: return "unknown part";
+    case ResultCode::kAmbiguous: return "ambiguous";
+    case ResultCode::kPoseOutOfRange: return "pose out of range";
+    case ResultCode::kBadScan: return "bad scan";
+    case ResultCode::kTimeout: return "timeout";
   }
   return "invalid";
 }
 
 constexpr const char* to_string(ErrorCode code) {
   switch (code) {
-    case ErrorCode::kNone:
-      return "none";
-    case ErrorCode::kCameraFault:
-      return "camera fault";
-    case ErrorCode::kCameraTimeout:
-      return "camera timeout";
-    case ErrorCode::kIoFault:
-      return "I/O fault";
-    case ErrorCode::kEncoderFault:
-      return "encoder fault";
-    case ErrorCode::kCalibrationInvalid:
-      return "calibration invalid";
-    case ErrorCode::kModelDatabaseInvalid:
-      return "model database invalid";
-    case ErrorCode::kConfigInvalid:
-      return "configuration invalid";
-    case ErrorCode::kRepeatedTimeouts:
-      return "repeated timeouts";
-    case ErrorCode::kInternal:
-      return "internal error";
+    case ErrorCode::kNone: return "none";
+    case ErrorCode::kCameraFault: return "camera fault";
+    case ErrorCode::kCameraTimeout: return "camera timeout";
+    case ErrorCode::kIoFault: return "I/O fault";
+    case ErrorCode::kEncoderFault: return "encoder fault";
+    case ErrorCode::kCalibrationInvalid: return "calibration invalid";
+    case ErrorCode::kModelDatabaseInvalid: return "model database invalid";
+    case ErrorCode::kConfigInvalid: return "configuration invalid";
+    case ErrorCode::kRepeatedTimeouts: return "repeated timeouts";
+    case ErrorCode::kInternal: return "internal error";
   }
   return "invalid";
 }
 
 constexpr const char* to_string(WarningCode code) {
   switch (code) {
-    case WarningCode::kNone:
-      return "none";
-    case WarningCode::kExposureAtLimit:
-      return "exposure at limit";
-    case WarningCode::kCycleSlow:
-      return "cycle slow";
-    case WarningCode::kMissedTrigger:
-      return "missed trigger";
-    case WarningCode::kLowStorage:
-      return "low storage";
+    case WarningCode::kNone: return "none";
+    case WarningCode::kExposureAtLimit: return "exposure at limit";
+    case WarningCode::kCycleSlow: return "cycle slow";
+    case WarningCode::kMissedTrigger: return "missed trigger";
+    case WarningCode::kLowStorage: return "low storage";
   }
   return "invalid";
 }

@@ -69,8 +69,7 @@ std::uint8_t screen_access(std::uint8_t function, std::uint16_t address, std::ui
       if (quantity < 1 || quantity > map::kMaxWriteQuantity) return map::kExceptionIllegalDataValue;
       if (!in_command_block(address, quantity)) return map::kExceptionIllegalDataAddress;
       return 0;
-    default:
-      return map::kExceptionIllegalFunction;
+    default: return map::kExceptionIllegalFunction;
   }
 }
 
@@ -114,8 +113,7 @@ ScreenResult screen_request(std::span<const std::uint8_t> bytes) {
       }
       break;
     }
-    default:
-      return exception(result, map::kExceptionIllegalFunction);
+    default: return exception(result, map::kExceptionIllegalFunction);
   }
 
   const std::uint8_t code = screen_access(result.function, result.address, result.quantity);

@@ -61,22 +61,15 @@ struct Needs {
 Needs needs_for(TwinRelation relation) {
   Needs needs;
   switch (relation) {
-    case TwinRelation::kOneRibLess:
-      needs.rib = true;
-      break;
-    case TwinRelation::kMirrored:
-      needs.mirrorable = true;
-      break;
-    case TwinRelation::kOtherRelief:
-      needs.relief = true;
-      break;
+    case TwinRelation::kOneRibLess: needs.rib = true; break;
+    case TwinRelation::kMirrored: needs.mirrorable = true; break;
+    case TwinRelation::kOtherRelief: needs.relief = true; break;
     case TwinRelation::kHeightPlus5mm:
       needs.rectangle = true;
       needs.max_height_mm = kRandomHeightMaxMm - kTwinHeightStepMm;
       break;
     case TwinRelation::kOneHoleMore:
-    case TwinRelation::kOneSlotMore:
-      break;
+    case TwinRelation::kOneSlotMore: break;
   }
   return needs;
 }
@@ -148,37 +141,27 @@ bool box_inside_polygon(const std::vector<Eigen::Vector2d>& poly, const Eigen::A
 Eigen::Vector2d single_half_extent(const FeatureSpec& f) {
   switch (f.kind) {
     case FeatureKind::kHole:
-    case FeatureKind::kHoleArray:
-      return Eigen::Vector2d::Constant(0.5 * f.diameter_mm);
+    case FeatureKind::kHoleArray: return Eigen::Vector2d::Constant(0.5 * f.diameter_mm);
     case FeatureKind::kSlot:
-    case FeatureKind::kWindow:
-      return {0.5 * f.width_mm, 0.5 * f.height_mm};
+    case FeatureKind::kWindow: return {0.5 * f.width_mm, 0.5 * f.height_mm};
     case FeatureKind::kRib:
     case FeatureKind::kLouvre:
       return f.vertical ? Eigen::Vector2d(0.5 * f.width_mm, 0.5 * f.length_mm)
                         : Eigen::Vector2d(0.5 * f.length_mm, 0.5 * f.width_mm);
-    case FeatureKind::kFlange:
-      break;
+    case FeatureKind::kFlange: break;
   }
   return Eigen::Vector2d::Zero();
 }
 
 const char* kind_name(FeatureKind kind) {
   switch (kind) {
-    case FeatureKind::kHole:
-      return "hole";
-    case FeatureKind::kSlot:
-      return "slot";
-    case FeatureKind::kWindow:
-      return "window";
-    case FeatureKind::kHoleArray:
-      return "hole_array";
-    case FeatureKind::kRib:
-      return "rib";
-    case FeatureKind::kLouvre:
-      return "louvre";
-    case FeatureKind::kFlange:
-      return "flange";
+    case FeatureKind::kHole: return "hole";
+    case FeatureKind::kSlot: return "slot";
+    case FeatureKind::kWindow: return "window";
+    case FeatureKind::kHoleArray: return "hole_array";
+    case FeatureKind::kRib: return "rib";
+    case FeatureKind::kLouvre: return "louvre";
+    case FeatureKind::kFlange: return "flange";
   }
   return "?";
 }
@@ -218,8 +201,7 @@ std::vector<Eigen::Vector2d> make_outline(OutlineKind kind, double width_mm, dou
   const double w2 = 0.5 * width_mm, h2 = 0.5 * height_mm;
   std::vector<Eigen::Vector2d> out;
   switch (kind) {
-    case OutlineKind::kRectangle:
-      break;
+    case OutlineKind::kRectangle: break;
     case OutlineKind::kChamfered: {
       const double c = pick_mm(rng, 25, 80);
       std::array<double, 4> cut{};  // bottom-left, bottom-right, top-right, top-left
@@ -371,8 +353,7 @@ FeatureSpec make_feature(FeatureKind kind, const Needs& needs, Rng& rng) {
       (f.vertical ? f.pitch_y_mm : f.pitch_x_mm) = pitch_along;
       break;
     }
-    case FeatureKind::kFlange:
-      break;
+    case FeatureKind::kFlange: break;
   }
   return f;
 }
@@ -423,24 +404,12 @@ std::string summary(const PartSpec& part, OutlineKind outline) {
   for (const auto& f : part.features) {
     const int n = f.count_x * f.count_y;
     switch (f.kind) {
-      case FeatureKind::kHole:
-        holes += n;
-        break;
-      case FeatureKind::kSlot:
-        slots += n;
-        break;
-      case FeatureKind::kWindow:
-        windows += n;
-        break;
-      case FeatureKind::kRib:
-        ribs += n;
-        break;
-      case FeatureKind::kLouvre:
-        louvres += n;
-        break;
-      case FeatureKind::kFlange:
-        ++flanges;
-        break;
+      case FeatureKind::kHole: holes += n; break;
+      case FeatureKind::kSlot: slots += n; break;
+      case FeatureKind::kWindow: windows += n; break;
+      case FeatureKind::kRib: ribs += n; break;
+      case FeatureKind::kLouvre: louvres += n; break;
+      case FeatureKind::kFlange: ++flanges; break;
       case FeatureKind::kHoleArray:
         perforation += ", perforation " + std::to_string(f.count_x) + " x " + std::to_string(f.count_y);
         break;
@@ -483,18 +452,12 @@ std::optional<PartSpec> make_part(const Needs& needs, Rng& rng) {
   std::sort(kinds.begin(), kinds.end(), [](FeatureKind a, FeatureKind b) {
     constexpr auto rank = [](FeatureKind k) {
       switch (k) {
-        case FeatureKind::kWindow:
-          return 0;
-        case FeatureKind::kHoleArray:
-          return 1;
-        case FeatureKind::kLouvre:
-          return 2;
-        case FeatureKind::kRib:
-          return 3;
-        case FeatureKind::kSlot:
-          return 4;
-        default:
-          return 5;
+        case FeatureKind::kWindow: return 0;
+        case FeatureKind::kHoleArray: return 1;
+        case FeatureKind::kLouvre: return 2;
+        case FeatureKind::kRib: return 3;
+        case FeatureKind::kSlot: return 4;
+        default: return 5;
       }
     };
     return rank(a) < rank(b);
@@ -613,18 +576,12 @@ int untaught_count(int count) {
 
 const char* twin_relation_text(TwinRelation relation) {
   switch (relation) {
-    case TwinRelation::kOneHoleMore:
-      return "one hole more";
-    case TwinRelation::kOneRibLess:
-      return "one rib less";
-    case TwinRelation::kMirrored:
-      return "mirrored left-right";
-    case TwinRelation::kOtherRelief:
-      return "same outline, ribs and louvres swapped";
-    case TwinRelation::kHeightPlus5mm:
-      return "5 mm taller";
-    case TwinRelation::kOneSlotMore:
-      return "one slot more";
+    case TwinRelation::kOneHoleMore: return "one hole more";
+    case TwinRelation::kOneRibLess: return "one rib less";
+    case TwinRelation::kMirrored: return "mirrored left-right";
+    case TwinRelation::kOtherRelief: return "same outline, ribs and louvres swapped";
+    case TwinRelation::kHeightPlus5mm: return "5 mm taller";
+    case TwinRelation::kOneSlotMore: return "one slot more";
   }
   return "?";
 }
@@ -635,14 +592,10 @@ Eigen::AlignedBox2d feature_footprint_mm(const PartSpec& part, const FeatureSpec
     // Rounded to 0.1 mm so that libm's last bit of cos cannot move a layout decision from one machine to another.
     const double inward = std::max(1.0, tenth_mm(-std::cos(f.angle_deg * std::numbers::pi / 180.0) * f.width_mm));
     switch (f.edge) {
-      case Edge::kBottom:
-        return {Eigen::Vector2d(-w2, -h2), Eigen::Vector2d(w2, -h2 + inward)};
-      case Edge::kTop:
-        return {Eigen::Vector2d(-w2, h2 - inward), Eigen::Vector2d(w2, h2)};
-      case Edge::kLeft:
-        return {Eigen::Vector2d(-w2, -h2), Eigen::Vector2d(-w2 + inward, h2)};
-      case Edge::kRight:
-        return {Eigen::Vector2d(w2 - inward, -h2), Eigen::Vector2d(w2, h2)};
+      case Edge::kBottom: return {Eigen::Vector2d(-w2, -h2), Eigen::Vector2d(w2, -h2 + inward)};
+      case Edge::kTop: return {Eigen::Vector2d(-w2, h2 - inward), Eigen::Vector2d(w2, h2)};
+      case Edge::kLeft: return {Eigen::Vector2d(-w2, -h2), Eigen::Vector2d(-w2 + inward, h2)};
+      case Edge::kRight: return {Eigen::Vector2d(w2 - inward, -h2), Eigen::Vector2d(w2, h2)};
     }
   }
   const Eigen::Vector2d half =

@@ -221,25 +221,17 @@ std::vector<Facet> build_part(const PartSpec& spec) {
         const Eigen::Vector2d centre((f.x_mm + repeat_offset(ix, f.count_x, f.pitch_x_mm)) * kMm,
                                      (f.y_mm + repeat_offset(iy, f.count_y, f.pitch_y_mm)) * kMm);
         switch (f.kind) {
-          case FeatureKind::kHole:
-            plate.circles.push_back({centre, 0.5 * f.diameter_mm * kMm});
-            break;
+          case FeatureKind::kHole: plate.circles.push_back({centre, 0.5 * f.diameter_mm * kMm}); break;
           case FeatureKind::kSlot:
           case FeatureKind::kWindow: {
             const Eigen::Vector2d half(0.5 * f.width_mm * kMm, 0.5 * f.height_mm * kMm);
             plate.rects.push_back({centre - half, centre + half});
             break;
           }
-          case FeatureKind::kHoleArray:
-            break;  // one O(1) pattern, added below
-          case FeatureKind::kRib:
-            add_rib(facets, plate, centre, f);
-            break;
-          case FeatureKind::kLouvre:
-            add_louvre(facets, plate, centre, f);
-            break;
-          case FeatureKind::kFlange:
-            break;  // once per feature, below
+          case FeatureKind::kHoleArray: break;  // one O(1) pattern, added below
+          case FeatureKind::kRib: add_rib(facets, plate, centre, f); break;
+          case FeatureKind::kLouvre: add_louvre(facets, plate, centre, f); break;
+          case FeatureKind::kFlange: break;  // once per feature, below
         }
       }
     }

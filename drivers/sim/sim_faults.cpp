@@ -65,18 +65,12 @@ Expected<FaultPlan> FaultPlan::parse(std::string_view spec, const FaultDefaults&
       return make_error(bad + "EVERY must be a whole number >= 1 (every EVERY-th pass)");
     }
     switch (rule.kind) {
-      case FaultKind::kCameraStall:
-        rule.value = kStallTimeoutFactor * defaults.camera_timeout_ms;
-        break;
+      case FaultKind::kCameraStall: rule.value = kStallTimeoutFactor * defaults.camera_timeout_ms; break;
       case FaultKind::kCameraHiccup:
         rule.value = std::max(1, defaults.camera_timeout_ms / kHiccupTimeoutDivisor);
         break;
-      case FaultKind::kEncoderGlitch:
-        rule.value = kGlitchMs;
-        break;
-      case FaultKind::kChatter:
-        rule.value = kChatterPairs;
-        break;
+      case FaultKind::kEncoderGlitch: rule.value = kGlitchMs; break;
+      case FaultKind::kChatter: rule.value = kChatterPairs; break;
     }
     if (slash != std::string_view::npos) {
       std::uint64_t value = 0;

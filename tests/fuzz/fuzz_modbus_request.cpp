@@ -85,8 +85,7 @@ void check_served(const std::uint8_t* frame, const ScreenResult& r, ReplyPath& p
       allowed = writable;
       reply_bytes = 12;
       break;
-    default:
-      violated("the screen serves only FC 03, 04, 06 and 16");
+    default: violated("the screen serves only FC 03, 04, 06 and 16");
   }
   for (std::uint32_t a = address; a < address + quantity; ++a) CS_FUZZ_EXPECT(allowed(a));
   CS_FUZZ_EXPECT(r.address == address && r.quantity == quantity && r.function == function);
