@@ -72,7 +72,7 @@ bool RecognitionWorker::wait_idle(Clock::time_point until) {
 }
 
 std::string_view RecognitionWorker::class_name(int class_index) const {
-  if (class_index < 0 || recogniser_ == nullptr) return {};
+  if (class_index < 0 || !idle() || recogniser_ == nullptr) return {};
   return recogniser_->class_name(class_index);
 }
 

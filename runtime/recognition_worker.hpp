@@ -62,12 +62,12 @@ class RecognitionWorker {
   // The last job's answer; read only while idle().
   [[nodiscard]] const WorkerAnswer& answer() const { return answer_; }
   [[nodiscard]] bool has_loader() const { return static_cast<bool>(loader_); }
+  // The recogniser's name of a class; empty without a recogniser, and empty while a job runs (a load job replaces
+  // the recogniser). The loop asks when it publishes an answer, so the worker is idle then.
+  [[nodiscard]] std::string_view class_name(int class_index) const;
 
   // ---- any thread ----
   [[nodiscard]] bool has_recogniser() const { return has_recogniser_.load(std::memory_order_acquire); }
-  // The recogniser's name of a class; empty without a recogniser. Not while a load job runs (it replaces the
-  // recogniser): the loop asks only when publishing, and it loads only in fault.
-  [[nodiscard]] std::string_view class_name(int class_index) const;
 
  private:
   void run();

@@ -89,6 +89,7 @@ TEST_CASE(
   CHECK_FALSE(worker.idle());
   CHECK_FALSE(worker.post_recognise(scan, Clock::now() + std::chrono::seconds(1)));
   CHECK_FALSE(worker.post_load());
+  CHECK(worker.class_name(0).empty());  // a job owns the recogniser
   // Released from another thread: a long wait returns as soon as the answer is there.
   std::thread release([&recogniser] {
     std::this_thread::sleep_for(milliseconds(20));
@@ -99,6 +100,7 @@ TEST_CASE(
   CHECK(Clock::now() - waited < std::chrono::seconds(5));
   release.join();
   CHECK(worker.answer().decision.part_id == 3);
+  CHECK(worker.class_name(0) == "bracket");
   CHECK(recogniser.calls == 1);
   worker.stop();
 }
