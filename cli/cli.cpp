@@ -300,31 +300,37 @@ int run_file_mode(const std::string& mode, int argc, char** argv) {
   return usage_error("unknown mode '" + mode + "'");
 }
 
+namespace {
+
+// Index in argv of the mode word: the first word that is not a global option (--config, --log-level, --models and
+// their values); argc when another option or nothing comes first.
+int mode_word_index(int argc, char** argv) {
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "--config" || a == "--log-level" || a == "--models") {
+      ++i;
+      continue;
+    }
+    if (a.rfind("--", 0) == 0) return argc;
+    return i;
+  }
+  return argc;
+}
+
+}  // namespace
+
 int run_cli(int argc, char** argv) {
   Args args;
   std::string error;
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    if (a == "--config" || a == "--log-level" || a == "--models") {
-      ++i;
-      continue;
-    }
-    if (a.rfind("--", 0) == 0) break;
-    if (a == "teach" || a == "train" || a == "parts" || a == "classify" || a == "eval" || a == "run" ||
-        a == "perturb") {
-      return run_file_mode(a, argc, argv);
-    }
-    break;
+  const int mode_at = mode_word_index(argc, argv);
+  const std::string mode_word = mode_at < argc ? argv[mode_at] : "";
+  if (mode_word == "teach" || mode_word == "train" || mode_word == "parts" || mode_word == "classify" ||
+      mode_word == "eval" || mode_word == "run" || mode_word == "perturb") {
+    return run_file_mode(mode_word, argc, argv);
   }
   // `calibrate` has options of its own (--images DIR, ...): it gets every word after the mode.
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    if (a == "--config" || a == "--log-level" || a == "--models") {
-      ++i;
-      continue;
-    }
-    if (a.rfind("--", 0) == 0) break;
-    if (a != "calibrate") break;
+  if (mode_word == "calibrate") {
+    const int i = mode_at;
     Args globals;
     if (!parse_args(i, argv, globals, error)) return usage_error(error);
     const auto config_arg = globals.values.find("--config");
