@@ -312,16 +312,15 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
   return out;
 }
 
-void surface_points_from_map(const DistanceMapView& map, std::vector<Eigen::Vector3f>& out) {
+void surface_cells_from_map(const DistanceMapView& map, std::vector<SurfaceCell>& out) {
   out.clear();
+  if (!map.valid()) return;
   const GridDims& d = map.dims();
-  if (map.cells() == nullptr) return;
   for (int z = 0; z < d.nz; ++z) {
     for (int y = 0; y < d.ny; ++y) {
       for (int x = 0; x < d.nx; ++x) {
-        if (map.cell(x, y, z).distance != 0) continue;
-        const Eigen::Vector3d c = map.origin_m() + d.resolution_m * Eigen::Vector3d(x + 0.5, y + 0.5, z + 0.5);
-        out.emplace_back(c.cast<float>());
+        if (map.fine(x, y, z) != 0) continue;
+        out.push_back({static_cast<std::uint16_t>(x), static_cast<std::uint16_t>(y), static_cast<std::uint16_t>(z)});
       }
     }
   }
@@ -392,7 +391,7 @@ struct Cascade::DecideState {
   [[nodiscard]] const TemplateModel* template_of(int ci) const {
     if (ci < 0 || static_cast<std::size_t>(ci) >= templates_by_class.size()) return nullptr;
     const TemplateModel& t = templates_by_class[static_cast<std::size_t>(ci)];
-    return t.map.cells() != nullptr ? &t : nullptr;
+    return t.map.valid() ? &t : nullptr;
   }
   [[nodiscard]] bool over_budget() const { return d.verified_count > 0 && Clock::now() >= budget_end; }
 };
@@ -688,7 +687,7 @@ bool Cascade::evaluate_candidate(std::span<const TemplateModel> templates, std::
   const int ci = out.class_index;
   if (ci < 0 || static_cast<std::size_t>(ci) >= templates.size() ||
       templates[static_cast<std::size_t>(ci)].class_index != ci ||
-      templates[static_cast<std::size_t>(ci)].map.cells() == nullptr) {
+      !templates[static_cast<std::size_t>(ci)].map.valid()) {
     out.report.pm.error = std::numeric_limits<double>::infinity();  // no usable template: never chosen
     out.ms = ms_since(start);
     return true;
@@ -1066,15 +1065,20 @@ PlanarPose Cascade::refine_on_outline(const Eigen::Vector2d& centre_m, const Pla
 Cascade::Roi Cascade::rasterise_template(const TemplateModel& model) {
   Roi b{width_, height_, 0, 0};
   const double inv = 1.0 / resolution_m_;
-  for (const Eigen::Vector3f& p : model.surface_points) {
-    const double fx = (static_cast<double>(p.x()) - raster_origin_m_.x()) * inv;
-    const double fy = (static_cast<double>(p.y()) - raster_origin_m_.y()) * inv;
-    if (!(fx >= 0.0 && fy >= 0.0 && fx < width_ && fy < height_) || !std::isfinite(p.z())) continue;
+  const Eigen::Vector3d& origin = model.map.origin_m();
+  const double res = model.map.dims().resolution_m;
+  for (const SurfaceCell& cell : model.surface_cells) {
+    const double px = origin.x() + (cell.x + 0.5) * res;
+    const double py = origin.y() + (cell.y + 0.5) * res;
+    const auto pz = static_cast<float>(origin.z() + (cell.z + 0.5) * res);
+    const double fx = (px - raster_origin_m_.x()) * inv;
+    const double fy = (py - raster_origin_m_.y()) * inv;
+    if (!(fx >= 0.0 && fy >= 0.0 && fx < width_ && fy < height_)) continue;
     const int x = static_cast<int>(fx);
     const int y = static_cast<int>(fy);
     const std::size_t i = static_cast<std::size_t>(y) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(x);
-    t_lo_[i] = std::min(t_lo_[i], p.z());
-    t_hi_[i] = std::max(t_hi_[i], p.z());
+    t_lo_[i] = std::min(t_lo_[i], pz);
+    t_hi_[i] = std::max(t_hi_[i], pz);
     b = {std::min(b.x0, x), std::min(b.y0, y), std::max(b.x1, x + 1), std::max(b.y1, y + 1)};
   }
   return b;

@@ -152,9 +152,8 @@ struct TemplateModel {
   int part_id = 0;       // PLC id
   DistanceMapView map;
   Eigen::Vector2d centroid_m = Eigen::Vector2d::Zero();  // c of the pose (centroid_xy_m of the template scan)
-  // The template scan's surface, carrier frame at the template's pose: its points, or the centres of its occupied
-  // cells (surface_points_from_map() recovers those from a stored map).
-  std::span<const Eigen::Vector3f> surface_points;
+  // The template scan's occupied cells, in the map's grid (surface_cells_from_map() recovers them from a map).
+  std::span<const SurfaceCell> surface_cells;
   TemplateThresholds thresholds;
   // Classes whose scans came near passing this template at training, or whose template this class's scans came near
   // passing (learn_confusable): when this class passes, they are verified too before anything is accepted.
@@ -224,8 +223,8 @@ struct ThresholdLearning {
 [[nodiscard]] RejectReason first_failed_gate(const MatchReport& report, const TemplateThresholds& t, double& value,
                                              double& limit);
 
-// Start-up helper: the centres of a map's occupied cells (distance 0), carrier frame. Allocates; reads every cell.
-void surface_points_from_map(const DistanceMapView& map, std::vector<Eigen::Vector3f>& out);
+// Start-up / test helper: a map's occupied cells (distance 0), x fastest. Allocates; reads every stored brick.
+void surface_cells_from_map(const DistanceMapView& map, std::vector<SurfaceCell>& out);
 
 // The decision stage. Everything is sized at construction for one grid; decide() never allocates. Not thread-safe.
 //

@@ -1,4 +1,4 @@
-// Exact 3D Euclidean distance transform (separable lower envelope of parabolas) and the gradient maps of Perfect Match.
+// Exact 3D Euclidean distance transform (separable lower envelope of parabolas) and the sparse map of Perfect Match.
 #include "algo/distance_map.hpp"
 
 #include <string>
@@ -82,69 +82,6 @@ void pass_along(float* volume, int n, std::size_t stride, int a_count, std::size
   }
 }
 
-// Visits every cell once with its (dD/dx, dD/dy): sink(linear index, x, y, z, gx, gy). Shared by the float and the
-// compact outputs.
-template <class Sink>
-void for_each_gradient(const float* d, const GridDims& dims, GradientMethod method, EdtScratch& scratch, Sink&& sink) {
-  const int nx = dims.nx;
-  const int ny = dims.ny;
-  const int nz = dims.nz;
-  const std::size_t plane_cells = static_cast<std::size_t>(nx) * static_cast<std::size_t>(ny);
-  if (std::isinf(d[0])) {
-    // The transform is either finite everywhere or +inf everywhere (no occupied cell): no direction to give.
-    for (int z = 0; z < nz; ++z)
-      for (int y = 0; y < ny; ++y)
-        for (int x = 0; x < nx; ++x) sink(dims.index(x, y, z), x, y, z, 0.0, 0.0);
-    return;
-  }
-  const double inv_res = 1.0 / dims.resolution_m;
-  float* s = scratch.plane.data();
-  for (int z = 0; z < nz; ++z) {
-    const float* slice = d + plane_cells * static_cast<std::size_t>(z);
-    if (method == GradientMethod::kSobelAveraged) {
-      // Eq. 2.52/2.53 average the 2D Sobel of slices z-1, z, z+1; the Sobel is linear, so filter the averaged slice.
-      // At the first and last slice the average runs over the slices that exist.
-      const int z_lo = std::max(z - 1, 0);
-      const int z_hi = std::min(z + 1, nz - 1);
-      const float inv_count = 1.0f / static_cast<float>(z_hi - z_lo + 1);
-      const float* lo = d + plane_cells * static_cast<std::size_t>(z_lo);
-      const float* mid = slice;
-      const float* hi = d + plane_cells * static_cast<std::size_t>(z_hi);
-      for (std::size_t i = 0; i < plane_cells; ++i) {
-        const float sum = (z_lo < z ? lo[i] : 0.0f) + mid[i] + (z_hi > z ? hi[i] : 0.0f);
-        s[i] = sum * inv_count;
-      }
-    }
-    for (int y = 0; y < ny; ++y) {
-      const int y_lo = std::max(y - 1, 0);
-      const int y_hi = std::min(y + 1, ny - 1);
-      const double inv_span_y = y_hi > y_lo ? inv_res / (y_hi - y_lo) : 0.0;
-      const std::size_t row = static_cast<std::size_t>(nx) * static_cast<std::size_t>(y);
-      const std::size_t row_lo = static_cast<std::size_t>(nx) * static_cast<std::size_t>(y_lo);
-      const std::size_t row_hi = static_cast<std::size_t>(nx) * static_cast<std::size_t>(y_hi);
-      const std::size_t out_row = plane_cells * static_cast<std::size_t>(z) + row;
-      for (int x = 0; x < nx; ++x) {
-        const int x_lo = std::max(x - 1, 0);
-        const int x_hi = std::min(x + 1, nx - 1);
-        const double inv_span_x = x_hi > x_lo ? inv_res / (x_hi - x_lo) : 0.0;
-        double gx = 0.0;
-        double gy = 0.0;
-        if (method == GradientMethod::kSobelAveraged) {
-          // Eq. 2.50/2.51: H.N/8 and V.N/8 per cell; the [1 2 1] smoothing replicates the border row/column.
-          const auto dx = [&](std::size_t r) { return static_cast<double>(s[r + x_hi]) - s[r + x_lo]; };
-          const auto dy = [&](int c) { return static_cast<double>(s[row_hi + c]) - s[row_lo + c]; };
-          gx = (dx(row_lo) + 2.0 * dx(row) + dx(row_hi)) * 0.25 * inv_span_x;
-          gy = (dy(x_lo) + 2.0 * dy(x) + dy(x_hi)) * 0.25 * inv_span_y;
-        } else {
-          gx = (static_cast<double>(slice[row + x_hi]) - slice[row + x_lo]) * inv_span_x;
-          gy = (static_cast<double>(slice[row_hi + x]) - slice[row_lo + x]) * inv_span_y;
-        }
-        sink(out_row + static_cast<std::size_t>(x), x, y, z, gx, gy);
-      }
-    }
-  }
-}
-
 }  // namespace
 
 Status validate_dims(const GridDims& dims) {
@@ -179,7 +116,6 @@ EdtScratch::EdtScratch(const GridDims& dims) {
   line_out.resize(n);
   sites.resize(n);
   starts.resize(n);
-  plane.resize(plane_cells);
 }
 
 bool EdtScratch::fits(const GridDims& dims) const {
@@ -221,34 +157,22 @@ void distance_from_squared(const GridDims& dims, float* d2_cells_to_distance_m) 
   for (std::size_t i = 0; i < count; ++i) d2_cells_to_distance_m[i] = std::sqrt(d2_cells_to_distance_m[i]) * res;
 }
 
-Status gradients_xy(const float* distance_m, const GridDims& dims, GradientMethod method, EdtScratch& scratch,
-                    float* grad_x, float* grad_y) {
-  if (Status valid = validate_dims(dims); !valid) return valid;
-  if (!scratch.fits(dims)) return make_error("distance map: scratch buffers were sized for a smaller grid");
-  if (distance_m == nullptr || grad_x == nullptr || grad_y == nullptr) {
-    return make_error("distance map: null distance or gradient buffer");
+BrickGrid::BrickGrid(const GridDims& dims) {
+  const int n[3] = {dims.nx, dims.ny, dims.nz};
+  brick_count_ = 1;
+  for (int a = 0; a < 3; ++a) {
+    count_[a] = (std::max(n[a], 0) + kBrickEdge - 1) >> kBrickShift;
+    brick_count_ *= static_cast<std::size_t>(count_[a]);
   }
-  for_each_gradient(distance_m, dims, method, scratch, [&](std::size_t i, int, int, int, double gx, double gy) {
-    grad_x[i] = static_cast<float>(gx);
-    grad_y[i] = static_cast<float>(gy);
-  });
-  return {};
 }
 
-BrickLayout::BrickLayout(const GridDims& dims) {
-  const auto bricks = [](int n) {
-    const int count = (std::max(n, 0) + kBrickEdge - 1) >> kBrickShift;
-    return static_cast<std::size_t>(count);
-  };
-  constexpr int kBrickCells = kBrickEdge * kBrickEdge * kBrickEdge;
-  brick_stride_[0] = kBrickCells;
-  brick_stride_[1] = brick_stride_[0] * bricks(dims.nx);
-  brick_stride_[2] = brick_stride_[1] * bricks(dims.ny);
-  cell_count_ = brick_stride_[2] * bricks(dims.nz);
-}
-
-DistanceMapView::DistanceMapView(const GridDims& dims, const Eigen::Vector3d& origin_m, const MapCell* cells)
-    : dims_(dims), origin_m_(origin_m), layout_(dims), cells_(cells), inv_resolution_(1.0 / dims.resolution_m) {
+DistanceMapView::DistanceMapView(const GridDims& dims, const Eigen::Vector3d& origin_m, const SparseMapData& data)
+    : dims_(dims),
+      origin_m_(origin_m),
+      bricks_(dims),
+      data_(data),
+      inv_resolution_(1.0 / dims.resolution_m),
+      fine_grad_scale_(kDistanceUnitM / dims.resolution_m) {
   const int n[3] = {dims.nx, dims.ny, dims.nz};
   for (int a = 0; a < 3; ++a) {
     offset_[a] = origin_m[a] * inv_resolution_ + 0.5;
@@ -258,25 +182,113 @@ DistanceMapView::DistanceMapView(const GridDims& dims, const Eigen::Vector3d& or
   }
 }
 
+MapSample DistanceMapView::coarse_sample(const double c[3]) const {
+  // Node b of an axis sits at the centre of brick b: cell coordinate 8 b + 3.5.
+  constexpr double kNodeOffset = 0.5 * (BrickGrid::kBrickEdge - 1);
+  constexpr double kInvEdge = 1.0 / BrickGrid::kBrickEdge;
+  double t[3];
+  std::size_t part[3][2];
+  bool
+      sloped[3];  // false where the field is flat along the axis: one node, or clamped before the first / past the last
+  std::size_t stride = 1;
+  for (int a = 0; a < 3; ++a) {
+    const int nodes = bricks_.count(a);
+    const double unclamped = (c[a] - kNodeOffset) * kInvEdge;
+    const double q = std::clamp(unclamped, 0.0, static_cast<double>(nodes - 1));
+    sloped[a] = nodes > 1 && q == unclamped;
+    const int lo = std::min(static_cast<int>(q), std::max(nodes - 2, 0));
+    const int hi = std::min(lo + 1, nodes - 1);
+    t[a] = q - lo;
+    part[a][0] = static_cast<std::size_t>(lo) * stride;
+    part[a][1] = static_cast<std::size_t>(hi) * stride;
+    stride *= static_cast<std::size_t>(nodes);
+  }
+  double v[8];
+  for (int k = 0; k < 2; ++k)
+    for (int j = 0; j < 2; ++j)
+      for (int i = 0; i < 2; ++i) v[i + 2 * j + 4 * k] = data_.coarse[part[0][i] + part[1][j] + part[2][k]];
+  const double tx = t[0], ty = t[1], tz = t[2];
+  const double ux = 1.0 - tx, uy = 1.0 - ty, uz = 1.0 - tz;
+  const double e00 = ux * v[0] + tx * v[1], e10 = ux * v[2] + tx * v[3];
+  const double e01 = ux * v[4] + tx * v[5], e11 = ux * v[6] + tx * v[7];
+  const double dx = uz * (uy * (v[1] - v[0]) + ty * (v[3] - v[2])) + tz * (uy * (v[5] - v[4]) + ty * (v[7] - v[6]));
+  const double dy = uz * (e10 - e00) + tz * (e11 - e01);
+  const double grad_scale = fine_grad_scale_ * kInvEdge;
+  return {(uz * (uy * e00 + ty * e10) + tz * (uy * e01 + ty * e11)) * kDistanceUnitM, sloped[0] ? dx * grad_scale : 0.0,
+          sloped[1] ? dy * grad_scale : 0.0, false};
+}
+
+double DistanceMapView::cell_distance_m(int x, int y, int z) const {
+  const std::uint8_t q = fine(x, y, z);
+  if (q != kFineFar) return q * kDistanceUnitM;
+  const double c[3] = {static_cast<double>(x), static_cast<double>(y), static_cast<double>(z)};
+  return coarse_sample(c).distance_m;
+}
+
 Status build_distance_map(const std::uint8_t* occupied, const GridDims& dims, const Eigen::Vector3d& origin_m,
-                          GradientMethod method, EdtScratch& scratch, float* work_cells, DistanceMap& out) {
+                          double band_m, EdtScratch& scratch, float* work_cells, DistanceMap& out) {
   if (!origin_m.allFinite()) return make_error("distance map: grid origin must be finite");
+  if (!(band_m > 0.0 && band_m <= kMaxFineDistanceM)) {
+    return make_error("distance map: band must be in (0, " + std::to_string(kMaxFineDistanceM) + "] m, got " +
+                      std::to_string(band_m));
+  }
   if (Status transformed = edt_squared(occupied, dims, scratch, work_cells); !transformed) return transformed;
   distance_from_squared(dims, work_cells);
 
-  const BrickLayout layout(dims);
+  const BrickGrid grid(dims);
+  const int n[3] = {dims.nx, dims.ny, dims.nz};
+  constexpr int kEdge = BrickGrid::kBrickEdge;
+  // The cells of brick (bx, by, bz) that lie inside the grid, as [lo, hi) per axis.
+  const auto span_of = [&n](int axis, int b) { return std::pair{b * kEdge, std::min((b + 1) * kEdge, n[axis])}; };
+
   out.dims_ = dims;
   out.origin_m_ = origin_m;
-  // assign() keeps the capacity: no allocation when rebuilding for the same grid. Padding stays "far, no direction".
-  out.cells_.assign(layout.cell_count(), MapCell{kDistanceSaturated, 0, 0});
+  out.band_m_ = band_m;
   out.has_surface_ = !std::isinf(work_cells[0]);
-  MapCell* cells = out.cells_.data();
-  // Gradients from the float field, not the quantized one: 0.1 mm steps over a 4.4 mm span would cost 2 %.
-  for_each_gradient(
-      work_cells, dims, method, scratch,
-      [cells, work_cells, &layout](std::size_t i, int x, int y, int z, double gx, double gy) {
-        cells[layout.index(x, y, z)] = {quantize_distance(work_cells[i]), quantize_gradient(gx), quantize_gradient(gy)};
-      });
+  out.brick_table_.assign(grid.brick_count(), kAbsentBrick);
+  out.coarse_.assign(grid.brick_count(), kCoarseSaturated);
+  out.bricks_.clear();
+  std::size_t stored = 0;
+  for (int bz = 0; bz < grid.count(2); ++bz) {
+    const auto [z0, z1] = span_of(2, bz);
+    for (int by = 0; by < grid.count(1); ++by) {
+      const auto [y0, y1] = span_of(1, by);
+      for (int bx = 0; bx < grid.count(0); ++bx) {
+        const auto [x0, x1] = span_of(0, bx);
+        const std::size_t b = grid.brick_index(bx, by, bz);
+        // Coarse node: the mean of the brick's 8 central cells (clamped into the grid for a partial brick).
+        double sum = 0.0;
+        for (int k = 0; k < 2; ++k)
+          for (int j = 0; j < 2; ++j)
+            for (int i = 0; i < 2; ++i) {
+              const int x = std::min(bx * kEdge + kEdge / 2 - 1 + i, dims.nx - 1);
+              const int y = std::min(by * kEdge + kEdge / 2 - 1 + j, dims.ny - 1);
+              const int z = std::min(bz * kEdge + kEdge / 2 - 1 + k, dims.nz - 1);
+              sum += work_cells[dims.index(x, y, z)];
+            }
+        out.coarse_[b] = quantize_coarse(sum / 8.0);
+        float nearest = std::numeric_limits<float>::infinity();
+        for (int z = z0; z < z1; ++z)
+          for (int y = y0; y < y1; ++y)
+            for (int x = x0; x < x1; ++x) nearest = std::min(nearest, work_cells[dims.index(x, y, z)]);
+        if (!(nearest <= band_m)) continue;
+        if (stored == kMaxStoredBricks) {
+          return make_error("distance map: more than " + std::to_string(kMaxStoredBricks) +
+                            " bricks lie within the band of " + std::to_string(band_m) +
+                            " m; use a coarser grid or a narrower band");
+        }
+        out.brick_table_[b] = static_cast<std::uint16_t>(stored);
+        out.bricks_.resize((stored + 1) * BrickGrid::kBrickCells, kFineFar);
+        std::uint8_t* cells = out.bricks_.data() + stored * BrickGrid::kBrickCells;
+        for (int z = z0; z < z1; ++z)
+          for (int y = y0; y < y1; ++y)
+            for (int x = x0; x < x1; ++x) {
+              cells[BrickGrid::in_brick(x, y, z)] = quantize_fine(work_cells[dims.index(x, y, z)]);
+            }
+        ++stored;
+      }
+    }
+  }
   return {};
 }
 

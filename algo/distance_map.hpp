@@ -1,4 +1,4 @@
-// Exact 3D Euclidean distance transform of the occupancy grid and the x/y gradient maps of Perfect Match
+// Exact 3D Euclidean distance transform of the occupancy grid and the sparse distance map Perfect Match samples
 // (thesis 2.7.3.1).
 #pragma once
 
@@ -53,7 +53,6 @@ struct EdtScratch {
   std::vector<std::int32_t> line_out;  // squared distances leaving it
   std::vector<std::int32_t> sites;     // lower envelope: parabola apex positions
   std::vector<std::int32_t> starts;    // lower envelope: first cell where each parabola is lowest
-  std::vector<float> plane;            // z-averaged slice for the Sobel variant of the gradients
 };
 
 // Exact squared Euclidean distance, in cells^2, from every cell centre to the nearest occupied cell centre.
@@ -67,168 +66,183 @@ struct EdtScratch {
 // In place: squared cell distances -> distances in metres (sqrt * resolution); +infinity stays +infinity.
 void distance_from_squared(const GridDims& dims, float* d2_cells_to_distance_m);
 
-// How the gradient maps are derived from the distance field.
-enum class GradientMethod {
-  // Thesis eq. 2.47-2.53: 2D Sobel in each z slice, averaged over slices z-1, z, z+1.
-  kSobelAveraged,
-  // Central difference of the distance field along the axis: estimates the derivative of the very field Perfect
-  // Match evaluates (eq. 2.56-2.60 differentiate DistMap itself), without the Sobel's smoothing across y and z.
-  // Measured (tests/test_distance_map.cpp asserts, tests/bench/bench_distance_map.cpp prints):
-  //  - against the exact gradient of the transform it is the better one: half the component error on a point field
-  //    (max 0.19 / r^2 vs 0.58 / r^2, r in cells) and a quarter near the ridges where two surface points are
-  //    equally near (xy angle error 0.18 deg rms vs 1.4 deg), because its stencil straddles fewer ridges;
-  //  - against the continuous surface a dense voxel surface came from (voxelised sphere, tilted plane) the Sobel
-  //    average is better by 20-35 % rms (4.0 vs 6.0 deg on the plane): its smoothing hides the voxel staircase.
-  // Which one gives the better pose is for Perfect Match's end-to-end tests to decide; both are stored alike.
-  kCentralDifference,
-};
+// --- Sparse map (what a template stores and Perfect Match reads) ----------------------------------------------------
+//
+// Perfect Match reads the distance near the template's surface: its fine fit saturates a few centimetres out
+// (fit_lc_m 10 mm), its coarse level and the cascade's error need no more than a smooth far field, and the pose search
+// spans +-50 mm / +-5 deg. So a template keeps the exact distance only in bricks of 8 x 8 x 8 cells that lie within a
+// band of its surface, and a coarse field (one node per brick) everywhere:
+//  - fine bricks: one byte per cell, the distance in kDistanceUnitM (0.1 mm; rounding costs at most 0.05 mm, 2 % of a
+//    2.2 mm cell) up to kMaxFineDistanceM (25.4 mm), kFineFar beyond. A brick is stored when its nearest cell lies
+//    within the band (TemplateBuildParams::band_m, 17.6 mm by default), so every cell within the band is exact;
+//  - a brick table (uint16 per brick of the grid: the stored brick's number, or kAbsentBrick);
+//  - the coarse field: uint16 per brick, the mean distance of the brick's 8 central cells, taken as the distance at
+//    the brick's centre.
+// Measured on the demo's templates (296 x 500 x 182 cells, 53 613 bricks): 3 567 / 3 917 bricks within 17.6 mm of
+// bracket_l / chamfered_plate, 1.8 / 2.0 MB of fine cells against 157 MB for the full 6-byte grid of version 1.
+// The x/y gradient is the derivative of the same trilinear interpolant that gives the distance, so RPROP follows the
+// slope of the very cost it evaluates (thesis eq. 2.56-2.60 differentiate DistMap itself); no gradient is stored.
+// tests/test_distance_map.cpp compares distances with brute force, tests/bench/bench_perfect_match.cpp the poses.
 
-// dD/dx and dD/dy (dimensionless, m per m) at every cell centre, in the carrier-frame axes (eq. 2.60 needs exactly
-// these; the thesis' masks are written in image-row orientation). At the grid border the difference is one-sided
-// and the smoothing replicates the border row. |component| <= 1 because a distance field is 1-Lipschitz.
-// A field without any finite value (empty grid) gives zero gradients.
-[[nodiscard]] Status gradients_xy(const float* distance_m, const GridDims& dims, GradientMethod method,
-                                  EdtScratch& scratch, float* grad_x, float* grad_y);
-
-// --- Compact map (what a template stores and Perfect Match reads) ---------------------------------------------------
-
-// One cell of a stored map: 6 bytes instead of 12 for three floats (296 x 500 x 182 cells: 157 MiB instead of 308).
-// The three values of a cell sit together so that a trilinear sample reads each corner from one place.
-// distance: units of kDistanceUnitM, saturating at kDistanceSaturated (also the "no occupied cell" value).
-// grad_x, grad_y: units of kGradientUnit (|g| <= 1 fits int16 with 3e-5 resolution).
-struct MapCell {
-  std::uint16_t distance;
-  std::int16_t grad_x;
-  std::int16_t grad_y;
-};
-static_assert(sizeof(MapCell) == 6, "MapCell is stored as-is in template files");
-
-// 0.1 mm: rounding costs at most 0.05 mm (2 % of a 2.2 mm cell) and covers 6.55 m, far beyond any grid diagonal
-// (1.34 m for the default grid) and the L_c = 0.4 m of eq. 2.56, where a point's cost is already ~1.
 inline constexpr double kDistanceUnitM = 1e-4;
-inline constexpr std::uint16_t kDistanceSaturated = std::numeric_limits<std::uint16_t>::max();
-inline constexpr double kMaxDistanceM = kDistanceSaturated * kDistanceUnitM;
-inline constexpr double kGradientScale = 32767.0;
-inline constexpr double kGradientUnit = 1.0 / kGradientScale;
+inline constexpr std::uint8_t kFineFar = std::numeric_limits<std::uint8_t>::max();
+inline constexpr double kMaxFineDistanceM = (kFineFar - 1) * kDistanceUnitM;
+inline constexpr std::uint16_t kCoarseSaturated = std::numeric_limits<std::uint16_t>::max();
+inline constexpr double kMaxCoarseDistanceM = kCoarseSaturated * kDistanceUnitM;
+inline constexpr std::uint16_t kAbsentBrick = std::numeric_limits<std::uint16_t>::max();
+inline constexpr std::size_t kMaxStoredBricks = kAbsentBrick;  // numbers 0 .. kAbsentBrick - 1
+// Default band: 8 cells of the default grid. Perfect Match's depth levelling samples up to 2 * level_clip_m + one cell
+// (18.2 mm) above and below a point, and the fine fit's cost has lost 95 % of its slope at 25 mm.
+inline constexpr double kDefaultBandM = 0.0176;
 
-[[nodiscard]] inline std::uint16_t quantize_distance(double distance_m) {
-  // Written so that NaN and +inf both saturate.
-  if (!(distance_m < kMaxDistanceM)) return kDistanceSaturated;
+// Written so that NaN and +inf both come out as "far".
+[[nodiscard]] inline std::uint8_t quantize_fine(double distance_m) {
+  if (!(distance_m < kMaxFineDistanceM + 0.5 * kDistanceUnitM)) return kFineFar;
+  return static_cast<std::uint8_t>(std::lround(std::max(distance_m, 0.0) / kDistanceUnitM));
+}
+[[nodiscard]] inline std::uint16_t quantize_coarse(double distance_m) {
+  if (!(distance_m < kMaxCoarseDistanceM)) return kCoarseSaturated;
   return static_cast<std::uint16_t>(std::lround(std::max(distance_m, 0.0) / kDistanceUnitM));
 }
-[[nodiscard]] inline std::int16_t quantize_gradient(double gradient) {
-  if (!(gradient == gradient)) return 0;  // NaN: no direction
-  return static_cast<std::int16_t>(std::lround(std::clamp(gradient, -1.0, 1.0) * kGradientScale));
-}
 
-// Where cell (x, y, z) of a map lives in its cell array: bricks of 8 x 8 x 8 cells (x fastest inside a brick; bricks
-// x fastest, then y, then z), the grid padded up to whole bricks (padding cells hold kDistanceSaturated, 0, 0 and
-// are never read by sample()). Why not plain x-fastest order: Perfect Match samples a few thousand points per
-// iteration, and in x-fastest order the 8 corners of one sample lie on 2-4 different 4 KiB pages (a z step is
-// nx * ny * 6 bytes), so those points touch more pages than the TLB holds and every sample walks the page tables.
-// One brick is 3 KiB, so a sample's corners usually share one page. tests/bench/bench_distance_map.cpp, 2000 points
-// x 500 iterations: 36-125 ns per sample against 107-212 ns for x-fastest order (1.7-3.5x, three runs on a shared,
-// loaded machine); uniformly random samples over the whole map are 10-60 % slower (more index arithmetic, no page
-// reuse to gain). Costs 2 % padding (296 x 504 x 184 stored cells).
-class BrickLayout {
+// The grid cut into bricks of 8 x 8 x 8 cells (the last brick of an axis may stick out of the grid); bricks are
+// numbered x fastest, then y, then z, and so are the cells inside a brick.
+class BrickGrid {
  public:
   static constexpr int kBrickShift = 3;
   static constexpr int kBrickEdge = 1 << kBrickShift;
   static constexpr int kInBrickMask = kBrickEdge - 1;
+  static constexpr std::size_t kBrickCells = std::size_t{1} << (3 * kBrickShift);
 
-  BrickLayout() = default;
-  explicit BrickLayout(const GridDims& dims);
+  BrickGrid() = default;
+  explicit BrickGrid(const GridDims& dims);
 
-  // Length of the cell array, padding included.
-  [[nodiscard]] std::size_t cell_count() const { return cell_count_; }
-  [[nodiscard]] std::size_t index(int x, int y, int z) const { return part_x(x) + part_y(y) + part_z(z); }
-  // The index is a sum of one term per axis, so sample() computes 6 terms for its 8 corners.
-  [[nodiscard]] std::size_t part_x(int x) const {
-    return static_cast<std::size_t>(x >> kBrickShift) * brick_stride_[0] + static_cast<std::size_t>(x & kInBrickMask);
+  [[nodiscard]] int count(int axis) const { return count_[axis]; }
+  [[nodiscard]] std::size_t brick_count() const { return brick_count_; }
+  [[nodiscard]] std::size_t brick_index(int bx, int by, int bz) const {
+    return static_cast<std::size_t>(bx) +
+           static_cast<std::size_t>(count_[0]) *
+               (static_cast<std::size_t>(by) + static_cast<std::size_t>(count_[1]) * static_cast<std::size_t>(bz));
   }
-  [[nodiscard]] std::size_t part_y(int y) const {
-    return static_cast<std::size_t>(y >> kBrickShift) * brick_stride_[1] +
-           static_cast<std::size_t>(y & kInBrickMask) * kBrickEdge;
-  }
-  [[nodiscard]] std::size_t part_z(int z) const {
-    return static_cast<std::size_t>(z >> kBrickShift) * brick_stride_[2] +
-           static_cast<std::size_t>(z & kInBrickMask) * kBrickEdge * kBrickEdge;
+  // Position of cell (x, y, z) inside its brick.
+  [[nodiscard]] static std::size_t in_brick(int x, int y, int z) {
+    return static_cast<std::size_t>(x & kInBrickMask) + (static_cast<std::size_t>(y & kInBrickMask) << kBrickShift) +
+           (static_cast<std::size_t>(z & kInBrickMask) << (2 * kBrickShift));
   }
 
  private:
-  std::size_t brick_stride_[3] = {0, 0, 0};
-  std::size_t cell_count_ = 0;
+  int count_[3] = {0, 0, 0};
+  std::size_t brick_count_ = 0;
 };
 
-// What sample() returns: distance to the template surface and dD/dx, dD/dy at the point.
+// The arrays of a sparse map, borrowed (from a DistanceMap or from a memory-mapped template file).
+struct SparseMapData {
+  const std::uint16_t* brick_table = nullptr;  // BrickGrid::brick_count() entries
+  const std::uint16_t* coarse = nullptr;       // BrickGrid::brick_count() entries, kDistanceUnitM
+  const std::uint8_t* bricks = nullptr;        // stored_bricks x kBrickCells, kDistanceUnitM or kFineFar
+  std::size_t stored_bricks = 0;
+};
+
+// What sample() returns: distance to the template surface and dD/dx, dD/dy at the point; fine: read from the fine
+// cells (exact within the band), false when from the coarse field.
 struct MapSample {
   double distance_m;
   double grad_x;
   double grad_y;
+  bool fine;
 };
 
-// Read-only view of a map: over a DistanceMap, or over cells memory-mapped from a template file (an array of
-// BrickLayout(dims).cell_count() MapCells in brick order). Borrows the cells. Precomputes what sample() needs so that
-// a sample is a clamp, 8 loads and a few multiply-adds.
+// One occupied cell of a template's grid: what the cascade's two-way check rasterises.
+struct SurfaceCell {
+  std::uint16_t x, y, z;
+  friend bool operator==(const SurfaceCell&, const SurfaceCell&) = default;
+};
+static_assert(sizeof(SurfaceCell) == 6, "SurfaceCell is stored as-is in template files");
+
+// Read-only view of a sparse map. Precomputes what sample() needs so that a sample is a clamp, 8 table and 8 cell
+// loads and a few multiply-adds.
 class DistanceMapView {
  public:
   DistanceMapView() = default;
-  DistanceMapView(const GridDims& dims, const Eigen::Vector3d& origin_m, const MapCell* cells);
+  DistanceMapView(const GridDims& dims, const Eigen::Vector3d& origin_m, const SparseMapData& data);
 
   [[nodiscard]] const GridDims& dims() const { return dims_; }
   [[nodiscard]] const Eigen::Vector3d& origin_m() const { return origin_m_; }
-  [[nodiscard]] const BrickLayout& layout() const { return layout_; }
-  [[nodiscard]] const MapCell* cells() const { return cells_; }
-  [[nodiscard]] const MapCell& cell(int x, int y, int z) const { return cells_[layout_.index(x, y, z)]; }
+  [[nodiscard]] const BrickGrid& bricks() const { return bricks_; }
+  [[nodiscard]] const SparseMapData& data() const { return data_; }
+  [[nodiscard]] bool valid() const { return data_.brick_table != nullptr; }
 
-  // Trilinear interpolation of distance and both gradients at a carrier-frame point (metres).
-  // Inside the box of cell centres: the trilinear interpolant. In the outer half cell of the grid: the border value
-  // (clamp to edge). Beyond the grid box: the clamped value plus the Euclidean distance from the point to the grid
-  // box, an upper bound of the true distance that stays continuous and keeps pulling stray points back in; along an
-  // axis on which the point lies outside, the gradient is that added distance's derivative (pointing away from the
-  // grid), on the other axes the clamped map gradient. NaN coordinates give a NaN distance (never a wild read).
+  // The stored value of a cell (kDistanceUnitM), kFineFar when its brick is not stored or it is beyond the fine range.
+  [[nodiscard]] std::uint8_t fine(int x, int y, int z) const {
+    const std::uint16_t b = data_.brick_table[bricks_.brick_index(
+        x >> BrickGrid::kBrickShift, y >> BrickGrid::kBrickShift, z >> BrickGrid::kBrickShift)];
+    if (b == kAbsentBrick) return kFineFar;
+    return data_.bricks[static_cast<std::size_t>(b) * BrickGrid::kBrickCells + BrickGrid::in_brick(x, y, z)];
+  }
+  // Distance at a cell centre: the fine value, else the coarse field there.
+  [[nodiscard]] double cell_distance_m(int x, int y, int z) const;
+
+  // Distance and gradient at a carrier-frame point (metres). Inside the box of cell centres: the trilinear interpolant
+  // of the fine cells when all 8 corners are fine, else of the coarse field; the gradient is the interpolant's
+  // derivative. In the outer half cell of the grid: clamped to the border. Beyond the grid box: the clamped value plus
+  // the Euclidean distance from the point to the grid box, an upper bound of the true distance that stays continuous
+  // and keeps pulling stray points back in; along an axis on which the point lies outside, the gradient is that added
+  // distance's derivative (pointing away from the grid). NaN coordinates give a NaN distance (never a wild read).
   [[nodiscard]] inline MapSample sample(double x_m, double y_m, double z_m) const;
 
  private:
+  [[nodiscard]] MapSample coarse_sample(const double c[3]) const;
+
   GridDims dims_{};
   Eigen::Vector3d origin_m_ = Eigen::Vector3d::Zero();
-  BrickLayout layout_{};
-  const MapCell* cells_ = nullptr;
+  BrickGrid bricks_{};
+  SparseMapData data_{};
   double inv_resolution_ = 0.0;
+  double fine_grad_scale_ = 0.0;           // kDistanceUnitM / resolution: cell value step -> dD/dx
   double offset_[3] = {0.0, 0.0, 0.0};     // origin / resolution + 0.5: point -> continuous cell-centre coordinate
   double max_coord_[3] = {0.0, 0.0, 0.0};  // n - 1
   int max_base_[3] = {0, 0, 0};            // n - 2 (0 when n == 1): last cell that has an upper neighbour
   int step_[3] = {0, 0, 0};                // 1, or 0 when n == 1 (the "upper neighbour" is the cell itself)
 };
 
-// Owning compact map built from an occupancy grid at teach time.
+// Owning sparse map built from an occupancy grid at teach time.
 class DistanceMap {
  public:
   DistanceMap() = default;
 
   [[nodiscard]] const GridDims& dims() const { return dims_; }
   [[nodiscard]] const Eigen::Vector3d& origin_m() const { return origin_m_; }
-  // In BrickLayout order, padding included: what a template file stores.
-  [[nodiscard]] const std::vector<MapCell>& cells() const { return cells_; }
-  // False when the grid had no occupied cell: every distance is kDistanceSaturated and every gradient 0.
+  [[nodiscard]] const std::vector<std::uint16_t>& brick_table() const { return brick_table_; }
+  [[nodiscard]] const std::vector<std::uint16_t>& coarse() const { return coarse_; }
+  [[nodiscard]] const std::vector<std::uint8_t>& bricks() const { return bricks_; }
+  [[nodiscard]] std::size_t stored_bricks() const { return bricks_.size() / BrickGrid::kBrickCells; }
+  [[nodiscard]] double band_m() const { return band_m_; }
+  // False when the grid had no occupied cell: no brick is stored and the coarse field is saturated.
   [[nodiscard]] bool has_surface() const { return has_surface_; }
-  [[nodiscard]] std::size_t memory_bytes() const { return cells_.size() * sizeof(MapCell); }
-  [[nodiscard]] DistanceMapView view() const { return {dims_, origin_m_, cells_.data()}; }
+  [[nodiscard]] std::size_t memory_bytes() const {
+    return (brick_table_.size() + coarse_.size()) * sizeof(std::uint16_t) + bricks_.size();
+  }
+  [[nodiscard]] DistanceMapView view() const {
+    return {dims_, origin_m_, SparseMapData{brick_table_.data(), coarse_.data(), bricks_.data(), stored_bricks()}};
+  }
 
  private:
-  friend Status build_distance_map(const std::uint8_t*, const GridDims&, const Eigen::Vector3d&, GradientMethod,
-                                   EdtScratch&, float*, DistanceMap&);
+  friend Status build_distance_map(const std::uint8_t*, const GridDims&, const Eigen::Vector3d&, double, EdtScratch&,
+                                   float*, DistanceMap&);
   GridDims dims_{};
   Eigen::Vector3d origin_m_ = Eigen::Vector3d::Zero();
-  std::vector<MapCell> cells_;
+  std::vector<std::uint16_t> brick_table_;
+  std::vector<std::uint16_t> coarse_;
+  std::vector<std::uint8_t> bricks_;
+  double band_m_ = 0.0;
   bool has_surface_ = false;
 };
 
-// Teach time: transform, gradients and quantization into out. work_cells: dims.cell_count() floats of caller memory
-// (the float distance field lives there; on return it holds the distances in metres, x-fastest order). out's
-// storage is reused when the shape already fits, so rebuilding for the same grid allocates nothing.
+// Teach time: transform, band selection and quantization into out. work_cells: dims.cell_count() floats of caller
+// memory (on return it holds the distances in metres, x-fastest order). band_m: bricks with a cell at most this far
+// from the surface are stored (0 < band_m <= kMaxFineDistanceM). Refuses a band that needs more than kMaxStoredBricks.
 [[nodiscard]] Status build_distance_map(const std::uint8_t* occupied, const GridDims& dims,
-                                        const Eigen::Vector3d& origin_m, GradientMethod method, EdtScratch& scratch,
+                                        const Eigen::Vector3d& origin_m, double band_m, EdtScratch& scratch,
                                         float* work_cells, DistanceMap& out);
 
 // --- inline sampling -------------------------------------------------------------------------------------------------
@@ -236,48 +250,65 @@ class DistanceMap {
 inline MapSample DistanceMapView::sample(double x_m, double y_m, double z_m) const {
   const double f[3] = {x_m * inv_resolution_ - offset_[0], y_m * inv_resolution_ - offset_[1],
                        z_m * inv_resolution_ - offset_[2]};
+  double c[3];
   double t[3];
   int lo[3];
   for (int a = 0; a < 3; ++a) {
     // Written so that NaN clamps to 0 (no undefined float -> int conversion).
-    const double c = f[a] > 0.0 ? (f[a] < max_coord_[a] ? f[a] : max_coord_[a]) : 0.0;
-    lo[a] = std::min(static_cast<int>(c), max_base_[a]);
-    t[a] = c - lo[a];
+    c[a] = f[a] > 0.0 ? (f[a] < max_coord_[a] ? f[a] : max_coord_[a]) : 0.0;
+    lo[a] = std::min(static_cast<int>(c[a]), max_base_[a]);
+    t[a] = c[a] - lo[a];
   }
-  const std::size_t x0 = layout_.part_x(lo[0]);
-  const std::size_t x1 = layout_.part_x(lo[0] + step_[0]);
-  const std::size_t y0 = layout_.part_y(lo[1]);
-  const std::size_t y1 = layout_.part_y(lo[1] + step_[1]);
-  const std::size_t z0 = layout_.part_z(lo[2]);
-  const std::size_t z1 = layout_.part_z(lo[2] + step_[2]);
-  const MapCell& c000 = cells_[x0 + y0 + z0];
-  const MapCell& c100 = cells_[x1 + y0 + z0];
-  const MapCell& c010 = cells_[x0 + y1 + z0];
-  const MapCell& c110 = cells_[x1 + y1 + z0];
-  const MapCell& c001 = cells_[x0 + y0 + z1];
-  const MapCell& c101 = cells_[x1 + y0 + z1];
-  const MapCell& c011 = cells_[x0 + y1 + z1];
-  const MapCell& c111 = cells_[x1 + y1 + z1];
-  const double tx = t[0];
-  const double ty = t[1];
-  const double tz = t[2];
-  const double ux = 1.0 - tx;
-  const double uy = 1.0 - ty;
-  const double uz = 1.0 - tz;
-  const double w000 = ux * uy * uz;
-  const double w100 = tx * uy * uz;
-  const double w010 = ux * ty * uz;
-  const double w110 = tx * ty * uz;
-  const double w001 = ux * uy * tz;
-  const double w101 = tx * uy * tz;
-  const double w011 = ux * ty * tz;
-  const double w111 = tx * ty * tz;
-  const auto mix = [&](auto member) {
-    return w000 * (c000.*member) + w100 * (c100.*member) + w010 * (c010.*member) + w110 * (c110.*member) +
-           w001 * (c001.*member) + w101 * (c101.*member) + w011 * (c011.*member) + w111 * (c111.*member);
-  };
-  MapSample s{mix(&MapCell::distance) * kDistanceUnitM, mix(&MapCell::grad_x) * kGradientUnit,
-              mix(&MapCell::grad_y) * kGradientUnit};
+  // Table and in-brick parts of the corners' positions, per axis: low corner [0], high corner [1].
+  std::size_t table_part[3][2];
+  std::size_t cell_part[3][2];
+  std::size_t table_stride = 1;
+  for (int a = 0; a < 3; ++a) {
+    const int hi = lo[a] + step_[a];
+    table_part[a][0] = static_cast<std::size_t>(lo[a] >> BrickGrid::kBrickShift) * table_stride;
+    table_part[a][1] = static_cast<std::size_t>(hi >> BrickGrid::kBrickShift) * table_stride;
+    cell_part[a][0] = static_cast<std::size_t>(lo[a] & BrickGrid::kInBrickMask) << (a * BrickGrid::kBrickShift);
+    cell_part[a][1] = static_cast<std::size_t>(hi & BrickGrid::kInBrickMask) << (a * BrickGrid::kBrickShift);
+    table_stride *= static_cast<std::size_t>(bricks_.count(a));
+  }
+  double v[8];  // corner (i, j, k) at v[i + 2 j + 4 k]
+  bool fine_ok = true;
+  for (int k = 0; k < 2; ++k) {
+    for (int j = 0; j < 2; ++j) {
+      for (int i = 0; i < 2; ++i) {
+        const std::uint16_t b = data_.brick_table[table_part[0][i] + table_part[1][j] + table_part[2][k]];
+        std::uint8_t q = kFineFar;
+        if (b != kAbsentBrick) {
+          q = data_.bricks[static_cast<std::size_t>(b) * BrickGrid::kBrickCells + cell_part[0][i] + cell_part[1][j] +
+                           cell_part[2][k]];
+        }
+        fine_ok = fine_ok && q != kFineFar;
+        v[i + 2 * j + 4 * k] = q;
+      }
+    }
+  }
+  MapSample s{};
+  if (fine_ok) {
+    const double tx = t[0];
+    const double ty = t[1];
+    const double tz = t[2];
+    const double ux = 1.0 - tx;
+    const double uy = 1.0 - ty;
+    const double uz = 1.0 - tz;
+    // Along x first: the four x-edges, then their y-z bilinear mix; the x slope is the mix of the edges' steps.
+    const double e00 = ux * v[0] + tx * v[1], e10 = ux * v[2] + tx * v[3];
+    const double e01 = ux * v[4] + tx * v[5], e11 = ux * v[6] + tx * v[7];
+    const double y0 = uy * e00 + ty * e10;
+    const double y1 = uy * e01 + ty * e11;
+    const double dx = uz * (uy * (v[1] - v[0]) + ty * (v[3] - v[2])) + tz * (uy * (v[5] - v[4]) + ty * (v[7] - v[6]));
+    const double dy = uz * (e10 - e00) + tz * (e11 - e01);
+    s.distance_m = (uz * y0 + tz * y1) * kDistanceUnitM;
+    s.grad_x = step_[0] != 0 ? dx * fine_grad_scale_ : 0.0;
+    s.grad_y = step_[1] != 0 ? dy * fine_grad_scale_ : 0.0;
+    s.fine = true;
+  } else {
+    s = coarse_sample(c);
+  }
 
   // Beyond the grid box (more than half a cell past the last centre on some axis): add the distance to the box.
   // Rare in Perfect Match, so it stays off the common path.

@@ -177,6 +177,8 @@ class PerfectMatcher {
   void order_coarse_first();
 
   std::vector<Eigen::Vector3f> points_;
+  // depth_plane()'s per-point scratch (X, Y, depth e or NaN), sized with points_; not state between calls.
+  mutable std::vector<Eigen::Vector3d> level_;
   std::size_t used_ = 0;
   std::size_t coarse_used_ = 0;
   Eigen::Vector2d scan_centroid_m_ = Eigen::Vector2d::Zero();

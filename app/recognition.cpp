@@ -161,7 +161,7 @@ LoadedTemplates open_templates(const Config& config, const ModelDb& db) {
       const formats::TemplateFile& t = *out.files.back();
       model.map = t.view();
       model.centroid_m = t.centroid_m();
-      model.surface_points = t.surface_points();
+      model.surface_cells = t.surface_cells();
     }
     out.models.push_back(model);
   }

@@ -17,6 +17,7 @@
 #include "cli/calibrate_mode.hpp"
 #include "cli/classify_mode.hpp"
 #include "cli/mode_args.hpp"
+#include "cli/parts_mode.hpp"
 #include "cli/perturb_mode.hpp"
 #include "cli/run_mode.hpp"
 #include "cli/scan_mode.hpp"
@@ -47,7 +48,8 @@ constexpr const char* kUsage =
     "  calibrate support (--scan EMPTY.ply | --sim [--seed S]) [--calibration FILE]\n"
     "        fit the carrier (support) plane on an empty-carrier scan; stored in calibration.yaml\n"
     "  teach --part NAME [--id N] (--sim --count K [--seed S] [--perturb SPEC] | SCAN.ply ...) [--calibration FILE]\n"
-    "        store scans of a part type in the model database; the first becomes its Perfect Match template\n"
+    "        store scans of a part type in the model database; the one that agrees best with the others becomes its\n"
+    "        Perfect Match template\n"
     "  train [--report DIR] [--compare] [--iterations N] [--seed S]\n"
     "        features of every taught scan, simulated-annealing feature selection + k-fold CV, the SVM,\n"
     "        acceptance thresholds per template; --compare also trains kNN and an MLP (thesis ch. 4)\n"
@@ -59,6 +61,8 @@ constexpr const char* kUsage =
     "        seeded scan artefacts; SPEC: KIND[:STRENGTH][@SHARE],... with KIND noise, dropout, glare, stray_edge,\n"
     "        stray_points, thin, swing, mixed or none (see README, 'Robustness')\n"
     "  parts list | show NAME | delete NAME\n"
+    "  parts rebuild [NAME ...] [--calibration FILE]\n"
+    "        build the templates again from the stored scans (e.g. of an older template format); then train\n"
     "  help  this text\n";
 
 constexpr const char* kUsageGlobals =

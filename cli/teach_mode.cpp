@@ -1,4 +1,4 @@
-// `cellsight teach` and `cellsight parts`: store scans of a part type, build its template, manage the database.
+// `cellsight teach`: store scans of a part type and build its template.
 #include "cli/teach_mode.hpp"
 
 #include <algorithm>
@@ -18,6 +18,7 @@
 #include "cli/cli.hpp"
 #include "cli/mode_args.hpp"
 #include "cli/perturb_mode.hpp"
+#include "cli/train_mode.hpp"
 #include "drivers/log.hpp"
 #include "formats/calibration_file.hpp"
 #include "formats/input_file.hpp"
@@ -79,7 +80,7 @@ algo::TemplateModel view_of(const formats::TemplateModel& model) {
   view.class_index = 0;
   view.map = model.map.view();
   view.centroid_m = model.centroid_m;
-  view.surface_points = model.surface_points;
+  view.surface_cells = model.surface_cells;
   return view;
 }
 
@@ -195,6 +196,23 @@ Consensus consensus_points(const app::Config& config, app::ScanPreparer& prepare
   return out;
 }
 
+// Consensus: fills the chosen scan's gaps from the others (consensus_points) and rebuilds its template from the
+// merged points. Returns the cells added (0: the template is as it was).
+std::size_t complete_from_others(const app::Config& config, app::ScanPreparer& preparer, algo::Cascade& cascade,
+                                 const std::vector<TaughtScan>& scans, TemplateChoice& chosen) {
+  auto merged = consensus_points(config, preparer, cascade, scans, chosen);
+  if (merged.added_points == 0) return 0;
+  auto model = formats::build_template(merged.points, app::grid_spec(config));
+  if (!model) return 0;
+  std::printf(
+      "template: completed from the other scans where at least half of them agree and it has none "
+      "(%zu cells, %.0f mm2: glare, dropouts, shadows of that pass)\n",
+      merged.added_cells,
+      static_cast<double>(merged.added_cells) * config.grid.resolution_m * config.grid.resolution_m * 1e6);
+  chosen.model = std::move(*model);
+  return merged.added_cells;
+}
+
 // The template scan: candidates in order of how close their part's point count is to the median of the taught
 // scans (a glare band or a cut-off part has fewer points), built and checked against the other scans (Perfect Match
 // + the two-way check) until one leaves a median evidence within the cascade's area floor; else the best of the
@@ -256,29 +274,17 @@ Expected<TemplateChoice> choose_template(const app::Config& config, app::ScanPre
   if (!best) return make_error(first_error.empty() ? std::string("no scan") : first_error);
   std::printf("template: %s (median evidence of the other %zu scans against it %.0f mm2)\n",
               scans[best->index].source.c_str(), scans.size() - 1, best_median * 1e6);
-  if (scans.size() >= kMinConsensusScans) {
-    // Consensus: fill the chosen scan's gaps from the others, then judge every scan against the result.
-    auto merged = consensus_points(config, preparer, cascade, scans, *best);
-    if (merged.added_points > 0) {
-      auto model = formats::build_template(merged.points, app::grid_spec(config));
-      if (model) {
-        std::printf(
-            "template: completed from the other scans where at least half of them agree and it has none "
-            "(%zu cells, %.0f mm2: glare, dropouts, shadows of that pass)\n",
-            merged.added_cells,
-            static_cast<double>(merged.added_cells) * config.grid.resolution_m * config.grid.resolution_m * 1e6);
-        best->model = std::move(*model);
-        const algo::TemplateModel view = view_of(best->model);
-        std::vector<double> others;
-        for (std::size_t j = 0; j < scans.size(); ++j) {
-          (void)preparer.prepare(scans[j].points);
-          best_evidence[j] = cascade.evaluate(view, preparer.part_points()).evidence_m2;
-          if (j != best->index) others.push_back(best_evidence[j]);
-        }
-        std::nth_element(others.begin(), others.begin() + static_cast<std::ptrdiff_t>(others.size() / 2), others.end());
-        best_median = others[others.size() / 2];
-      }
+  if (scans.size() >= kMinConsensusScans && complete_from_others(config, preparer, cascade, scans, *best) > 0) {
+    // Judge every scan against the completed template.
+    const algo::TemplateModel view = view_of(best->model);
+    std::vector<double> others;
+    for (std::size_t j = 0; j < scans.size(); ++j) {
+      (void)preparer.prepare(scans[j].points);
+      best_evidence[j] = cascade.evaluate(view, preparer.part_points()).evidence_m2;
+      if (j != best->index) others.push_back(best_evidence[j]);
     }
+    std::nth_element(others.begin(), others.begin() + static_cast<std::ptrdiff_t>(others.size() / 2), others.end());
+    best_median = others[others.size() / 2];
   }
   const double disagree = std::max(kDisagreeFactor * best_median, cp.area_floor_m2);
   for (std::size_t j = 0; j < scans.size(); ++j) {
@@ -291,42 +297,6 @@ Expected<TemplateChoice> choose_template(const app::Config& config, app::ScanPre
     }
   }
   return std::move(*best);
-}
-
-void print_part(const app::ModelDb& db, const formats::PartEntry& p, bool detail) {
-  std::printf("%-24s %6d %6zu %7zu  %-5s %s\n", p.name.c_str(), p.id, p.scans.size(), p.flagged.size(),
-              p.thresholds.learnt ? "yes" : "no", p.taught_at.c_str());
-  if (!detail) return;
-  auto info = formats::read_template_info(db.path_of(p.template_file));
-  if (info) {
-    std::printf("  template     %s (%.1f MB, %llu occupied cells, centroid x %.1f mm y %.1f mm)\n",
-                p.template_file.c_str(), static_cast<double>(info->file_bytes) / 1e6,
-                static_cast<unsigned long long>(info->occupied_cells), info->centroid_m.x() * 1e3,
-                info->centroid_m.y() * 1e3);
-  } else {
-    std::printf("  template     %s: %s\n", p.template_file.c_str(), info.error().message.c_str());
-  }
-  if (const formats::ScanEntry* t = p.template_scan_entry()) {
-    std::printf("  built from   %s (%s): poses are relative to this pass\n", t->file.c_str(), t->source.c_str());
-  }
-  if (!p.confusable.empty()) {
-    std::string list;
-    for (const std::string& c : p.confusable) list += (list.empty() ? "" : ", ") + c;
-    std::printf("  look-alikes  %s (verified with it)\n", list.c_str());
-  }
-  if (p.thresholds.learnt) {
-    std::printf(
-        "  accepts      PM error <= %.3g, missing <= %.0f mm2 (%.2f %% in all), extra <= %.0f mm2 (%.2f %% in all)\n",
-        p.thresholds.max_error, p.thresholds.max_missing_area_m2 * 1e6, p.thresholds.max_uncovered * 100.0,
-        p.thresholds.max_extra_area_m2 * 1e6, p.thresholds.max_outliers * 100.0);
-    std::printf("  size         width and height within %.1f mm of its own scans'\n",
-                p.thresholds.max_size_dev_m * 1e3);
-  }
-  for (const formats::ScanEntry& s : p.scans) {
-    const bool flagged = std::find(p.flagged.begin(), p.flagged.end(), s.file) != p.flagged.end();
-    std::printf("  scan         %s  (%s)%s\n", s.file.c_str(), s.source.c_str(),
-                flagged ? "  FLAGGED: disagrees with the others, left out of the thresholds" : "");
-  }
 }
 
 // The words of `teach`: --part, and either --sim --count K or scan files. An error is a usage error.
@@ -516,61 +486,30 @@ int run_teach(const std::vector<std::string>& words, const app::Config& config, 
   return kExitOk;
 }
 
-int run_parts(const std::vector<std::string>& words, const app::Config& config, const std::string& models_dir) {
-  ModeArgs args;
-  std::string error;
-  if (!parse_mode_args(words, {}, {}, args, error)) return fail(kExitUsage, "parts: " + error);
-  if (args.positional.empty()) return fail(kExitUsage, "parts needs list, show NAME or delete NAME");
-  const std::string& action = args.positional.front();
-  auto db = action == "delete" ? app::ModelDb::open_for_writing(models_dir, app::grid_spec(config), false)
-                               : app::ModelDb::open(models_dir, app::grid_spec(config), false);
-  if (!db) return fail(kExitUsage, db.error().message);
-  if (action == "list" && args.positional.size() == 1) {
-    // Every file is checked as loading it checks it (a template's header and body checksums, the SVM's checksum,
-    // model and classes), so a damaged one shows here and not first in classify.
-    int damaged = 0;
-    std::printf("%-24s %6s %6s %7s  %-5s %s\n", "part", "id", "scans", "flagged", "thr", "taught");
-    for (const formats::PartEntry& p : db->manifest().parts) {
-      print_part(*db, p, false);
-      if (auto t = formats::TemplateFile::open(db->path_of(p.template_file), app::grid_spec(config)); !t) {
-        std::printf("  DAMAGED template %s: %s; classify disables this part\n", p.template_file.c_str(),
-                    t.error().message.c_str());
-        ++damaged;
-      }
-    }
-    const std::string stale = db->svm_stale_reason();
-    if (stale.empty()) {
-      std::printf("SVM: trained %s, %.2f %% on %d test scans, %s\n", db->manifest().svm.trained_at.c_str(),
-                  db->manifest().svm.test_accuracy * 100.0, db->manifest().svm.test_scans,
-                  db->manifest().svm.hyper.c_str());
-      if (auto svm = app::load_svm(*db); !svm) {
-        std::printf("SVM: DAMAGED: %s\n", svm.error().message.c_str());
-        ++damaged;
-      }
-    } else {
-      std::printf("SVM: stale: %s\n", stale.c_str());
-    }
-    if (damaged > 0) {
-      std::fflush(stdout);  // the listing before the summary line on stderr
-      const std::string files = damaged == 1 ? " damaged file" : " damaged files";
-      return fail(kExitUsage,
-                  "parts list: " + std::to_string(damaged) + files + " in " + db->dir() + " (marked DAMAGED above)");
-    }
-    return kExitOk;
+Expected<formats::TemplateModel> rebuild_template(const app::Config& config, app::ScanPreparer& preparer,
+                                                  const app::ModelDb& db, const formats::PartEntry& part) {
+  const formats::ScanEntry* base = part.template_scan_entry();
+  if (base == nullptr) return make_error("part '" + part.name + "' has no stored scans");
+  std::vector<TaughtScan> scans;
+  std::size_t index = 0;
+  for (const formats::ScanEntry& s : part.scans) {
+    auto points = load_taught_scan(db, s);
+    if (!points) return points.error();
+    if (&s == base) index = scans.size();
+    scans.push_back({std::move(*points), db.path_of(s.file)});
   }
-  if ((action == "show" || action == "delete") && args.positional.size() == 2) {
-    const std::string& name = args.positional[1];
-    const formats::PartEntry* p = db->find(name);
-    if (p == nullptr) return fail(kExitUsage, "parts: no part '" + name + "' in " + db->manifest_path());
-    if (action == "show") {
-      print_part(*db, *p, true);
-      return kExitOk;
-    }
-    if (auto ok = db->delete_part(name); !ok) return fail(kExitFailure, "parts delete: " + ok.error().message);
-    std::printf("deleted %s; the SVM is now stale: run 'cellsight train'\n", name.c_str());
-    return kExitOk;
+  const app::PrepareReport r = preparer.prepare(scans[index].points);
+  if (r.status != app::PrepareStatus::kOk) {
+    return make_error(scans[index].source + ": " + std::string(to_string(r.status)) + " (" + r.describe() + ")");
   }
-  return fail(kExitUsage, "parts needs list, show NAME or delete NAME");
+  auto model = formats::build_template(preparer.part_points(), app::grid_spec(config));
+  if (!model) return make_error(scans[index].source + ": " + model.error().message);
+  TemplateChoice chosen{index, std::move(*model)};
+  if (scans.size() >= kMinConsensusScans) {
+    algo::Cascade cascade(app::cascade_params(config), app::perfect_match_params(config), app::grid_spec(config));
+    (void)complete_from_others(config, preparer, cascade, scans, chosen);
+  }
+  return std::move(chosen.model);
 }
 
 }  // namespace cellsight::cli

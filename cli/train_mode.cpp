@@ -214,7 +214,7 @@ Expected<std::vector<std::vector<algo::MatchReport>>> cross_matches(const app::C
         }
         reports[i].resize(classes);
         for (std::size_t c = 0; c < classes; ++c) {
-          if (c == jobs[i].label || templates.models[c].map.cells() == nullptr) continue;
+          if (c == jobs[i].label || !templates.models[c].map.valid()) continue;
           reports[i][c] = w.cascade.evaluate(templates.models[c], w.preparer.part_points());
         }
         return true;
@@ -225,7 +225,7 @@ Expected<std::vector<std::vector<algo::MatchReport>>> cross_matches(const app::C
   std::vector<std::vector<algo::MatchReport>> out(classes);
   for (std::size_t i = 0; i < jobs.size(); ++i) {
     for (std::size_t c = 0; c < classes; ++c) {
-      if (c != jobs[i].label && templates.models[c].map.cells() != nullptr) out[c].push_back(reports[i][c]);
+      if (c != jobs[i].label && templates.models[c].map.valid()) out[c].push_back(reports[i][c]);
     }
   }
   return out;

@@ -101,7 +101,6 @@ Expected<TemplateModel> build_template(std::span<const algo::ScanPoint> points, 
 
   TemplateModel model;
   model.grid = grid;
-  model.gradient_method = params.gradient_method;
   model.outside_points = outside.total;
 
   algo::OccupancyGrid occupancy(grid, points.size());
@@ -139,13 +138,14 @@ Expected<TemplateModel> build_template(std::span<const algo::ScanPoint> points, 
 
   std::sort(occupied.begin(), occupied.end(), [](const KeyedCell& a, const KeyedCell& b) { return a.key < b.key; });
   const std::size_t m = std::min(n, params.max_surface_points);
-  model.surface_points.reserve(m);
+  model.surface_cells.reserve(m);
   for (std::size_t k = 0; k < m; ++k) {
     // The centre of the k-th of m equal strata of the Morton order (every cell when m == n).
     const std::size_t i = (2 * k + 1) * n / (2 * m);
     const KeyedCell& c = occupied[i];
-    model.surface_points.push_back(
-        grid.centre(static_cast<int>(c.x), static_cast<int>(c.y), static_cast<int>(c.z)).cast<float>());
+    // validate_dims keeps every axis below 2^12 cells, so the indices fit SurfaceCell's uint16.
+    model.surface_cells.push_back(
+        {static_cast<std::uint16_t>(c.x), static_cast<std::uint16_t>(c.y), static_cast<std::uint16_t>(c.z)});
   }
   occupied = {};  // release before the big buffers below
 
@@ -153,7 +153,7 @@ Expected<TemplateModel> build_template(std::span<const algo::ScanPoint> points, 
   algo::EdtScratch scratch(dims);
   std::vector<float> work(dims.cell_count());
   if (Status built =
-          algo::build_distance_map(cells, dims, grid.origin_m, params.gradient_method, scratch, work.data(), model.map);
+          algo::build_distance_map(cells, dims, grid.origin_m, params.band_m, scratch, work.data(), model.map);
       !built) {
     return make_error("template: " + built.error().message);
   }

@@ -35,13 +35,14 @@ using template_grid::number;
 using template_grid::validate_grid;
 
 static_assert(std::endian::native == std::endian::little, "template files store numbers as the host does");
-static_assert(sizeof(Eigen::Vector3f) == 3 * sizeof(float), "surface points are stored as 3 x float32");
-static_assert(std::is_trivially_copyable_v<algo::MapCell> && std::is_standard_layout_v<algo::MapCell>,
-              "MapCell is read in place from the mapping");
+static_assert(std::is_trivially_copyable_v<algo::SurfaceCell> && std::is_standard_layout_v<algo::SurfaceCell>,
+              "SurfaceCell is read in place from the mapping");
 
 constexpr std::array<char, 8> kMagic = {'\x89', 'D', 'M', 'A', 'P', '\r', '\n', '\x1a'};  // PNG-style transfer check
 constexpr std::uint32_t kByteOrderMark = 0x01020304u;
-constexpr std::size_t kPointBytes = 3 * sizeof(float);
+constexpr std::uint32_t kVersionOneFullGrid = 1;
+constexpr std::size_t kSurfaceCellBytes = sizeof(algo::SurfaceCell);
+constexpr std::size_t kTableEntryBytes = sizeof(std::uint16_t);
 constexpr std::size_t kHeaderCrcBytes = kTemplateHeaderBytes - sizeof(std::uint32_t);
 // Origin and resolution of the file must equal the configured grid to this (metres): far below any meaningful
 // difference, far above the rounding of a number read back from text.
@@ -49,41 +50,43 @@ constexpr double kGridToleranceM = 1e-9;
 constexpr double kMmPerM = 1000.0;
 constexpr double kMsPerS = 1000.0;
 
-// Version 1 header, exactly as on disk.
+// Version 2 header, exactly as on disk.
 struct TemplateHeader {
   char magic[8];
   std::uint32_t format_version;
   std::uint32_t header_bytes;
   std::uint32_t byte_order;
-  std::uint32_t gradient_method;
+  std::uint32_t section_alignment;
   std::int32_t nx, ny, nz;
-  std::uint32_t cell_bytes;
+  std::uint32_t plc_id;
   double resolution_m;
   double origin_m[3];
   double distance_unit_m;
-  double gradient_scale;
+  double band_m;
   double centroid_m[2];
   std::uint64_t occupied_cells;
-  std::uint64_t surface_point_count;
+  std::uint64_t surface_cell_count;
   std::uint64_t surface_offset;
-  std::uint64_t cell_count;
-  std::uint64_t cells_offset;
+  std::uint64_t brick_count;
+  std::uint64_t table_offset;
+  std::uint64_t stored_bricks;
+  std::uint64_t bricks_offset;
   std::uint64_t file_bytes;
   std::int64_t created_unix_s;
-  std::uint32_t plc_id;
-  std::uint32_t point_bytes;
-  std::uint32_t section_alignment;
   std::uint32_t body_crc32;
+  std::uint32_t brick_edge;
   char part_name[kTemplatePartNameCapacity];
-  std::uint8_t reserved[12];
+  std::uint8_t reserved[4];
   std::uint32_t header_crc32;
 };
 static_assert(sizeof(TemplateHeader) == kTemplateHeaderBytes);
 static_assert(std::is_trivially_copyable_v<TemplateHeader> && std::is_standard_layout_v<TemplateHeader>);
-static_assert(offsetof(TemplateHeader, resolution_m) == 40 && offsetof(TemplateHeader, occupied_cells) == 104 &&
-              offsetof(TemplateHeader, plc_id) == 160 && offsetof(TemplateHeader, part_name) == 176 &&
-              offsetof(TemplateHeader, body_crc32) == kTemplateBodyCrcOffset &&
-              offsetof(TemplateHeader, header_crc32) == kHeaderCrcBytes);
+static_assert(offsetof(TemplateHeader, format_version) == 8 && offsetof(TemplateHeader, byte_order) == 16 &&
+                  offsetof(TemplateHeader, resolution_m) == 40 && offsetof(TemplateHeader, occupied_cells) == 104 &&
+                  offsetof(TemplateHeader, part_name) == 184 &&
+                  offsetof(TemplateHeader, body_crc32) == kTemplateBodyCrcOffset &&
+                  offsetof(TemplateHeader, header_crc32) == kHeaderCrcBytes,
+              "magic, version and byte order sit where version 1 had them, so a version 1 file is recognised");
 
 std::string errno_text(int error) {
   return std::strerror(error);
@@ -97,22 +100,19 @@ std::uint32_t header_crc(const TemplateHeader& h) {
   return base::crc32_update(base::kCrc32Empty, &h, kHeaderCrcBytes);
 }
 
-bool valid_gradient_method(std::uint32_t m) {
-  return m == static_cast<std::uint32_t>(algo::GradientMethod::kSobelAveraged) ||
-         m == static_cast<std::uint32_t>(algo::GradientMethod::kCentralDifference);
-}
-
 // Where the sections of a file with these counts lie.
 struct Layout {
   std::size_t surface_offset = 0;
-  std::size_t cells_offset = 0;
+  std::size_t table_offset = 0;
+  std::size_t bricks_offset = 0;
   std::size_t file_bytes = 0;
 };
-Layout layout_for(std::size_t surface_points, std::size_t cells) {
+Layout layout_for(std::size_t surface_cells, std::size_t brick_count, std::size_t stored_bricks) {
   Layout l;
   l.surface_offset = align_up(kTemplateHeaderBytes);
-  l.cells_offset = align_up(l.surface_offset + surface_points * kPointBytes);
-  l.file_bytes = l.cells_offset + cells * sizeof(algo::MapCell);
+  l.table_offset = align_up(l.surface_offset + surface_cells * kSurfaceCellBytes);
+  l.bricks_offset = align_up(l.table_offset + 2 * brick_count * kTableEntryBytes);
+  l.file_bytes = l.bricks_offset + stored_bricks * algo::BrickGrid::kBrickCells;
   return l;
 }
 
@@ -123,11 +123,17 @@ struct Segment {
 };
 constexpr std::array<std::uint8_t, kTemplateSectionAlignment> kZeros{};
 
-std::array<Segment, 4> body_segments(const TemplateModel& model, const Layout& l) {
-  const std::size_t points_bytes = model.surface_points.size() * kPointBytes;
-  return {Segment{nullptr, l.surface_offset - kTemplateHeaderBytes}, Segment{model.surface_points.data(), points_bytes},
-          Segment{nullptr, l.cells_offset - l.surface_offset - points_bytes},
-          Segment{model.map.cells().data(), model.map.cells().size() * sizeof(algo::MapCell)}};
+std::array<Segment, 7> body_segments(const TemplateModel& model, const Layout& l) {
+  const std::size_t surface_bytes = model.surface_cells.size() * kSurfaceCellBytes;
+  const std::size_t table_bytes = model.map.brick_table().size() * kTableEntryBytes;
+  const std::size_t coarse_bytes = model.map.coarse().size() * kTableEntryBytes;
+  return {Segment{nullptr, l.surface_offset - kTemplateHeaderBytes},
+          Segment{model.surface_cells.data(), surface_bytes},
+          Segment{nullptr, l.table_offset - l.surface_offset - surface_bytes},
+          Segment{model.map.brick_table().data(), table_bytes},
+          Segment{model.map.coarse().data(), coarse_bytes},
+          Segment{nullptr, l.bricks_offset - l.table_offset - table_bytes - coarse_bytes},
+          Segment{model.map.bricks().data(), model.map.bricks().size()}};
 }
 
 Status validate_name(const std::string& name) {
@@ -218,29 +224,33 @@ Expected<TemplateInfo> check_header(const std::string& path, const TemplateHeade
     return fail("not a cellsight template file (wrong magic number)");
   }
   if (h.byte_order != kByteOrderMark) return fail("byte-order mark is wrong (corrupt, or written by another machine)");
+  if (h.format_version == kVersionOneFullGrid) {
+    return fail("template format version 1 (a full-grid map of ~157 MB), this build reads version " +
+                std::to_string(kTemplateFormatVersion) +
+                " (sparse bricks, a few MB); run `cellsight parts rebuild` to regenerate the templates from the "
+                "stored scans");
+  }
   if (h.format_version != kTemplateFormatVersion) {
     return fail("template format version " + std::to_string(h.format_version) + ", this build reads version " +
                 std::to_string(kTemplateFormatVersion) + "; re-teach the part with this version");
   }
   if (h.header_bytes != kTemplateHeaderBytes) {
-    return fail("header size " + std::to_string(h.header_bytes) + " bytes, version 1 has " +
-                std::to_string(kTemplateHeaderBytes));
+    return fail("header size " + std::to_string(h.header_bytes) + " bytes, version " +
+                std::to_string(kTemplateFormatVersion) + " has " + std::to_string(kTemplateHeaderBytes));
   }
   if (header_crc(h) != h.header_crc32) return fail("header checksum mismatch: the header is corrupt");
 
   // From here on the fields are as written, so a failure means a writer bug or a different build.
-  if (h.cell_bytes != sizeof(algo::MapCell) || h.point_bytes != kPointBytes ||
-      h.section_alignment != kTemplateSectionAlignment) {
-    return fail("record sizes (cell " + std::to_string(h.cell_bytes) + " B, point " + std::to_string(h.point_bytes) +
-                " B, alignment " + std::to_string(h.section_alignment) + ") differ from this build's");
+  if (h.brick_edge != algo::BrickGrid::kBrickEdge || h.section_alignment != kTemplateSectionAlignment) {
+    return fail("brick edge " + std::to_string(h.brick_edge) + " or alignment " + std::to_string(h.section_alignment) +
+                " B differs from this build's");
   }
-  if (h.distance_unit_m != algo::kDistanceUnitM || h.gradient_scale != algo::kGradientScale) {
-    return fail("map quantization (distance unit " + number(h.distance_unit_m) + " m, gradient scale " +
-                number(h.gradient_scale) + ") differs from this build's; re-teach the part");
+  if (h.distance_unit_m != algo::kDistanceUnitM) {
+    return fail("map quantization (distance unit " + number(h.distance_unit_m) +
+                " m) differs from this build's; re-teach the part");
   }
-  if (!valid_gradient_method(h.gradient_method)) {
-    return fail("unknown gradient method " + std::to_string(h.gradient_method));
-  }
+  if (!(h.band_m > 0.0 && h.band_m <= algo::kMaxFineDistanceM))
+    return fail("band " + number(h.band_m) + " m is invalid");
   TemplateInfo info;
   info.format_version = h.format_version;
   info.grid.nx = h.nx;
@@ -249,23 +259,24 @@ Expected<TemplateInfo> check_header(const std::string& path, const TemplateHeade
   info.grid.resolution_m = h.resolution_m;
   info.grid.origin_m = Eigen::Vector3d(h.origin_m[0], h.origin_m[1], h.origin_m[2]);
   if (Status g = validate_grid(info.grid); !g) return fail(g.error().message);
-  info.gradient_method = static_cast<algo::GradientMethod>(h.gradient_method);
+  info.band_m = h.band_m;
   info.centroid_m = Eigen::Vector2d(h.centroid_m[0], h.centroid_m[1]);
   if (!info.centroid_m.allFinite()) return fail("centroid is not finite");
   const std::size_t grid_cells = info.grid.cells();
-  if (h.occupied_cells == 0 || h.occupied_cells > grid_cells || h.surface_point_count == 0 ||
-      h.surface_point_count > h.occupied_cells) {
+  if (h.occupied_cells == 0 || h.occupied_cells > grid_cells || h.surface_cell_count == 0 ||
+      h.surface_cell_count > h.occupied_cells) {
     return fail("inconsistent counts: " + std::to_string(h.occupied_cells) + " occupied cells, " +
-                std::to_string(h.surface_point_count) + " surface points, grid of " + std::to_string(grid_cells) +
+                std::to_string(h.surface_cell_count) + " surface cells, grid of " + std::to_string(grid_cells) +
                 " cells");
   }
-  const std::size_t layout_cells = algo::BrickLayout(dims_of(info.grid)).cell_count();
-  if (h.cell_count != layout_cells) {
-    return fail("cell count " + std::to_string(h.cell_count) + " does not match the grid (" +
-                std::to_string(layout_cells) + " cells in brick layout)");
+  const std::size_t bricks = algo::BrickGrid(dims_of(info.grid)).brick_count();
+  if (h.brick_count != bricks || h.stored_bricks == 0 || h.stored_bricks > std::min(bricks, algo::kMaxStoredBricks)) {
+    return fail("brick counts (" + std::to_string(h.brick_count) + " in the grid, " + std::to_string(h.stored_bricks) +
+                " stored) do not match the grid's " + std::to_string(bricks));
   }
-  const Layout l = layout_for(h.surface_point_count, layout_cells);
-  if (h.surface_offset != l.surface_offset || h.cells_offset != l.cells_offset || h.file_bytes != l.file_bytes) {
+  const Layout l = layout_for(h.surface_cell_count, bricks, h.stored_bricks);
+  if (h.surface_offset != l.surface_offset || h.table_offset != l.table_offset || h.bricks_offset != l.bricks_offset ||
+      h.file_bytes != l.file_bytes) {
     return fail("section offsets or file size in the header are inconsistent with its counts");
   }
   if (std::memchr(h.part_name, '\0', sizeof h.part_name) == nullptr || h.part_name[0] == '\0') {
@@ -280,8 +291,9 @@ Expected<TemplateInfo> check_header(const std::string& path, const TemplateHeade
                 std::to_string(h.file_bytes) + "): appended to or overwritten");
   }
   info.occupied_cells = h.occupied_cells;
-  info.surface_point_count = h.surface_point_count;
-  info.cell_count = h.cell_count;
+  info.surface_cell_count = h.surface_cell_count;
+  info.brick_count = h.brick_count;
+  info.stored_bricks = h.stored_bricks;
   info.file_bytes = h.file_bytes;
   info.body_crc32 = h.body_crc32;
   info.part_name = h.part_name;
@@ -331,49 +343,51 @@ Status write_template(const std::string& path, const TemplateModel& model, const
   if (Status g = validate_grid(model.grid); !g) return fail(g.error().message);
   const algo::GridDims dims = dims_of(model.grid);
   const algo::GridDims& map_dims = model.map.dims();
-  const std::size_t layout_cells = algo::BrickLayout(dims).cell_count();
+  const std::size_t bricks = algo::BrickGrid(dims).brick_count();
+  const std::size_t stored = model.map.stored_bricks();
   if (map_dims.nx != dims.nx || map_dims.ny != dims.ny || map_dims.nz != dims.nz ||
       map_dims.resolution_m != dims.resolution_m || model.map.origin_m() != model.grid.origin_m ||
-      model.map.cells().size() != layout_cells) {
+      model.map.brick_table().size() != bricks || model.map.coarse().size() != bricks || stored == 0 ||
+      model.map.bricks().size() != stored * algo::BrickGrid::kBrickCells) {
     return fail("template model is inconsistent: its map was not built for its grid");
   }
-  if (model.surface_points.empty() || model.occupied_cells < model.surface_points.size() ||
+  if (model.surface_cells.empty() || model.occupied_cells < model.surface_cells.size() ||
       !model.centroid_m.allFinite()) {
-    return fail("template model is inconsistent: no surface points, or not a built template");
+    return fail("template model is inconsistent: no surface cells, or not a built template");
   }
 
-  const Layout l = layout_for(model.surface_points.size(), layout_cells);
+  const Layout l = layout_for(model.surface_cells.size(), bricks, stored);
   TemplateHeader h{};
   std::memcpy(h.magic, kMagic.data(), kMagic.size());
   h.format_version = kTemplateFormatVersion;
   h.header_bytes = kTemplateHeaderBytes;
   h.byte_order = kByteOrderMark;
-  h.gradient_method = static_cast<std::uint32_t>(model.gradient_method);
+  h.section_alignment = kTemplateSectionAlignment;
   h.nx = dims.nx;
   h.ny = dims.ny;
   h.nz = dims.nz;
-  h.cell_bytes = sizeof(algo::MapCell);
+  h.plc_id = identity.plc_id;
   h.resolution_m = model.grid.resolution_m;
   for (int a = 0; a < 3; ++a) h.origin_m[a] = model.grid.origin_m[a];
   h.distance_unit_m = algo::kDistanceUnitM;
-  h.gradient_scale = algo::kGradientScale;
+  h.band_m = model.map.band_m();
   h.centroid_m[0] = model.centroid_m.x();
   h.centroid_m[1] = model.centroid_m.y();
   h.occupied_cells = model.occupied_cells;
-  h.surface_point_count = model.surface_points.size();
+  h.surface_cell_count = model.surface_cells.size();
   h.surface_offset = l.surface_offset;
-  h.cell_count = layout_cells;
-  h.cells_offset = l.cells_offset;
+  h.brick_count = bricks;
+  h.table_offset = l.table_offset;
+  h.stored_bricks = stored;
+  h.bricks_offset = l.bricks_offset;
   h.file_bytes = l.file_bytes;
   h.created_unix_s =
       identity.created_unix_s != 0 ? identity.created_unix_s : static_cast<std::int64_t>(std::time(nullptr));
-  h.plc_id = identity.plc_id;
-  h.point_bytes = kPointBytes;
-  h.section_alignment = kTemplateSectionAlignment;
+  h.brick_edge = algo::BrickGrid::kBrickEdge;
   std::memcpy(h.part_name, identity.part_name.data(), identity.part_name.size());
 
   // The body CRC over exactly the bytes about to be written, straight from the model's buffers.
-  const std::array<Segment, 4> body = body_segments(model, l);
+  const std::array<Segment, 7> body = body_segments(model, l);
   std::uint32_t crc = base::kCrc32Empty;
   for (const Segment& s : body) {
     if (s.data != nullptr) {
@@ -430,7 +444,7 @@ TemplateFile::TemplateFile(TemplateFile&& other) noexcept
       mapping_bytes_(std::exchange(other.mapping_bytes_, 0)),
       info_(std::move(other.info_)),
       view_(std::exchange(other.view_, {})),
-      surface_points_(std::move(other.surface_points_)),
+      surface_cells_(std::exchange(other.surface_cells_, {})),
       timing_(other.timing_) {}
 
 TemplateFile& TemplateFile::operator=(TemplateFile&& other) noexcept {
@@ -442,7 +456,7 @@ TemplateFile& TemplateFile::operator=(TemplateFile&& other) noexcept {
     mapping_bytes_ = std::exchange(other.mapping_bytes_, 0);
     info_ = std::move(other.info_);
     view_ = std::exchange(other.view_, {});
-    surface_points_ = std::move(other.surface_points_);
+    surface_cells_ = std::exchange(other.surface_cells_, {});
     timing_ = other.timing_;
   }
   return *this;
@@ -454,6 +468,7 @@ TemplateFile::~TemplateFile() {
 
 void TemplateFile::release() {
   view_ = {};
+  surface_cells_ = {};
   if (mapping_ != nullptr) ::munmap(const_cast<std::uint8_t*>(mapping_), mapping_bytes_);
   mapping_ = nullptr;
   mapping_bytes_ = 0;
@@ -493,15 +508,24 @@ Expected<TemplateFile> TemplateFile::open(const std::string& path, const algo::G
   }
   file.timing_.verify_ms = ms_since(verify_start);
 
-  file.surface_points_.resize(h.surface_point_count);
-  const std::uint8_t* points = file.mapping_ + h.surface_offset;
-  for (std::size_t i = 0; i < h.surface_point_count; ++i) {
-    float xyz[3];
-    std::memcpy(xyz, points + i * kPointBytes, kPointBytes);
-    file.surface_points_[i] = Eigen::Vector3f(xyz[0], xyz[1], xyz[2]);
+  // The checksum proves the bytes are as written; these prove a writer (or a crafted file with fixed checksums)
+  // cannot make sample() or the cascade read outside the mapping.
+  const auto* cells = reinterpret_cast<const algo::SurfaceCell*>(file.mapping_ + h.surface_offset);
+  for (std::size_t i = 0; i < h.surface_cell_count; ++i) {
+    if (cells[i].x >= h.nx || cells[i].y >= h.ny || cells[i].z >= h.nz) {
+      return make_error(path + ": surface cell " + std::to_string(i) + " lies outside the grid");
+    }
   }
-  const auto* cells = reinterpret_cast<const algo::MapCell*>(file.mapping_ + h.cells_offset);
-  file.view_ = algo::DistanceMapView(dims_of(file.info_.grid), file.info_.grid.origin_m, cells);
+  const auto* table = reinterpret_cast<const std::uint16_t*>(file.mapping_ + h.table_offset);
+  for (std::size_t b = 0; b < h.brick_count; ++b) {
+    if (table[b] != algo::kAbsentBrick && table[b] >= h.stored_bricks) {
+      return make_error(path + ": brick table entry " + std::to_string(b) + " names brick " + std::to_string(table[b]) +
+                        " of " + std::to_string(h.stored_bricks) + " stored");
+    }
+  }
+  file.surface_cells_ = {cells, h.surface_cell_count};
+  const algo::SparseMapData data{table, table + h.brick_count, file.mapping_ + h.bricks_offset, h.stored_bricks};
+  file.view_ = algo::DistanceMapView(dims_of(file.info_.grid), file.info_.grid.origin_m, data);
   return file;
 }
 

@@ -1,5 +1,6 @@
-// Perfect Match template files (models/templates/NAME.dmap): distance and gradient maps (thesis 2.7.3.1), centroid
-// and surface points of one taught part; built at teach time, memory-mapped read-only and used in place at run time.
+// Perfect Match template files (models/templates/NAME.dmap): the sparse distance map (thesis 2.7.3.1,
+// algo/distance_map.hpp), centroid and occupied cells of one taught part; built at teach time, memory-mapped read-only
+// and used in place at run time.
 #pragma once
 
 #include <Eigen/Core>
@@ -16,48 +17,48 @@
 
 namespace cellsight::formats {
 
-// File layout, version 1 (all numbers little-endian, the types exactly as in memory):
-//   [0, 256)               TemplateHeader: magic, version, sizes, grid, quantization, centroid, counts, offsets,
-//                          part name and PLC id, creation time, body CRC; header CRC in its last 4 bytes
-//   [256, 4096)            zeros
-//   [4096, ...)            surface points: surface_point_count x 3 float32 (x, y, z, metres, carrier frame)
+// File layout, version 2 (all numbers little-endian, the types exactly as in memory):
+//   [0, 256)                 TemplateHeader: magic, version, sizes, grid, quantization, band, centroid, counts,
+//                            offsets, part name and PLC id, creation time, body CRC; header CRC in its last 4 bytes
+//   [256, 4096)              zeros
+//   [4096, ...)              surface cells: surface_cell_count algo::SurfaceCell (3 x uint16: x, y, z cell indices)
 //   zeros up to the next multiple of 4096
-//   [cells_offset, end)    cell_count algo::MapCell (6 bytes each), algo::BrickLayout order, padding included
+//   [table_offset, ...)      brick table: brick_count uint16 (stored brick number, or algo::kAbsentBrick)
+//   [+ brick_count * 2, ...) coarse field: brick_count uint16 (algo::kDistanceUnitM)
+//   zeros up to the next multiple of 4096
+//   [bricks_offset, end)     stored_bricks x 512 uint8: the fine cells (algo::kDistanceUnitM, algo::kFineFar)
 // The header CRC (zlib crc32) covers header bytes [0, 252); the body CRC every byte from 256 to the end of the file.
-// Sections start on 4 KiB boundaries so that the mapped cells are page-aligned and read in place.
-inline constexpr std::uint32_t kTemplateFormatVersion = 1;
+// Sections start on 4 KiB boundaries so that the mapped arrays are page-aligned and read in place.
+// Version 1 (a full 296 x 500 x 182 grid of 6-byte cells, 157 MB) is refused with a pointer to `parts rebuild`.
+inline constexpr std::uint32_t kTemplateFormatVersion = 2;
 inline constexpr std::size_t kTemplateHeaderBytes = 256;
 inline constexpr std::size_t kTemplateSectionAlignment = 4096;
 inline constexpr std::size_t kTemplatePartNameCapacity = 64;  // bytes in the header, NUL included
-inline constexpr std::size_t kTemplateBodyCrcOffset = 172;    // of the body CRC (uint32) in the header
+inline constexpr std::size_t kTemplateBodyCrcOffset = 176;    // of the body CRC (uint32) in the header
 
 struct TemplateBuildParams {
-  // Sobel averaged over z (thesis eq. 2.47-2.53) by default: per algo/distance_map.hpp it is 20-35 % closer to the
-  // gradient of the continuous surface a voxelised surface came from, and scan points sample that surface. Which
-  // method gives the better pose is for Perfect Match's end-to-end tests to settle; the file records the choice.
-  algo::GradientMethod gradient_method = algo::GradientMethod::kSobelAveraged;
+  // Bricks with a cell within this distance of the surface keep exact distances (algo/distance_map.hpp).
+  double band_m = algo::kDefaultBandM;
   // The two-way check of the cascade rasterises these at grid resolution and looks for connected regions the scan
   // lacks: it needs every occupied cell (a 4096-point subset of a 0.3 m^2 plate is one point per ~8 mm, which
   // breaks a 40 mm hole into unconnected cells and hid a one-hole difference in test_model_db). The cap only
-  // guards against absurd inputs; a full 2.2 mm part has ~60-100 k cells (~1 MB in the file).
+  // guards against absurd inputs; a full 2.2 mm part has ~60-100 k cells (0.4-0.6 MB in the file).
   std::size_t max_surface_points = 1U << 21;
   // Points of the (carrier-free) scan allowed outside the grid before the part counts as cut off. Strict by default:
   // a template that misses part of its surface would penalise every complete scan of the part.
   std::size_t max_outside_points = 0;
 };
 
-// A template in memory, as teach builds it from one scan. Teach time only: allocates (the full grid needs ~165 MB
-// for the map plus ~135 MB of transient work buffers).
+// A template in memory, as teach builds it from one scan. Teach time only: allocates (~135 MB of transient work
+// buffers for the full grid; the map itself is 2-4 MB).
 struct TemplateModel {
   algo::GridSpec grid{};
-  algo::GradientMethod gradient_method = algo::GradientMethod::kSobelAveraged;
   algo::DistanceMap map;
   // x-y mean of the occupied cell centres: c of DESIGN.md "Pose".
   Eigen::Vector2d centroid_m = Eigen::Vector2d::Zero();
-  // Occupied cell centres, Morton (Z-order) sorted, then subsampled evenly along that order to at most
-  // max_surface_points: a run of consecutive points is a compact patch, so any strided subset is still spread over
-  // the whole part.
-  std::vector<Eigen::Vector3f> surface_points;
+  // Occupied cells, Morton (Z-order) sorted, then subsampled evenly along that order to at most max_surface_points:
+  // a run of consecutive cells is a compact patch, so any strided subset is still spread over the whole part.
+  std::vector<algo::SurfaceCell> surface_cells;
   std::size_t occupied_cells = 0;
   std::size_t outside_points = 0;  // tolerated by max_outside_points, not accumulated
 };
@@ -86,11 +87,12 @@ struct TemplateIdentity {
 struct TemplateInfo {
   std::uint32_t format_version = 0;
   algo::GridSpec grid{};
-  algo::GradientMethod gradient_method = algo::GradientMethod::kSobelAveraged;
+  double band_m = 0.0;
   Eigen::Vector2d centroid_m = Eigen::Vector2d::Zero();
   std::uint64_t occupied_cells = 0;
-  std::uint64_t surface_point_count = 0;
-  std::uint64_t cell_count = 0;  // BrickLayout(grid).cell_count()
+  std::uint64_t surface_cell_count = 0;
+  std::uint64_t brick_count = 0;    // algo::BrickGrid(grid).brick_count()
+  std::uint64_t stored_bricks = 0;  // fine bricks in the file
   std::uint64_t file_bytes = 0;
   std::uint32_t body_crc32 = 0;  // e.g. for a manifest checksum: identifies the content without rereading it
   std::string part_name;
@@ -125,10 +127,10 @@ class TemplateFile {
   TemplateFile& operator=(const TemplateFile&) = delete;
   ~TemplateFile();
 
-  // Distance and gradient maps, cells read straight from the mapping.
+  // The sparse map and the occupied cells, read straight from the mapping.
   [[nodiscard]] const algo::DistanceMapView& view() const { return view_; }
   [[nodiscard]] const Eigen::Vector2d& centroid_m() const { return info_.centroid_m; }
-  [[nodiscard]] std::span<const Eigen::Vector3f> surface_points() const { return surface_points_; }
+  [[nodiscard]] std::span<const algo::SurfaceCell> surface_cells() const { return surface_cells_; }
   [[nodiscard]] const std::string& part_name() const { return info_.part_name; }
   [[nodiscard]] std::uint32_t plc_id() const { return info_.plc_id; }
   [[nodiscard]] const TemplateInfo& info() const { return info_; }
@@ -145,9 +147,7 @@ class TemplateFile {
   std::size_t mapping_bytes_ = 0;
   TemplateInfo info_{};
   algo::DistanceMapView view_{};
-  // Copied out of the file (48 KiB at the default cap): Eigen::Vector3f is not trivially copyable, so it is not
-  // read in place.
-  std::vector<Eigen::Vector3f> surface_points_;
+  std::span<const algo::SurfaceCell> surface_cells_;
   TemplateLoadTiming timing_{};
 };
 

@@ -128,7 +128,7 @@ struct Template {
   sim::PartPose pose;
   std::vector<ScanPoint> scan;
   algo::DistanceMap map;
-  std::vector<Eigen::Vector3f> surface;
+  std::vector<algo::SurfaceCell> surface;
   Eigen::Vector2d centroid_m = Eigen::Vector2d::Zero();
 };
 
@@ -143,10 +143,10 @@ std::unique_ptr<Template> teach_from(const std::string& name, const sim::PartPos
   const algo::GridDims dims{g.nx, g.ny, g.nz, g.resolution_m};
   algo::EdtScratch scratch(dims);
   std::vector<float> work(dims.cell_count());
-  REQUIRE(algo::build_distance_map(occupancy.data(), dims, g.origin_m, algo::GradientMethod::kCentralDifference,
-                                   scratch, work.data(), t->map)
-              .ok());
-  algo::surface_points_from_map(t->map.view(), t->surface);
+  REQUIRE(
+      algo::build_distance_map(occupancy.data(), dims, g.origin_m, algo::kDefaultBandM, scratch, work.data(), t->map)
+          .ok());
+  algo::surface_cells_from_map(t->map.view(), t->surface);
   t->centroid_m = algo::centroid_xy_m(t->scan);
   return t;
 }
@@ -203,7 +203,7 @@ TemplateModel model_of(const Template& t, int class_index, int part_id) {
   m.part_id = part_id;
   m.map = t.map.view();
   m.centroid_m = t.centroid_m;
-  m.surface_points = t.surface;
+  m.surface_cells = t.surface;
   return m;
 }
 
@@ -249,7 +249,7 @@ algo::TemplateThresholds learn(Cascade& cascade, const TemplateModel& model, con
 
 // ---------------------------------------------------------------------------------------------------------------------
 
-TEST_CASE("surface_points_from_map returns exactly the centres of the occupied cells", "[cascade]") {
+TEST_CASE("surface_cells_from_map returns exactly the occupied cells", "[cascade]") {
   // Given a small random occupancy grid and its map
   const algo::GridDims dims{23, 17, 11, 0.003};
   const Eigen::Vector3d origin(0.1, -0.2, 0.05);
@@ -264,20 +264,13 @@ TEST_CASE("surface_points_from_map returns exactly the centres of the occupied c
   algo::EdtScratch scratch(dims);
   std::vector<float> work(dims.cell_count());
   algo::DistanceMap map;
-  REQUIRE(algo::build_distance_map(occupied.data(), dims, origin, algo::GradientMethod::kCentralDifference, scratch,
-                                   work.data(), map)
-              .ok());
-  // When its surface points are recovered
-  std::vector<Eigen::Vector3f> surface;
-  algo::surface_points_from_map(map.view(), surface);
-  // Then they are the occupied cells' centres, each once
+  REQUIRE(algo::build_distance_map(occupied.data(), dims, origin, 0.006, scratch, work.data(), map).ok());
+  // When its surface cells are recovered
+  std::vector<algo::SurfaceCell> surface;
+  algo::surface_cells_from_map(map.view(), surface);
+  // Then they are the occupied cells, each once
   std::set<std::tuple<int, int, int>> found;
-  for (const Eigen::Vector3f& p : surface) {
-    const Eigen::Vector3d f = (p.cast<double>() - origin) / dims.resolution_m - Eigen::Vector3d::Constant(0.5);
-    const Eigen::Vector3d r = f.array().round();
-    CHECK((f - r).cwiseAbs().maxCoeff() < 1e-3);
-    found.insert({static_cast<int>(r.x()), static_cast<int>(r.y()), static_cast<int>(r.z())});
-  }
+  for (const algo::SurfaceCell& c : surface) found.insert({c.x, c.y, c.z});
   CHECK(surface.size() == truth.size());
   CHECK(found == truth);
 }

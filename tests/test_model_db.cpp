@@ -598,3 +598,73 @@ TEST_CASE(
   CHECK(cell.run("parts list").exit_code == 0);
   fs::remove_all(cell.dir);
 }
+
+TEST_CASE(
+    "parts rebuild: an old-format template is refused naming the command; rebuild gives teach's template back "
+    "and asks for train",
+    "[model_db]") {
+  const SmallCell cell = SmallCell::named("rebuild");
+  const std::string calibration = (cell.dir / "calibration.yaml").string();
+  for (const char* part : {"plate_4h", "bracket_l"}) {
+    const Run r = cell.run(std::string("teach --sim --part ") + part + " --count 4");
+    INFO(r.output);
+    REQUIRE(r.exit_code == 0);
+  }
+  REQUIRE(cell.run("train").exit_code == 0);
+  const fs::path probe = cell.dir / "probe.ply";
+  REQUIRE(cell.run("scan --sim --part plate_4h --seed 901 --calibration " + calibration + " --out " + probe.string())
+              .exit_code == 0);
+  const std::string template_path = cell.models + "/templates/plate_4h.dmap";
+  const std::string taught = read_all(template_path);
+  REQUIRE(taught.size() > formats::kTemplateHeaderBytes);
+  CHECK(taught.size() < 4'000'000);  // a sparse map, not the full grid
+
+  // Given plate_4h's template made a version 1 file (the full-grid format of earlier builds: its version field sits
+  // where version 2 has it, and is checked before anything else is read)
+  {
+    std::string old = taught;
+    old[8] = 1;
+    std::ofstream(template_path, std::ios::binary | std::ios::trunc) << old;
+  }
+  // Then parts list and classify refuse it, name the command that regenerates it, and keep the other part
+  const Run list = cell.run("parts list");
+  INFO(list.output);
+  CHECK(list.exit_code == 2);
+  CHECK(list.output.find("template format version 1") != std::string::npos);
+  CHECK(list.output.find("cellsight parts rebuild") != std::string::npos);
+  const Run old_classify = cell.run("classify --json " + probe.string());
+  INFO(old_classify.output);
+  CHECK(old_classify.output.find("parts rebuild") != std::string::npos);
+  CHECK(old_classify.output.find("\"class\": null") != std::string::npos);  // unknown: never a guess
+  CHECK(old_classify.output.find("\"rejected_by\": \"no_template\"") != std::string::npos);
+
+  // When it is rebuilt (an unknown name is refused first, nothing written)
+  const Run unknown = cell.run("parts rebuild nope --calibration " + calibration);
+  CHECK(unknown.exit_code == 2);
+  CHECK(unknown.output.find("no part 'nope'") != std::string::npos);
+  const Run rebuilt = cell.run("parts rebuild plate_4h --calibration " + calibration);
+  INFO(rebuilt.output);
+  REQUIRE(rebuilt.exit_code == 0);
+  CHECK(rebuilt.output.find("run 'cellsight train'") != std::string::npos);
+
+  // Then the template is teach's, byte for byte behind the header (whose creation time differs) ...
+  const std::string again = read_all(template_path);
+  REQUIRE(again.size() == taught.size());
+  CHECK(again.compare(formats::kTemplateHeaderBytes, std::string::npos, taught, formats::kTemplateHeaderBytes,
+                      std::string::npos) == 0);
+  // ... its part's thresholds are to be learnt again (the other part's stay), so classify asks for train ...
+  auto db = app::ModelDb::open(cell.models, app::grid_spec(cell.config), false);
+  REQUIRE(db.ok());
+  CHECK_FALSE(db->find("plate_4h")->thresholds.learnt);
+  CHECK(db->find("bracket_l")->thresholds.learnt);
+  const Run stale = cell.run("classify " + probe.string());
+  CHECK(stale.exit_code == 2);
+  CHECK(stale.output.find("cellsight train") != std::string::npos);
+  // ... and after training the part is recognised again
+  REQUIRE(cell.run("train").exit_code == 0);
+  const Run classify = cell.run("classify --json " + probe.string());
+  INFO(classify.output);
+  CHECK(classify.exit_code == 0);
+  CHECK(classify.output.find("\"class\": \"plate_4h\"") != std::string::npos);
+  fs::remove_all(cell.dir);
+}

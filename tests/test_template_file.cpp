@@ -29,9 +29,9 @@ namespace {
 
 namespace fs = std::filesystem;
 using Catch::Matchers::Contains;
-using cellsight::algo::GradientMethod;
 using cellsight::algo::GridSpec;
 using cellsight::algo::ScanPoint;
+using cellsight::algo::SurfaceCell;
 using cellsight::formats::build_template;
 using cellsight::formats::describe_grid;
 using cellsight::formats::kTemplateHeaderBytes;
@@ -43,7 +43,7 @@ using cellsight::formats::TemplateIdentity;
 using cellsight::formats::TemplateModel;
 using cellsight::formats::write_template;
 
-// Offsets of a few header fields (the layout of the version 1 header, written down independently of the code).
+// Offsets of a few header fields (the layout of the version 2 header, written down independently of the code).
 constexpr std::size_t kVersionOffset = 8;
 constexpr std::size_t kHeaderCrcOffset = 252;
 
@@ -104,12 +104,12 @@ Eigen::Vector3d centre(const Cell& c, const GridSpec& g) {
          g.resolution_m * Eigen::Vector3d(std::get<0>(c) + 0.5, std::get<1>(c) + 0.5, std::get<2>(c) + 0.5);
 }
 
-// The occupied cell whose centre a surface point is (exactly, up to float rounding), or fails.
-Cell cell_of_centre(const Eigen::Vector3f& p, const GridSpec& g) {
-  const Eigen::Vector3d f = (p.cast<double>() - g.origin_m) / g.resolution_m - Eigen::Vector3d::Constant(0.5);
-  const Eigen::Vector3d r = f.array().round();
-  REQUIRE((f - r).cwiseAbs().maxCoeff() < 1e-4);
-  return {static_cast<int>(r.x()), static_cast<int>(r.y()), static_cast<int>(r.z())};
+Cell cell_of(const SurfaceCell& c) {
+  return {c.x, c.y, c.z};
+}
+
+std::size_t align_up(std::size_t n) {
+  return (n + kTemplateSectionAlignment - 1) / kTemplateSectionAlignment * kTemplateSectionAlignment;
 }
 
 using cellsight::test::TempDir;
@@ -163,25 +163,25 @@ void require_refused(const std::string& path, const GridSpec& grid, const std::s
 
 }  // namespace
 
-TEST_CASE("build: centroid, surface points and distances agree with brute force over the occupied cells",
+TEST_CASE("build: centroid, surface cells and distances agree with brute force over the occupied cells",
           "[template_file]") {
-  // Given a part inside the grid, and a surface-point cap above its number of occupied cells
+  // Given a part inside the grid, and a surface-cell cap above its number of occupied cells
   const GridSpec g = small_grid();
   const std::vector<ScanPoint> pts = part_points(g);
   const std::set<Cell> truth = occupied_cells(pts, g);
   TemplateBuildParams params;
   params.max_surface_points = truth.size() + 10;
-  params.gradient_method = GradientMethod::kCentralDifference;
+  params.band_m = 0.012;
 
   // When the template is built
   const auto model = build_template(pts, g, params);
   REQUIRE(model.ok());
 
-  // Then the surface points are exactly the occupied cell centres, each once
+  // Then the surface cells are exactly the occupied cells, each once
   CHECK(model->occupied_cells == truth.size());
   std::set<Cell> seen;
-  for (const Eigen::Vector3f& p : model->surface_points) seen.insert(cell_of_centre(p, g));
-  CHECK(model->surface_points.size() == truth.size());
+  for (const SurfaceCell& c : model->surface_cells) seen.insert(cell_of(c));
+  CHECK(model->surface_cells.size() == truth.size());
   CHECK(seen == truth);
 
   // and the centroid is their mean in x, y
@@ -189,20 +189,33 @@ TEST_CASE("build: centroid, surface points and distances agree with brute force 
   for (const Cell& c : truth) sum += centre(c, g).head<2>();
   const Eigen::Vector2d mean = sum / static_cast<double>(truth.size());
   CHECK((model->centroid_m - mean).norm() < 1e-12);
-  CHECK(model->gradient_method == GradientMethod::kCentralDifference);
+  CHECK(model->map.band_m() == params.band_m);
 
-  // and the map's distance at a cell is the distance to the nearest occupied centre (to the 0.1 mm quantization)
+  // and every cell within the band stores the distance to the nearest occupied centre (to the 0.1 mm quantization),
+  // as does every other cell of a stored brick up to the fine range; a cell beyond the band may be coarse only
   const auto& view = model->map.view();
-  std::mt19937 rng(7);
-  std::uniform_int_distribution<int> ux(0, g.nx - 1), uy(0, g.ny - 1), uz(0, g.nz - 1);
-  for (int i = 0; i < 400; ++i) {
-    const Cell c{ux(rng), uy(rng), uz(rng)};
-    double best = std::numeric_limits<double>::infinity();
-    for (const Cell& o : truth) best = std::min(best, (centre(c, g) - centre(o, g)).norm());
-    const double stored =
-        view.cell(std::get<0>(c), std::get<1>(c), std::get<2>(c)).distance * cellsight::algo::kDistanceUnitM;
-    REQUIRE(stored == Approx(best).margin(0.5e-4 + 1e-6));
-  }
+  long in_band = 0;
+  long beyond_band_fine = 0;
+  for (int z = 0; z < g.nz; ++z)
+    for (int y = 0; y < g.ny; ++y)
+      for (int x = 0; x < g.nx; ++x) {
+        const Cell c{x, y, z};
+        double best = std::numeric_limits<double>::infinity();
+        for (const Cell& o : truth) best = std::min(best, (centre(c, g) - centre(o, g)).norm());
+        const std::uint8_t q = view.fine(x, y, z);
+        if (best <= params.band_m) {
+          ++in_band;
+          REQUIRE(q != cellsight::algo::kFineFar);
+        } else if (q != cellsight::algo::kFineFar) {
+          ++beyond_band_fine;
+        }
+        if (q != cellsight::algo::kFineFar)
+          REQUIRE(q * cellsight::algo::kDistanceUnitM == Approx(best).margin(0.5e-4 + 1e-6));
+      }
+  CHECK(in_band > static_cast<long>(truth.size()));
+  CHECK(beyond_band_fine > 0);  // whole bricks are stored
+  // and less is stored than the grid has cells: bricks away from the part are absent
+  CHECK(model->map.stored_bricks() < cellsight::algo::BrickGrid(model->map.dims()).brick_count());
 }
 
 TEST_CASE("build: capped surface points are an even, deterministic subset of the occupied cells", "[template_file]") {
@@ -217,16 +230,16 @@ TEST_CASE("build: capped surface points are an even, deterministic subset of the
   const TemplateModel a = built_model(g, params);
   const TemplateModel b = built_model(g, params);
 
-  // Then exactly the cap, distinct occupied centres, the same both times
-  REQUIRE(a.surface_points.size() == params.max_surface_points);
+  // Then exactly the cap, distinct occupied cells, the same both times
+  REQUIRE(a.surface_cells.size() == params.max_surface_points);
   std::set<Cell> seen;
-  for (const Eigen::Vector3f& p : a.surface_points) {
-    const Cell c = cell_of_centre(p, g);
+  for (const SurfaceCell& p : a.surface_cells) {
+    const Cell c = cell_of(p);
     CHECK(truth.count(c) == 1);
     seen.insert(c);
   }
-  CHECK(seen.size() == a.surface_points.size());
-  CHECK(a.surface_points == b.surface_points);
+  CHECK(seen.size() == a.surface_cells.size());
+  CHECK(a.surface_cells == b.surface_cells);
 
   // and spread evenly: every occupied cell has a surface point near it, also when only every 3rd stored point is
   // taken. On a surface, n/m cells per point means a spacing of about sqrt(n/m) cells; allow 1.5 times that as
@@ -235,14 +248,14 @@ TEST_CASE("build: capped surface points are an even, deterministic subset of the
     double worst = 0.0;
     for (const Cell& c : truth) {
       double best = std::numeric_limits<double>::infinity();
-      for (std::size_t i = 0; i < a.surface_points.size(); i += static_cast<std::size_t>(stride)) {
-        best = std::min(best, (centre(c, g) - a.surface_points[i].cast<double>()).norm());
+      for (std::size_t i = 0; i < a.surface_cells.size(); i += static_cast<std::size_t>(stride)) {
+        best = std::min(best, (centre(c, g) - centre(cell_of(a.surface_cells[i]), g)).norm());
       }
       worst = std::max(worst, best);
     }
     return worst / g.resolution_m;
   };
-  const double cells_per_point = static_cast<double>(truth.size()) / static_cast<double>(a.surface_points.size());
+  const double cells_per_point = static_cast<double>(truth.size()) / static_cast<double>(a.surface_cells.size());
   const double r1 = covering_radius_cells(1);
   const double r3 = covering_radius_cells(3);
   INFO("covering radius " << r1 << " cells (all), " << r3 << " (every 3rd); " << cells_per_point << " cells/point");
@@ -298,8 +311,7 @@ TEST_CASE("build: an empty scan, a non-finite point and an unusable grid are ref
   CHECK_FALSE(build_template(part_points(g), bad).ok());
 }
 
-TEST_CASE("round trip: the mapped file serves the same maps, surface points, centroid and identity",
-          "[template_file]") {
+TEST_CASE("round trip: the mapped file serves the same map, surface cells, centroid and identity", "[template_file]") {
   // Given a template written to a file
   TempDir dir;
   const std::string path = dir.file("bracket-7.dmap");
@@ -313,12 +325,17 @@ TEST_CASE("round trip: the mapped file serves the same maps, surface points, cen
   // (moving the owner keeps the mapped view valid)
   const TemplateFile file = std::move(opened.value());
 
-  // Then the cells are the in-memory map's, page-aligned, and every sample equals the in-memory map's
+  // Then the arrays are the in-memory map's, page-aligned, and every sample equals the in-memory map's
   const auto& mapped = file.view();
   const auto memory = model.map.view();
-  REQUIRE(mapped.layout().cell_count() == model.map.cells().size());
-  CHECK(reinterpret_cast<std::uintptr_t>(mapped.cells()) % kTemplateSectionAlignment == 0);
-  CHECK(std::memcmp(mapped.cells(), model.map.cells().data(), model.map.memory_bytes()) == 0);
+  const auto& data = mapped.data();
+  REQUIRE(data.stored_bricks == model.map.stored_bricks());
+  REQUIRE(mapped.bricks().brick_count() == model.map.brick_table().size());
+  CHECK(reinterpret_cast<std::uintptr_t>(data.brick_table) % kTemplateSectionAlignment == 0);
+  CHECK(reinterpret_cast<std::uintptr_t>(data.bricks) % kTemplateSectionAlignment == 0);
+  CHECK(std::equal(model.map.brick_table().begin(), model.map.brick_table().end(), data.brick_table));
+  CHECK(std::equal(model.map.coarse().begin(), model.map.coarse().end(), data.coarse));
+  CHECK(std::equal(model.map.bricks().begin(), model.map.bricks().end(), data.bricks));
   CHECK(mapped.origin_m() == g.origin_m);
   std::mt19937 rng(11);
   std::uniform_real_distribution<double> ux(g.origin_m.x() - 0.02, g.origin_m.x() + g.nx * g.resolution_m + 0.02);
@@ -333,16 +350,17 @@ TEST_CASE("round trip: the mapped file serves the same maps, surface points, cen
     REQUIRE(a.grad_y == b.grad_y);
   }
 
-  // and the surface points, centroid, identity and header fields are those written
-  REQUIRE(file.surface_points().size() == model.surface_points.size());
-  CHECK(std::equal(file.surface_points().begin(), file.surface_points().end(), model.surface_points.begin()));
+  // and the surface cells, centroid, identity and header fields are those written
+  REQUIRE(file.surface_cells().size() == model.surface_cells.size());
+  CHECK(std::equal(file.surface_cells().begin(), file.surface_cells().end(), model.surface_cells.begin()));
   CHECK(file.centroid_m() == model.centroid_m);
   CHECK(file.part_name() == "bracket-7");
   CHECK(file.plc_id() == 17);
   CHECK(file.path() == path);
   const auto& info = file.info();
   CHECK(info.created_unix_s == 1700000000);
-  CHECK(info.gradient_method == model.gradient_method);
+  CHECK(info.band_m == model.map.band_m());
+  CHECK(info.stored_bricks == model.map.stored_bricks());
   CHECK(info.occupied_cells == model.occupied_cells);
   CHECK(info.file_bytes == fs::file_size(path));
   CHECK(describe_grid(info.grid) == describe_grid(g));
@@ -352,7 +370,11 @@ TEST_CASE("round trip: the mapped file serves the same maps, surface points, cen
   REQUIRE(header.ok());
   CHECK(header->part_name == "bracket-7");
   CHECK(header->body_crc32 == info.body_crc32);
-  CHECK(header->surface_point_count == model.surface_points.size());
+  CHECK(header->surface_cell_count == model.surface_cells.size());
+  // and the file holds what it says: header, surface cells, brick table and coarse field, fine bricks
+  const std::size_t table_offset = align_up(kTemplateSectionAlignment + model.surface_cells.size() * 6);
+  const std::size_t bricks_offset = align_up(table_offset + 4 * model.map.brick_table().size());
+  CHECK(info.file_bytes == bricks_offset + 512 * model.map.stored_bricks());
 }
 
 TEST_CASE("refused: any single corrupt byte in the header", "[template_file]") {
@@ -377,18 +399,24 @@ TEST_CASE("refused: any single corrupt byte in the header", "[template_file]") {
   require_refused(path, g, "header checksum mismatch");
 }
 
-TEST_CASE("refused: a corrupt byte in the body (padding, surface points, cells)", "[template_file]") {
+TEST_CASE("refused: a corrupt byte in the body (padding, surface cells, table, coarse field, bricks)",
+          "[template_file]") {
   TempDir dir;
   const std::string path = dir.file("t.dmap");
   const std::vector<char> good = write_standard(path);
   const GridSpec g = small_grid();
-  // Header padding, first surface point, padding before the cells, first cell, a middle cell, the last byte.
+  // Header padding, first surface cell, padding before the table, first table entry, first coarse node, padding
+  // before the bricks, first brick byte, a middle brick byte, the last byte.
   const auto info = read_template_info(path);
   REQUIRE(info.ok());
-  const std::size_t cells_offset = good.size() - info->cell_count * sizeof(cellsight::algo::MapCell);
-  REQUIRE(cells_offset % kTemplateSectionAlignment == 0);
-  for (const std::size_t at : {kTemplateHeaderBytes + 1, kTemplateSectionAlignment, cells_offset - 1, cells_offset,
-                               cells_offset + (good.size() - cells_offset) / 2 + 3, good.size() - 1}) {
+  const std::size_t table_offset = align_up(kTemplateSectionAlignment + info->surface_cell_count * 6);
+  const std::size_t coarse_offset = table_offset + 2 * info->brick_count;
+  const std::size_t bricks_offset = good.size() - 512 * info->stored_bricks;
+  REQUIRE(bricks_offset % kTemplateSectionAlignment == 0);
+  REQUIRE(bricks_offset > coarse_offset + 2 * info->brick_count);
+  for (const std::size_t at :
+       {kTemplateHeaderBytes + 1, kTemplateSectionAlignment, table_offset - 1, table_offset, coarse_offset,
+        bricks_offset - 1, bricks_offset, bricks_offset + (good.size() - bricks_offset) / 2 + 3, good.size() - 1}) {
     std::vector<char> bad = good;
     bad[at] = static_cast<char>(bad[at] ^ 0x01);
     write_bytes(path, bad);
@@ -428,14 +456,59 @@ TEST_CASE("refused: wrong magic number or format version", "[template_file]") {
   write_bytes(path, ply);
   require_refused(path, g, "not a cellsight template file");
 
-  // Version 2 with a header checksum that matches it: refused for the version, not for corruption.
-  std::vector<char> v2(good);
-  store_u32(v2, kVersionOffset, 2);
-  store_u32(v2, kHeaderCrcOffset,
-            static_cast<std::uint32_t>(crc32(0, reinterpret_cast<const Bytef*>(v2.data()), kHeaderCrcOffset)));
-  REQUIRE(load_u32(v2, kHeaderCrcOffset) != load_u32(good, kHeaderCrcOffset));
-  write_bytes(path, v2);
-  require_refused(path, g, "template format version 2, this build reads version 1");
+  // Version 3 with a header checksum that matches it: refused for the version, not for corruption.
+  std::vector<char> v3(good);
+  store_u32(v3, kVersionOffset, 3);
+  store_u32(v3, kHeaderCrcOffset,
+            static_cast<std::uint32_t>(crc32(0, reinterpret_cast<const Bytef*>(v3.data()), kHeaderCrcOffset)));
+  REQUIRE(load_u32(v3, kHeaderCrcOffset) != load_u32(good, kHeaderCrcOffset));
+  write_bytes(path, v3);
+  require_refused(path, g, "template format version 3, this build reads version 2");
+
+  // Version 1 (the full-grid format of earlier builds; its magic, version and byte-order mark sit where version 2
+  // has them): refused before anything else is read, with the command that regenerates it.
+  std::vector<char> v1(good);
+  store_u32(v1, kVersionOffset, 1);
+  write_bytes(path, v1);
+  require_refused(path, g, "template format version 1");
+  require_refused(path, g, "cellsight parts rebuild");
+  const auto v1_info = read_template_info(path);
+  REQUIRE_FALSE(v1_info.ok());
+  CHECK_THAT(v1_info.error().message, Contains("parts rebuild"));
+}
+
+TEST_CASE("refused: a brick table entry or surface cell out of range, even with checksums that match",
+          "[template_file]") {
+  // The checksums only prove the bytes are as written; a writer bug or a crafted file (fuzz_template recomputes
+  // them) must not make sample() or the cascade read outside the mapping.
+  TempDir dir;
+  const std::string path = dir.file("t.dmap");
+  const std::vector<char> good = write_standard(path);
+  const GridSpec g = small_grid();
+  const auto info = read_template_info(path);
+  REQUIRE(info.ok());
+  constexpr std::size_t kBodyCrcOffset = 176;
+  const auto refix = [](std::vector<char>& bytes) {
+    store_u32(bytes, kBodyCrcOffset,
+              static_cast<std::uint32_t>(crc32(0, reinterpret_cast<const Bytef*>(bytes.data()) + kTemplateHeaderBytes,
+                                               static_cast<uInt>(bytes.size() - kTemplateHeaderBytes))));
+    store_u32(bytes, kHeaderCrcOffset,
+              static_cast<std::uint32_t>(crc32(0, reinterpret_cast<const Bytef*>(bytes.data()), kHeaderCrcOffset)));
+  };
+  const std::size_t table_offset = align_up(kTemplateSectionAlignment + info->surface_cell_count * 6);
+  std::vector<char> bad_table(good);
+  const auto stored = static_cast<std::uint16_t>(info->stored_bricks);
+  std::memcpy(bad_table.data() + table_offset + 2, &stored, 2);  // entry 1 names brick `stored`: one past the end
+  refix(bad_table);
+  write_bytes(path, bad_table);
+  require_refused(path, g, "brick table entry 1 names brick");
+
+  std::vector<char> bad_cell(good);
+  const auto nz = static_cast<std::uint16_t>(g.nz);
+  std::memcpy(bad_cell.data() + kTemplateSectionAlignment + 4, &nz, 2);  // z of the first surface cell
+  refix(bad_cell);
+  write_bytes(path, bad_cell);
+  require_refused(path, g, "surface cell 0 lies outside the grid");
 }
 
 TEST_CASE("refused: a header declaring about 2^31 cells on every axis, without overflow (fuzz_template finding)",
@@ -498,7 +571,9 @@ TEST_CASE("write: a failed write leaves the previous file intact and no temp fil
   const std::vector<char> before = write_standard(path);
   REQUIRE(dir.entries() == std::vector<std::string>{"part.dmap"});
   const GridSpec g = small_grid();
-  const TemplateModel other = built_model(g, TemplateBuildParams{GradientMethod::kCentralDifference, 100, 0});
+  TemplateBuildParams hundred;
+  hundred.max_surface_points = 100;
+  const TemplateModel other = built_model(g, hundred);
 
   // When a new version fails half-way (the file size limit makes write() fail with EFBIG once the temp file has
   // grown past half the size)
@@ -532,7 +607,6 @@ TEST_CASE("write: a failed write leaves the previous file intact and no temp fil
   const auto replaced = TemplateFile::open(path, g);
   REQUIRE(replaced.ok());
   CHECK(replaced->part_name() == "other");
-  CHECK(replaced->surface_points().size() == 100);
-  CHECK(replaced->info().gradient_method == GradientMethod::kCentralDifference);
+  CHECK(replaced->surface_cells().size() == 100);
   CHECK(dir.entries() == std::vector<std::string>{"part.dmap"});
 }

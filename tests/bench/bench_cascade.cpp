@@ -114,7 +114,7 @@ struct Taught {
   std::string name;
   int id = 0;
   algo::DistanceMap map;
-  std::vector<Eigen::Vector3f> surface;
+  std::vector<algo::SurfaceCell> surface;
   Eigen::Vector2d centroid_m = Eigen::Vector2d::Zero();
   std::vector<std::vector<algo::ScanPoint>> train, test;  // carrier removed
   std::vector<algo::FeatureVector> train_features;
@@ -215,12 +215,11 @@ int run(int argc, char** argv) {
     if (!scan_part(t->name, 1, first)) return 1;
     grid.clear();
     (void)grid.accumulate(first);
-    if (!algo::build_distance_map(grid.data(), dims, spec.origin_m, algo::GradientMethod::kCentralDifference, scratch,
-                                  work.data(), t->map)
+    if (!algo::build_distance_map(grid.data(), dims, spec.origin_m, algo::kDefaultBandM, scratch, work.data(), t->map)
              .ok()) {
       return 1;
     }
-    algo::surface_points_from_map(t->map.view(), t->surface);
+    algo::surface_cells_from_map(t->map.view(), t->surface);
     t->centroid_m = algo::centroid_xy_m(first);
     for (int i = 0; i < n_train + n_test; ++i) {
       std::vector<algo::ScanPoint> s;
@@ -263,7 +262,7 @@ int run(int argc, char** argv) {
     m.part_id = t.id;
     m.map = t.map.view();
     m.centroid_m = t.centroid_m;
-    m.surface_points = t.surface;
+    m.surface_cells = t.surface;
     for (const auto& s : t.train) t.own.push_back(cascade.evaluate(m, s));
     m.thresholds = algo::learn_thresholds(t.own, cascade_params);
   }

@@ -346,11 +346,10 @@ int main(int argc, char** argv) {
   // --- surface samplings: template from one lattice, scans from another, displaced by known poses ------------------
   const Eigen::Vector3d centre(0.325, 0.6, 0.1);
   if (surface) std::printf("\nsurface points (template lattice 1.5 mm, scan lattice 1.2 mm with another phase):\n");
-  for (algo::GradientMethod method : {algo::GradientMethod::kSobelAveraged, algo::GradientMethod::kCentralDifference}) {
+  // The default band with every variant; a narrower and the widest band with the default variant only.
+  for (const double band_m : {algo::kDefaultBandM, 0.0088, algo::kMaxFineDistanceM}) {
     if (!surface) break;
-    std::printf(" gradient maps: %s\n", method == algo::GradientMethod::kSobelAveraged
-                                            ? "Sobel averaged (eq. 2.47-2.53)"
-                                            : "central difference");
+    std::printf(" sparse map, band %.1f mm%s\n", band_m * 1e3, band_m == algo::kDefaultBandM ? " (default)" : "");
     for (const std::string& name : names) {
       const sim::PartSpec* part = nullptr;
       for (const auto& p : *catalogue) {
@@ -360,7 +359,7 @@ int main(int argc, char** argv) {
       const auto points = surface_points(*part, centre, 0.0015, 0.5);
       const auto other = surface_points(*part, centre, 0.0012, 0.23);
       formats::TemplateBuildParams build;
-      build.gradient_method = method;
+      build.band_m = band_m;
       auto model = formats::build_template(points, spec, build);
       if (!model) {
         std::fprintf(stderr, "%s: %s\n", name.c_str(), model.error().message.c_str());
@@ -375,7 +374,7 @@ int main(int argc, char** argv) {
         cases.push_back({displaced(other, model->centroid_m, truth), truth});
       }
       for (const Variant& v : vars) {
-        if (method != algo::GradientMethod::kSobelAveraged && std::strcmp(v.name, "default") != 0) continue;
+        if (band_m != algo::kDefaultBandM && std::strcmp(v.name, "default") != 0) continue;
         print(name.c_str(), v, run(v, *model, cases));
       }
     }

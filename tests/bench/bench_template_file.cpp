@@ -58,10 +58,9 @@ int main(int argc, char** argv) {
   const auto pts = sheet_part(grid);
   std::printf("grid %s, %zu points\n", cellsight::formats::describe_grid(grid).c_str(), pts.size());
 
-  for (const auto method :
-       {cellsight::algo::GradientMethod::kSobelAveraged, cellsight::algo::GradientMethod::kCentralDifference}) {
+  for (const double band_m : {0.0088, cellsight::algo::kDefaultBandM, cellsight::algo::kMaxFineDistanceM}) {
     cellsight::formats::TemplateBuildParams params;
-    params.gradient_method = method;
+    params.band_m = band_m;
     auto t = Clock::now();
     auto model = cellsight::formats::build_template(pts, grid, params);
     const double build_ms = ms_since(t);
@@ -69,9 +68,11 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "%s\n", model.error().message.c_str());
       return 1;
     }
-    std::printf("build (%s): %.0f ms, %zu occupied cells, %zu surface points\n",
-                method == cellsight::algo::GradientMethod::kSobelAveraged ? "sobel" : "central", build_ms,
-                model->occupied_cells, model->surface_points.size());
+    std::printf(
+        "build (band %.1f mm): %.0f ms, %zu occupied cells, %zu surface cells, %zu of %zu bricks stored, "
+        "map %.2f MB\n",
+        band_m * 1e3, build_ms, model->occupied_cells, model->surface_cells.size(), model->map.stored_bricks(),
+        model->map.brick_table().size(), static_cast<double>(model->map.memory_bytes()) / 1e6);
   }
 
   {

@@ -28,9 +28,11 @@ void repair_checksums(std::string& file) {
 void sample(const formats::TemplateFile& t) {
   const algo::DistanceMapView& view = t.view();
   (void)view.sample(t.centroid_m().x(), t.centroid_m().y(), 0.0);
-  const auto points = t.surface_points();
-  for (std::size_t i = 0; i < std::min(points.size(), kMaxSamples); ++i) {
-    (void)view.sample(points[i].x(), points[i].y(), points[i].z());
+  const auto cells = t.surface_cells();
+  const algo::GridDims& d = view.dims();
+  for (std::size_t i = 0; i < std::min(cells.size(), kMaxSamples); ++i) {
+    const Eigen::Vector3d p = view.origin_m() + d.resolution_m * Eigen::Vector3d(cells[i].x, cells[i].y, cells[i].z);
+    (void)view.sample(p.x(), p.y(), p.z());
   }
 }
 
@@ -45,7 +47,7 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   const auto info = formats::read_template_info(path);
   // As run and classify open it: against the configured grid.
   if (auto opened = formats::TemplateFile::open(path, fuzz::seed_template_grid())) {
-    CS_FUZZ_EXPECT(info.ok() && opened->surface_points().size() == info->surface_point_count);
+    CS_FUZZ_EXPECT(info.ok() && opened->surface_cells().size() == info->surface_cell_count);
     sample(*opened);
   }
   // Against the grid the header names, so that headers for other grids reach the checks behind the grid's.

@@ -1,0 +1,170 @@
+// `cellsight parts`: list (every file checked as loading checks it, template sizes), show, delete, rebuild.
+#include "cli/parts_mode.hpp"
+
+#include <algorithm>
+#include <cstdint>
+#include <cstdio>
+
+#include "app/model_db.hpp"
+#include "app/recognition.hpp"
+#include "app/scan_acquisition.hpp"
+#include "cli/cli.hpp"
+#include "cli/mode_args.hpp"
+#include "cli/teach_mode.hpp"
+#include "formats/template_file.hpp"
+
+namespace cellsight::cli {
+namespace {
+
+constexpr double kBytesPerMb = 1e6;
+
+int fail(int code, const std::string& message) {
+  std::fprintf(stderr, "cellsight: %s\n", message.c_str());
+  return code;
+}
+
+void print_part(const app::ModelDb& db, const formats::PartEntry& p, bool detail) {
+  std::printf("%-24s %6d %6zu %7zu  %-5s %s\n", p.name.c_str(), p.id, p.scans.size(), p.flagged.size(),
+              p.thresholds.learnt ? "yes" : "no", p.taught_at.c_str());
+  if (!detail) return;
+  auto info = formats::read_template_info(db.path_of(p.template_file));
+  if (info) {
+    std::printf(
+        "  template     %s (%.1f MB, %llu occupied cells, %llu of %llu bricks, centroid x %.1f mm y %.1f mm)\n",
+        p.template_file.c_str(), static_cast<double>(info->file_bytes) / kBytesPerMb,
+        static_cast<unsigned long long>(info->occupied_cells), static_cast<unsigned long long>(info->stored_bricks),
+        static_cast<unsigned long long>(info->brick_count), info->centroid_m.x() * 1e3, info->centroid_m.y() * 1e3);
+  } else {
+    std::printf("  template     %s: %s\n", p.template_file.c_str(), info.error().message.c_str());
+  }
+  if (const formats::ScanEntry* t = p.template_scan_entry()) {
+    std::printf("  built from   %s (%s): poses are relative to this pass\n", t->file.c_str(), t->source.c_str());
+  }
+  if (!p.confusable.empty()) {
+    std::string list;
+    for (const std::string& c : p.confusable) list += (list.empty() ? "" : ", ") + c;
+    std::printf("  look-alikes  %s (verified with it)\n", list.c_str());
+  }
+  if (p.thresholds.learnt) {
+    std::printf(
+        "  accepts      PM error <= %.3g, missing <= %.0f mm2 (%.2f %% in all), extra <= %.0f mm2 (%.2f %% in all)\n",
+        p.thresholds.max_error, p.thresholds.max_missing_area_m2 * 1e6, p.thresholds.max_uncovered * 100.0,
+        p.thresholds.max_extra_area_m2 * 1e6, p.thresholds.max_outliers * 100.0);
+    std::printf("  size         width and height within %.1f mm of its own scans'\n",
+                p.thresholds.max_size_dev_m * 1e3);
+  }
+  for (const formats::ScanEntry& s : p.scans) {
+    const bool flagged = std::find(p.flagged.begin(), p.flagged.end(), s.file) != p.flagged.end();
+    std::printf("  scan         %s  (%s)%s\n", s.file.c_str(), s.source.c_str(),
+                flagged ? "  FLAGGED: disagrees with the others, left out of the thresholds" : "");
+  }
+}
+
+// Every file is checked as loading it checks it (a template's header and body checksums, the SVM's checksum, model
+// and classes), so a damaged one shows here and not first in classify.
+int list_parts(const app::ModelDb& db, const app::Config& config) {
+  int damaged = 0;
+  std::uint64_t template_bytes = 0;
+  std::printf("%-24s %6s %6s %7s  %-5s %s\n", "part", "id", "scans", "flagged", "thr", "taught");
+  for (const formats::PartEntry& p : db.manifest().parts) {
+    print_part(db, p, false);
+    if (auto t = formats::TemplateFile::open(db.path_of(p.template_file), app::grid_spec(config)); !t) {
+      std::printf("  DAMAGED template %s: %s; classify disables this part\n", p.template_file.c_str(),
+                  t.error().message.c_str());
+      ++damaged;
+    } else {
+      template_bytes += t->info().file_bytes;
+    }
+  }
+  const std::size_t parts = db.manifest().parts.size();
+  std::printf("templates: %zu usable of %zu, %.1f MB (%.2f MB per part)\n", parts - static_cast<std::size_t>(damaged),
+              parts, static_cast<double>(template_bytes) / kBytesPerMb,
+              parts > 0 ? static_cast<double>(template_bytes) / kBytesPerMb / static_cast<double>(parts) : 0.0);
+  const std::string stale = db.svm_stale_reason();
+  if (stale.empty()) {
+    std::printf("SVM: trained %s, %.2f %% on %d test scans, %s\n", db.manifest().svm.trained_at.c_str(),
+                db.manifest().svm.test_accuracy * 100.0, db.manifest().svm.test_scans, db.manifest().svm.hyper.c_str());
+    if (auto svm = app::load_svm(db); !svm) {
+      std::printf("SVM: DAMAGED: %s\n", svm.error().message.c_str());
+      ++damaged;
+    }
+  } else {
+    std::printf("SVM: stale: %s\n", stale.c_str());
+  }
+  if (damaged > 0) {
+    std::fflush(stdout);  // the listing before the summary line on stderr
+    const std::string files = damaged == 1 ? " damaged file" : " damaged files";
+    return fail(kExitUsage,
+                "parts list: " + std::to_string(damaged) + files + " in " + db.dir() + " (marked DAMAGED above)");
+  }
+  return kExitOk;
+}
+
+// `parts rebuild [NAME...]`: every part's (or the named parts') template built again from its stored scans and
+// written atomically. The rebuilt parts' acceptance thresholds were learnt against the old maps, so they are marked
+// unlearnt (the manifest is saved after each part) and `train` must run before classify or run accept them again.
+int rebuild_parts(app::ModelDb& db, const app::Config& config, const ModeArgs& args) {
+  const std::string* calibration_arg = args.value("--calibration");
+  const std::string calibration_path = calibration_arg ? *calibration_arg : app::default_calibration_path(config);
+  auto support = app::load_support_plane(calibration_path);
+  if (!support) return fail(kExitUsage, "parts rebuild: " + support.error().message);
+  std::vector<std::string> names(args.positional.begin() + 1, args.positional.end());
+  for (const std::string& name : names) {
+    if (db.find(name) == nullptr) return fail(kExitUsage, "parts: no part '" + name + "' in " + db.manifest_path());
+  }
+  if (names.empty()) {
+    for (const formats::PartEntry& p : db.manifest().parts) names.push_back(p.name);
+  }
+  app::ScanPreparer preparer(config, *support, app::scan_builder_params(config).max_points);
+  for (const std::string& name : names) {
+    formats::PartEntry& p = *db.find(name);
+    auto model = rebuild_template(config, preparer, db, p);
+    if (!model) return fail(kExitFailure, "parts rebuild: " + name + ": " + model.error().message);
+    formats::TemplateIdentity identity;
+    identity.part_name = p.name;
+    identity.plc_id = static_cast<std::uint32_t>(p.id);
+    if (auto ok = formats::write_template(db.path_of(p.template_file), *model, identity); !ok) {
+      return fail(kExitFailure, "parts rebuild: " + ok.error().message);
+    }
+    p.thresholds.learnt = false;
+    if (auto ok = db.save(); !ok) return fail(kExitFailure, "parts rebuild: " + ok.error().message);
+    auto info = formats::read_template_info(db.path_of(p.template_file));
+    std::printf("%s: template %s rebuilt (%.1f MB)\n", name.c_str(), p.template_file.c_str(),
+                info ? static_cast<double>(info->file_bytes) / kBytesPerMb : 0.0);
+  }
+  std::printf("%zu templates rebuilt; their acceptance thresholds must be learnt again: run 'cellsight train'\n",
+              names.size());
+  return kExitOk;
+}
+
+}  // namespace
+
+int run_parts(const std::vector<std::string>& words, const app::Config& config, const std::string& models_dir) {
+  constexpr const char* kUsage = "parts needs list, show NAME, delete NAME or rebuild [NAME...]";
+  ModeArgs args;
+  std::string error;
+  if (!parse_mode_args(words, {"--calibration"}, {}, args, error)) return fail(kExitUsage, "parts: " + error);
+  if (args.positional.empty()) return fail(kExitUsage, kUsage);
+  const std::string& action = args.positional.front();
+  const bool writes = action == "delete" || action == "rebuild";
+  auto db = writes ? app::ModelDb::open_for_writing(models_dir, app::grid_spec(config), false)
+                   : app::ModelDb::open(models_dir, app::grid_spec(config), false);
+  if (!db) return fail(kExitUsage, db.error().message);
+  if (action == "list" && args.positional.size() == 1) return list_parts(*db, config);
+  if (action == "rebuild") return rebuild_parts(*db, config, args);
+  if ((action == "show" || action == "delete") && args.positional.size() == 2) {
+    const std::string& name = args.positional[1];
+    const formats::PartEntry* p = db->find(name);
+    if (p == nullptr) return fail(kExitUsage, "parts: no part '" + name + "' in " + db->manifest_path());
+    if (action == "show") {
+      print_part(*db, *p, true);
+      return kExitOk;
+    }
+    if (auto ok = db->delete_part(name); !ok) return fail(kExitFailure, "parts delete: " + ok.error().message);
+    std::printf("deleted %s; the SVM is now stale: run 'cellsight train'\n", name.c_str());
+    return kExitOk;
+  }
+  return fail(kExitUsage, kUsage);
+}
+
+}  // namespace cellsight::cli
