@@ -260,6 +260,7 @@ void read_runtime_section(formats::YamlSection s, Config& cfg) {
   s.boolean("lock_memory", cfg.runtime.lock_memory);
   s.integer("realtime_priority", cfg.runtime.realtime_priority, 0, 99, "");
   s.text("models_dir", cfg.runtime.models_dir);
+  s.integer("model_memory_mb", cfg.runtime.model_memory_mb, 1, 1 << 20, "MB");
   s.finish();
 }
 

@@ -87,6 +87,9 @@ struct RuntimeConfig {
   bool lock_memory = false;
   int realtime_priority = 0;  // SCHED_FIFO priority of the acquisition thread; 0 = normal scheduling
   std::string models_dir = "models";
+  // Memory the loaded model database may take (templates read whole, the SVM): run and classify refuse a database
+  // that needs more, at start-up, naming both (issue 11: fixed memory, never a slow loop).
+  int model_memory_mb = 1200;
 };
 
 struct Config {

@@ -1,7 +1,11 @@
 // The production recogniser (see recognition.hpp).
 #include "app/recognition.hpp"
 
+#include <unistd.h>
+
+#include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <filesystem>
 #include <limits>
 
@@ -205,11 +209,48 @@ Expected<algo::SvmModel> load_svm(const ModelDb& db) {
   return svm;
 }
 
+ModelFootprint model_footprint(const ModelDb& db) {
+  ModelFootprint f;
+  for (const formats::PartEntry& p : db.manifest().parts) {
+    auto info = formats::read_template_info(db.path_of(p.template_file));
+    if (!info) continue;
+    ++f.templates;
+    f.template_bytes += info->file_bytes;
+    f.largest_template_bytes = std::max(f.largest_template_bytes, info->file_bytes);
+  }
+  if (db.manifest().svm.present) {
+    std::error_code ec;
+    const std::uintmax_t size = std::filesystem::file_size(db.path_of(db.manifest().svm.file), ec);
+    if (!ec) f.svm_bytes = size;
+  }
+  return f;
+}
+
+Status check_model_budget(const Config& config, const ModelDb& db, const ModelFootprint& footprint) {
+  constexpr std::uint64_t kBytesPerMb = 1000000;  // as parts list and the file sizes print them
+  const auto budget = static_cast<std::uint64_t>(config.runtime.model_memory_mb) * kBytesPerMb;
+  if (footprint.total_bytes() <= budget) return {};
+  const auto mb = [&](std::uint64_t bytes) {
+    char text[32];
+    std::snprintf(text, sizeof text, "%.1f MB", static_cast<double>(bytes) / static_cast<double>(kBytesPerMb));
+    return std::string(text);
+  };
+  const auto ram =
+      static_cast<std::uint64_t>(::sysconf(_SC_PHYS_PAGES)) * static_cast<std::uint64_t>(::sysconf(_SC_PAGESIZE));
+  return make_error("model database " + db.dir() + " needs " + mb(footprint.total_bytes()) + " (" +
+                    std::to_string(footprint.templates) + " templates, " + mb(footprint.template_bytes) +
+                    ", the largest " + mb(footprint.largest_template_bytes) + "; SVM " + mb(footprint.svm_bytes) +
+                    "), more than runtime.model_memory_mb: " + std::to_string(config.runtime.model_memory_mb) + " in " +
+                    config.source + ": raise it (this machine has " + mb(ram) +
+                    " of RAM) or delete parts ('cellsight parts delete NAME')");
+}
+
 Expected<LoadedModels> load_models(const Config& config, const ModelDb& db) {
   const formats::Manifest& m = db.manifest();
   if (const std::string stale = db.svm_stale_reason(); !stale.empty()) {
     return make_error("model database " + db.dir() + ": " + stale);
   }
+  if (Status fits = check_model_budget(config, db, model_footprint(db)); !fits) return fits.error();
   LoadedModels out;
   auto svm = load_svm(db);
   if (!svm) return svm.error();

@@ -106,6 +106,21 @@ struct LoadedTemplates {
 };
 [[nodiscard]] LoadedTemplates open_templates(const Config& config, const ModelDb& db);
 
+// What a model database takes in memory once loaded: every template read whole, and the SVM model file.
+// From the templates' headers and the SVM file's size; a template whose header cannot be read counts nothing (it will
+// not be loaded either).
+struct ModelFootprint {
+  std::size_t templates = 0;  // counted (readable headers)
+  std::uint64_t template_bytes = 0;
+  std::uint64_t largest_template_bytes = 0;
+  std::uint64_t svm_bytes = 0;
+  [[nodiscard]] std::uint64_t total_bytes() const { return template_bytes + svm_bytes; }
+};
+[[nodiscard]] ModelFootprint model_footprint(const ModelDb& db);
+// runtime.model_memory_mb against the footprint: an error that names the database, its need, the budget and where
+// it is set, and what to do, when the database does not fit.
+[[nodiscard]] Status check_model_budget(const Config& config, const ModelDb& db, const ModelFootprint& footprint);
+
 // One opened model database, ready to recognise: the SVM and the memory-mapped templates. A part whose template
 // is missing or refused (checksum, version, another grid) stays in `problems` and can never be accepted; the other
 // parts keep working.

@@ -23,11 +23,15 @@ int fail(int code, const std::string& message) {
   return code;
 }
 
+constexpr const char* kListHeader = "%-24s %6s %6s %7s  %-5s %8s  %s\n";
+
 void print_part(const app::ModelDb& db, const formats::PartEntry& p, bool detail) {
-  std::printf("%-24s %6d %6zu %7zu  %-5s %s\n", p.name.c_str(), p.id, p.scans.size(), p.flagged.size(),
-              p.thresholds.learnt ? "yes" : "no", p.taught_at.c_str());
-  if (!detail) return;
   auto info = formats::read_template_info(db.path_of(p.template_file));
+  char size[16] = "-";
+  if (info) std::snprintf(size, sizeof size, "%.1f MB", static_cast<double>(info->file_bytes) / kBytesPerMb);
+  std::printf("%-24s %6d %6zu %7zu  %-5s %8s  %s\n", p.name.c_str(), p.id, p.scans.size(), p.flagged.size(),
+              p.thresholds.learnt ? "yes" : "no", size, p.taught_at.c_str());
+  if (!detail) return;
   if (info) {
     std::printf(
         "  template     %s (%.1f MB, %llu occupied cells, %llu of %llu bricks, centroid x %.1f mm y %.1f mm)\n",
@@ -64,22 +68,23 @@ void print_part(const app::ModelDb& db, const formats::PartEntry& p, bool detail
 // and classes), so a damaged one shows here and not first in classify.
 int list_parts(const app::ModelDb& db, const app::Config& config) {
   int damaged = 0;
-  std::uint64_t template_bytes = 0;
-  std::printf("%-24s %6s %6s %7s  %-5s %s\n", "part", "id", "scans", "flagged", "thr", "taught");
+  std::printf(kListHeader, "part", "id", "scans", "flagged", "thr", "template", "taught");
   for (const formats::PartEntry& p : db.manifest().parts) {
     print_part(db, p, false);
     if (auto t = formats::TemplateFile::open(db.path_of(p.template_file), app::grid_spec(config)); !t) {
       std::printf("  DAMAGED template %s: %s; classify disables this part\n", p.template_file.c_str(),
                   t.error().message.c_str());
       ++damaged;
-    } else {
-      template_bytes += t->info().file_bytes;
     }
   }
-  const std::size_t parts = db.manifest().parts.size();
-  std::printf("templates: %zu usable of %zu, %.1f MB (%.2f MB per part)\n", parts - static_cast<std::size_t>(damaged),
-              parts, static_cast<double>(template_bytes) / kBytesPerMb,
-              parts > 0 ? static_cast<double>(template_bytes) / kBytesPerMb / static_cast<double>(parts) : 0.0);
+  // What run will hold in memory, against the budget it refuses to start beyond.
+  const app::ModelFootprint f = app::model_footprint(db);
+  const double budget_mb = config.runtime.model_memory_mb;
+  const double need_mb = static_cast<double>(f.total_bytes()) / kBytesPerMb;
+  std::printf("memory: %.1f MB of runtime.model_memory_mb %.0f MB (%.0f %%): %zu templates %.1f MB, SVM %.1f MB%s\n",
+              need_mb, budget_mb, 100.0 * need_mb / budget_mb, f.templates,
+              static_cast<double>(f.template_bytes) / kBytesPerMb, static_cast<double>(f.svm_bytes) / kBytesPerMb,
+              need_mb > budget_mb ? "; OVER BUDGET: run and classify refuse this database" : "");
   const std::string stale = db.svm_stale_reason();
   if (stale.empty()) {
     std::printf("SVM: trained %s, %.2f %% on %d test scans, %s\n", db.manifest().svm.trained_at.c_str(),

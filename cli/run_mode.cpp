@@ -228,6 +228,11 @@ Expected<RecogniserSetup> set_up_recogniser(const app::Config& config, const app
     setup.recogniser = sim->make_oracle();
     return setup;
   }
+  // A database that does not fit the memory budget is refused here, whatever else: it cannot come right by
+  // retrying, and a loop that paged its templates in would miss its deadlines (issue 11).
+  if (auto db = app::ModelDb::open(models_dir, app::grid_spec(config), false)) {
+    if (Status fits = app::check_model_budget(config, *db, app::model_footprint(*db)); !fits) return fits.error();
+  }
   setup.loader = [config, models_dir, calibration_path]() {
     return app::make_recogniser(config, models_dir, calibration_path);
   };

@@ -439,9 +439,8 @@ Expected<TemplateInfo> read_template_info(const std::string& path) {
 
 TemplateFile::TemplateFile(TemplateFile&& other) noexcept
     : path_(std::move(other.path_)),
-      fd_(std::exchange(other.fd_, -1)),
-      mapping_(std::exchange(other.mapping_, nullptr)),
-      mapping_bytes_(std::exchange(other.mapping_bytes_, 0)),
+      memory_(std::exchange(other.memory_, nullptr)),
+      memory_bytes_(std::exchange(other.memory_bytes_, 0)),
       info_(std::move(other.info_)),
       view_(std::exchange(other.view_, {})),
       surface_cells_(std::exchange(other.surface_cells_, {})),
@@ -451,9 +450,8 @@ TemplateFile& TemplateFile::operator=(TemplateFile&& other) noexcept {
   if (this != &other) {
     release();
     path_ = std::move(other.path_);
-    fd_ = std::exchange(other.fd_, -1);
-    mapping_ = std::exchange(other.mapping_, nullptr);
-    mapping_bytes_ = std::exchange(other.mapping_bytes_, 0);
+    memory_ = std::exchange(other.memory_, nullptr);
+    memory_bytes_ = std::exchange(other.memory_bytes_, 0);
     info_ = std::move(other.info_);
     view_ = std::exchange(other.view_, {});
     surface_cells_ = std::exchange(other.surface_cells_, {});
@@ -469,11 +467,9 @@ TemplateFile::~TemplateFile() {
 void TemplateFile::release() {
   view_ = {};
   surface_cells_ = {};
-  if (mapping_ != nullptr) ::munmap(const_cast<std::uint8_t*>(mapping_), mapping_bytes_);
-  mapping_ = nullptr;
-  mapping_bytes_ = 0;
-  if (fd_ >= 0) ::close(fd_);
-  fd_ = -1;
+  if (memory_ != nullptr) ::munmap(const_cast<std::uint8_t*>(memory_), memory_bytes_);
+  memory_ = nullptr;
+  memory_bytes_ = 0;
 }
 
 Expected<TemplateFile> TemplateFile::open(const std::string& path, const algo::GridSpec& expected_grid) {
@@ -483,48 +479,63 @@ Expected<TemplateFile> TemplateFile::open(const std::string& path, const algo::G
   UniqueFd fd(-1);
   Expected<std::uint64_t> length = open_for_reading(path, fd);
   if (!length) return length.error();
-  file.fd_ = fd.release();
-  void* mapped = ::mmap(nullptr, *length, PROT_READ, MAP_SHARED, file.fd_, 0);
-  if (mapped == MAP_FAILED) return make_error(path + ": cannot map the file: " + errno_text(errno));
-  file.mapping_ = static_cast<const std::uint8_t*>(mapped);
-  file.mapping_bytes_ = *length;
-
+  // The header first: a version 1 file (157 MB) or a header declaring absurd sizes is refused before anything of
+  // the body is allocated or read.
   TemplateHeader h{};
-  std::memcpy(&h, file.mapping_, sizeof h);
+  const ssize_t got = ::pread(fd.get(), &h, sizeof h, 0);
+  if (got != static_cast<ssize_t>(sizeof h)) {
+    return make_error(path + ": cannot read the header: " + (got < 0 ? errno_text(errno) : std::string("short read")));
+  }
   Expected<TemplateInfo> info = check_header(path, h, *length);
   if (!info) return info.error();
   if (!same_grid(info->grid, expected_grid)) {
     return make_error(path + ": built for another grid: the file has " + describe_grid(info->grid) +
                       ", the configuration " + describe_grid(expected_grid) + "; re-teach the part for this grid");
   }
+  void* memory = ::mmap(nullptr, *length, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS | MAP_POPULATE, -1, 0);
+  if (memory == MAP_FAILED) {
+    return make_error(path + ": cannot allocate " + std::to_string(*length) + " bytes: " + errno_text(errno));
+  }
+  file.memory_ = static_cast<const std::uint8_t*>(memory);
+  file.memory_bytes_ = *length;
+  auto* bytes = static_cast<std::uint8_t*>(memory);
+  for (std::size_t done = 0; done < *length;) {
+    const ssize_t n = ::pread(fd.get(), bytes + done, *length - done, static_cast<off_t>(done));
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) return make_error(path + ": read failed: " + (n < 0 ? errno_text(errno) : std::string("file shrank")));
+    done += static_cast<std::size_t>(n);
+  }
+  if (std::memcmp(bytes, &h, sizeof h) != 0) return make_error(path + ": the file changed while it was read");
   file.info_ = std::move(*info);
-  file.timing_.map_ms = ms_since(start);
+  file.timing_.read_ms = ms_since(start);
 
   const auto verify_start = std::chrono::steady_clock::now();
   const std::uint32_t crc =
-      base::crc32_update(base::kCrc32Empty, file.mapping_ + kTemplateHeaderBytes, *length - kTemplateHeaderBytes);
+      base::crc32_update(base::kCrc32Empty, bytes + kTemplateHeaderBytes, *length - kTemplateHeaderBytes);
   if (crc != h.body_crc32) {
-    return make_error(path + ": body checksum mismatch: the maps or surface points are corrupt; re-teach the part");
+    return make_error(path + ": body checksum mismatch: the maps or surface cells are corrupt; re-teach the part");
   }
-  file.timing_.verify_ms = ms_since(verify_start);
-
   // The checksum proves the bytes are as written; these prove a writer (or a crafted file with fixed checksums)
-  // cannot make sample() or the cascade read outside the mapping.
-  const auto* cells = reinterpret_cast<const algo::SurfaceCell*>(file.mapping_ + h.surface_offset);
+  // cannot make sample() or the cascade read outside the file's memory.
+  const auto* cells = reinterpret_cast<const algo::SurfaceCell*>(bytes + h.surface_offset);
   for (std::size_t i = 0; i < h.surface_cell_count; ++i) {
     if (cells[i].x >= h.nx || cells[i].y >= h.ny || cells[i].z >= h.nz) {
       return make_error(path + ": surface cell " + std::to_string(i) + " lies outside the grid");
     }
   }
-  const auto* table = reinterpret_cast<const std::uint16_t*>(file.mapping_ + h.table_offset);
+  const auto* table = reinterpret_cast<const std::uint16_t*>(bytes + h.table_offset);
   for (std::size_t b = 0; b < h.brick_count; ++b) {
     if (table[b] != algo::kAbsentBrick && table[b] >= h.stored_bricks) {
       return make_error(path + ": brick table entry " + std::to_string(b) + " names brick " + std::to_string(table[b]) +
                         " of " + std::to_string(h.stored_bricks) + " stored");
     }
   }
+  if (::mprotect(memory, *length, PROT_READ) != 0) {
+    return make_error(path + ": cannot make the template read-only: " + errno_text(errno));
+  }
+  file.timing_.verify_ms = ms_since(verify_start);
   file.surface_cells_ = {cells, h.surface_cell_count};
-  const algo::SparseMapData data{table, table + h.brick_count, file.mapping_ + h.bricks_offset, h.stored_bricks};
+  const algo::SparseMapData data{table, table + h.brick_count, bytes + h.bricks_offset, h.stored_bricks};
   file.view_ = algo::DistanceMapView(dims_of(file.info_.grid), file.info_.grid.origin_m, data);
   return file;
 }

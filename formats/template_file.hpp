@@ -1,6 +1,6 @@
 // Perfect Match template files (models/templates/NAME.dmap): the sparse distance map (thesis 2.7.3.1,
-// algo/distance_map.hpp), centroid and occupied cells of one taught part; built at teach time, memory-mapped read-only
-// and used in place at run time.
+// algo/distance_map.hpp), centroid and occupied cells of one taught part; built at teach time, read whole into memory
+// of its own at start-up (read-only from then on) and used in place at run time.
 #pragma once
 
 #include <Eigen/Core>
@@ -108,17 +108,20 @@ struct TemplateInfo {
 [[nodiscard]] std::string describe_grid(const algo::GridSpec& grid);
 
 struct TemplateLoadTiming {
-  double map_ms = 0.0;     // open, mmap, header checks
-  double verify_ms = 0.0;  // body checksum (reads every page of the file)
+  double read_ms = 0.0;    // open, read into memory, header checks
+  double verify_ms = 0.0;  // body checksum and range checks
 };
 
-// An open, fully checked template: owns the read-only mapping and its file descriptor, and serves the maps in
-// place. Move-only; the view's cell pointer stays valid across moves (the mapping does not move).
+// An open, fully checked template: owns the memory its file was read into and serves the maps in place.
+// The memory is anonymous, populated when read and then made read-only (a stray write faults instead of changing a
+// template): unlike a file mapping, whose clean pages the kernel may drop and fault in again from disk, it stays
+// resident (with runtime.lock_memory it is also locked), so the production loop never waits for a template page.
+// Move-only; the view's pointers stay valid across moves (the memory does not move).
 class TemplateFile {
  public:
-  // Maps `path` read-only and checks magic, version, header checksum, sizes against the file length, that the grid
-  // is `expected_grid`, then the body checksum. Any failure is an error naming the file and the reason, and nothing
-  // of the file is kept. Start-up only (reads the whole file once; see the timing).
+  // Reads `path` and checks magic, version, header checksum, sizes against the file length, that the grid is
+  // `expected_grid`, then the body checksum and the ranges of the brick table and surface cells. Any failure is an
+  // error naming the file and the reason, and nothing of the file is kept. Start-up only (see the timing).
   [[nodiscard]] static Expected<TemplateFile> open(const std::string& path, const algo::GridSpec& expected_grid);
 
   TemplateFile(TemplateFile&& other) noexcept;
@@ -127,7 +130,7 @@ class TemplateFile {
   TemplateFile& operator=(const TemplateFile&) = delete;
   ~TemplateFile();
 
-  // The sparse map and the occupied cells, read straight from the mapping.
+  // The sparse map and the occupied cells, in place in the file's memory.
   [[nodiscard]] const algo::DistanceMapView& view() const { return view_; }
   [[nodiscard]] const Eigen::Vector2d& centroid_m() const { return info_.centroid_m; }
   [[nodiscard]] std::span<const algo::SurfaceCell> surface_cells() const { return surface_cells_; }
@@ -142,9 +145,8 @@ class TemplateFile {
   void release();
 
   std::string path_;
-  int fd_ = -1;
-  const std::uint8_t* mapping_ = nullptr;
-  std::size_t mapping_bytes_ = 0;
+  const std::uint8_t* memory_ = nullptr;  // mmap'ed anonymous, the file's bytes, read-only after open()
+  std::size_t memory_bytes_ = 0;
   TemplateInfo info_{};
   algo::DistanceMapView view_{};
   std::span<const algo::SurfaceCell> surface_cells_;

@@ -95,8 +95,13 @@ struct SmallCell {
 
   // `env`: "NAME=value ..." for the command's environment.
   [[nodiscard]] Run run(const std::string& args, const std::string& env = "") const {
-    const std::string command = (env.empty() ? "" : env + " ") + kExe + " --config " + config_path + " --models " +
-                                models + " --log-level warn " + args + " 2>&1";
+    return run_with_config(config_path, args, env);
+  }
+  // As run(), with another configuration file.
+  [[nodiscard]] Run run_with_config(const std::string& config, const std::string& args,
+                                    const std::string& env = "") const {
+    const std::string command = (env.empty() ? "" : env + " ") + kExe + " --config " + config + " --models " + models +
+                                " --log-level warn " + args + " 2>&1";
     FILE* pipe = ::popen(command.c_str(), "r");
     REQUIRE(pipe != nullptr);
     std::string out;
@@ -605,7 +610,7 @@ TEST_CASE(
     "[model_db]") {
   const SmallCell cell = SmallCell::named("rebuild");
   const std::string calibration = (cell.dir / "calibration.yaml").string();
-  for (const char* part : {"plate_4h", "bracket_l"}) {
+  for (const char* part : {"plate_4h", "bracket_l", "tray"}) {
     const Run r = cell.run(std::string("teach --sim --part ") + part + " --count 4");
     INFO(r.output);
     REQUIRE(r.exit_code == 0);
@@ -666,5 +671,28 @@ TEST_CASE(
   INFO(classify.output);
   CHECK(classify.exit_code == 0);
   CHECK(classify.output.find("\"class\": \"plate_4h\"") != std::string::npos);
+
+  // A budget the database does not fit (issue 11): parts list says so, classify and run refuse at start-up with
+  // exit 2, naming the need and the budget, instead of running a loop that pages templates in.
+  std::string text = read_all(cell.config_path);
+  const std::string key = "model_memory_mb: 1200";
+  REQUIRE(text.find(key) != std::string::npos);
+  text.replace(text.find(key), key.size(), "model_memory_mb: 1");
+  const std::string tight = (cell.dir / "tight.yaml").string();
+  std::ofstream(tight) << text;
+  const auto with_tight = [&](const std::string& args) { return cell.run_with_config(tight, args); };
+  const auto footprint = app::model_footprint(*app::ModelDb::open(cell.models, app::grid_spec(cell.config), false));
+  REQUIRE(footprint.total_bytes() > 1'000'000);
+  const Run over_list = with_tight("parts list");
+  INFO(over_list.output);
+  CHECK(over_list.output.find("OVER BUDGET") != std::string::npos);
+  for (const std::string args :
+       {"classify " + probe.string(), std::string("run --sim --parts 1 --calibration ") + calibration}) {
+    const Run refused = with_tight(args);
+    INFO(args << "\n" << refused.output);
+    CHECK(refused.exit_code == 2);
+    CHECK(refused.output.find("needs") != std::string::npos);
+    CHECK(refused.output.find("more than runtime.model_memory_mb: 1 in " + tight) != std::string::npos);
+  }
   fs::remove_all(cell.dir);
 }

@@ -8,8 +8,10 @@
 
 #include <algorithm>
 #include <catch2/catch.hpp>
+#include <cinttypes>
 #include <cmath>
 #include <cstdint>
+#include <cstdio>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -18,6 +20,7 @@
 #include <map>
 #include <random>
 #include <set>
+#include <sstream>
 #include <string>
 #include <tuple>
 #include <vector>
@@ -336,6 +339,28 @@ TEST_CASE("round trip: the mapped file serves the same map, surface cells, centr
   CHECK(std::equal(model.map.brick_table().begin(), model.map.brick_table().end(), data.brick_table));
   CHECK(std::equal(model.map.coarse().begin(), model.map.coarse().end(), data.coarse));
   CHECK(std::equal(model.map.bricks().begin(), model.map.bricks().end(), data.bricks));
+  // in memory of the file's own, read-only and anonymous (no file behind it whose pages the kernel could drop)
+  const std::string maps = std::string(std::istreambuf_iterator<char>(std::ifstream("/proc/self/maps").rdbuf()), {});
+  const auto address = reinterpret_cast<std::uintptr_t>(data.brick_table);
+  bool found = false;
+  std::istringstream lines(maps);
+  for (std::string line; std::getline(lines, line);) {
+    std::uintptr_t lo = 0, hi = 0;
+    char perms[5] = {};
+    unsigned long long offset = 0;
+    char dev[16] = {};
+    unsigned long inode = 1;
+    if (std::sscanf(line.c_str(), "%" SCNxPTR "-%" SCNxPTR " %4s %llx %15s %lu", &lo, &hi, perms, &offset, dev,
+                    &inode) != 6 ||
+        address < lo || address >= hi) {
+      continue;
+    }
+    found = true;
+    INFO(line);
+    CHECK(std::string(perms) == "r--p");
+    CHECK(inode == 0);
+  }
+  CHECK(found);
   CHECK(mapped.origin_m() == g.origin_m);
   std::mt19937 rng(11);
   std::uniform_real_distribution<double> ux(g.origin_m.x() - 0.02, g.origin_m.x() + g.nx * g.resolution_m + 0.02);

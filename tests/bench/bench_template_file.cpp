@@ -101,8 +101,8 @@ int main(int argc, char** argv) {
       return 1;
     }
     const double mb = static_cast<double>(file->info().file_bytes) / 1e6;
-    std::printf("open %s: map + header checks %.3f ms, body verify %.0f ms (%.2f GB/s), total %.0f ms\n",
-                cold ? "cold" : "warm", file->load_timing().map_ms, file->load_timing().verify_ms,
+    std::printf("open %s: read + header checks %.3f ms, body verify %.0f ms (%.2f GB/s), total %.0f ms\n",
+                cold ? "cold" : "warm", file->load_timing().read_ms, file->load_timing().verify_ms,
                 mb / file->load_timing().verify_ms, total_ms);
   }
   if (!(argc > 2 && std::string(argv[2]) == "keep")) fs::remove(path);
