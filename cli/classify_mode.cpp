@@ -211,8 +211,8 @@ void print_stats(const char* name, const std::vector<double>& v, const char* uni
   if (v.empty()) return;
   double sum = 0;
   for (double x : v) sum += x;
-  std::printf("  %-12s mean %.3f  p95 %.3f  max %.3f %s  (%zu)\n", name, sum / v.size(), percentile(v, 0.95),
-              *std::max_element(v.begin(), v.end()), unit, v.size());
+  std::printf("  %-12s mean %.3f  p95 %.3f  max %.3f %s  (%zu; median %.3f)\n", name, sum / v.size(),
+              percentile(v, 0.95), *std::max_element(v.begin(), v.end()), unit, v.size(), percentile(v, 0.5));
 }
 
 // The simulated pose of a pass -> the pose relative to the part's template (DESIGN.md "Pose"). Both passes place
