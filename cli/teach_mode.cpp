@@ -23,6 +23,7 @@
 #include "formats/calibration_file.hpp"
 #include "formats/input_file.hpp"
 #include "formats/ply.hpp"
+#include "formats/scan_file.hpp"
 #include "formats/template_file.hpp"
 
 namespace cellsight::cli {
@@ -43,8 +44,8 @@ int fail(int code, const std::string& message) {
 
 std::string scan_file_name(const std::string& part, std::size_t index) {
   char buf[32];
-  std::snprintf(buf, sizeof buf, "%05zu.ply", index);
-  return "scans/" + part + "/" + buf;
+  std::snprintf(buf, sizeof buf, "%05zu", index);
+  return "scans/" + part + "/" + buf + std::string(app::kTaughtScanExtension);
 }
 
 // Acquires `count` passes of `part` on the simulated cell, seeds first_seed.., on all cores (each perturbed when
@@ -400,7 +401,7 @@ int start_new_part(const app::Config& config, app::ModelDb& db, app::ScanPrepare
   return kExitOk;
 }
 
-// Writes the scans (binary PLY, atomically) and the manifest; on a failure removes every file this teach wrote.
+// Writes the scans (formats/scan_file, atomically) and the manifest; on a failure removes every file this teach wrote.
 int store_scans(app::ModelDb& db, const std::vector<TaughtScan>& scans, const std::string& part, std::size_t already,
                 std::size_t template_index, formats::PartEntry& entry, formats::PartEntry* existing,
                 std::vector<std::string>& written) {
@@ -417,14 +418,18 @@ int store_scans(app::ModelDb& db, const std::vector<TaughtScan>& scans, const st
     do {
       file = scan_file_name(part, ++index);
     } while (std::filesystem::exists(db.path_of(file)));
-    const std::string bytes = formats::write_ply_binary(s.points);
-    if (auto ok = base::write_file_atomic(db.path_of(file), bytes); !ok) {
+    auto bytes = formats::write_scan_file(s.points);
+    if (!bytes) {
+      undo();
+      return fail(kExitFailure, "teach: " + db.path_of(file) + ": " + bytes.error().message);
+    }
+    if (auto ok = base::write_file_atomic(db.path_of(file), *bytes); !ok) {
       undo();
       return fail(kExitFailure, "teach: " + ok.error().message);
     }
     written.push_back(file);
     if (static_cast<std::size_t>(&s - scans.data()) == template_index) entry.template_scan = file;
-    entry.scans.push_back({file, base::crc32(bytes), s.source});
+    entry.scans.push_back({file, base::crc32(*bytes), s.source});
   }
   if (existing != nullptr) {
     *existing = entry;
