@@ -23,6 +23,7 @@
 #include "formats/template_file.hpp"
 #include "sim_test_util.hpp"
 #include "tests/scratch_dir.hpp"
+#include "true_calibration_file.hpp"
 
 namespace fs = std::filesystem;
 using namespace cellsight;
@@ -79,17 +80,7 @@ struct SmallCell {
     INFO((loaded.ok() ? std::string() : loaded.error().message));
     REQUIRE(loaded.ok());
     config = *loaded;
-    const sim::Rig rig = sim::make_rig(config.rig);
-    formats::CalibrationRecord record;
-    record.has_camera = record.has_laser = record.has_conveyor = record.has_support = true;
-    record.sensor = test::true_calibration(rig);
-    record.camera_date = record.laser_date = record.conveyor_date = record.support_date = "2026-12-01 12:00:00";
-    record.camera_views = 12;
-    record.laser_points = 1000;
-    record.support_points = 1000;
-    record.support.normal = Eigen::Vector3d::UnitZ();
-    record.support.offset_m = config.rig.carrier.plane_z_m;
-    REQUIRE(formats::save_calibration((dir / "calibration.yaml").string(), record).ok());
+    test::write_true_calibration(config, (dir / "calibration.yaml").string());
     models = (dir / "models").string();
   }
 
@@ -578,7 +569,7 @@ TEST_CASE(
   INFO(train.output);
   CHECK(killed(train));
   CHECK(train.output.find("plate_5h.dmap: not in the manifest") != std::string::npos);
-  CHECK(train.output.find("plate_5h/00001.ply: not in the manifest") != std::string::npos);
+  CHECK(train.output.find("plate_5h/00001.cscan: not in the manifest") != std::string::npos);
   CHECK_FALSE(fs::exists(models / "templates" / "plate_5h.dmap"));
   as_before();
   std::size_t extra_models = 0;
