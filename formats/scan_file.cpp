@@ -4,6 +4,7 @@
 
 #include <zlib.h>
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <cstring>
@@ -28,7 +29,8 @@ constexpr std::uint64_t kMaxId = std::numeric_limits<std::uint16_t>::max();
 
 // Field offsets in the header.
 constexpr std::size_t kOffVersion = 8, kOffHeaderBytes = 12, kOffCount = 16, kOffStep = 24, kOffFlags = 28,
-                      kOffOrigin = 32, kOffExtent = 44, kOffRaw = 56, kOffCompressed = 64, kOffCrc = 76;
+                      kOffOrigin = 32, kOffExtent = 44, kOffRaw = 56, kOffCompressed = 64, kOffReserved = 72,
+                      kOffCrc = 76;
 
 struct Header {
   std::uint32_t version = kScanFileVersion;
@@ -199,7 +201,9 @@ Expected<Header> parse_header(std::string_view bytes, const ScanFileLimits& limi
   }
   h.raw_bytes = get<std::uint64_t>(bytes, kOffRaw);
   h.compressed_bytes = get<std::uint64_t>(bytes, kOffCompressed);
-  if (h.header_bytes != kScanFileHeaderBytes || h.flags != 0) return fail("header size or flags are not version 1's");
+  if (h.header_bytes != kScanFileHeaderBytes || h.flags != 0 || get<std::uint32_t>(bytes, kOffReserved) != 0) {
+    return fail("header size, flags or reserved bytes are not version 1's");
+  }
   if (h.step_nm == 0 || h.step_nm > kMaxStepNm) return fail("step of " + std::to_string(h.step_nm) + " nm");
   if (h.count > limits.max_points) {
     return fail(std::to_string(h.count) + " points is more than a scan can have (limit " +
@@ -218,7 +222,10 @@ Expected<Header> parse_header(std::string_view bytes, const ScanFileLimits& limi
   // Each point takes 1..5 bytes in each coordinate plane and 1..3 in frame and row.
   const std::uint64_t least = h.count * kPlanes;
   const std::uint64_t most = h.count * (kAxes * kMaxVarintBytes + 2 * kMaxIdVarintBytes);
-  if (h.raw_bytes < least || h.raw_bytes > most || h.raw_bytes > h.compressed_bytes * kMaxInflateRatio) {
+  // And the compressed stream is no larger than zlib makes it from the payload (which also keeps both in zlib's
+  // 32-bit counters: at most 21 bytes x 20 M points).
+  if (h.raw_bytes < least || h.raw_bytes > most || h.raw_bytes > h.compressed_bytes * kMaxInflateRatio ||
+      h.compressed_bytes > compressBound(static_cast<uLong>(h.raw_bytes))) {
     return fail("the declared sizes do not fit " + std::to_string(h.count) + " points (" + std::to_string(h.raw_bytes) +
                 " bytes from " + std::to_string(h.compressed_bytes) + " compressed)");
   }

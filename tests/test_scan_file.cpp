@@ -192,6 +192,7 @@ TEST_CASE("the reader refuses another magic, another version, a damaged header a
   }
   CHECK(contains(refusal(file + "x"), "1 bytes after the data"));
   CHECK(contains(refusal(forged<std::uint32_t>(file, 28, 1)), "flags"));
+  CHECK(contains(refusal(forged<std::uint32_t>(file, 72, 1)), "reserved bytes"));
   CHECK(contains(refusal(forged<std::uint32_t>(file, 24, 0)), "step of 0 nm"));
 }
 
