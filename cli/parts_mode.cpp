@@ -150,8 +150,10 @@ int rebuild_parts(app::ModelDb& db, const app::Config& config, const ModeArgs& a
 // (scans/NAME/00001.cscan -> DIR/00001.ply), each checked against its manifest CRC first, so a scan set can leave the
 // cell and be taught elsewhere (`teach --part NAME DIR/*.ply`). DIR is filled under a temporary name and renamed into
 // place: an existing non-empty DIR is refused and a failure leaves no half-filled one.
-int export_part(const app::ModelDb& db, const formats::PartEntry& part, const std::string& out) {
+int export_part(const app::ModelDb& db, const formats::PartEntry& part, const std::string& out_arg) {
   namespace fs = std::filesystem;
+  std::string out = fs::path(out_arg).lexically_normal().string();  // "DIR/" names DIR, not an empty name inside it
+  while (out.size() > 1 && out.back() == '/') out.pop_back();
   std::error_code ec;
   const fs::path parent = fs::absolute(out, ec).parent_path();
   if (!ec) fs::create_directories(parent, ec);

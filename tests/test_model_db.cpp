@@ -824,7 +824,7 @@ TEST_CASE(
   CHECK(more.output.find("not in the manifest") == std::string::npos);
   CHECK(fs::exists(models / "scans" / "plate_4h" / "00001.ply"));
   CHECK(fs::exists(models / "scans" / "channel_u" / "00001.cscan"));
-  CHECK(cell.run("parts export bracket_l --out " + (cell.dir / "old").string()).exit_code == 0);
+  CHECK(cell.run("parts export bracket_l --out " + (cell.dir / "old").string() + "/").exit_code == 0);
   CHECK(files_below(cell.dir / "old") == names);
   fs::remove_all(cell.dir);
 }
