@@ -12,6 +12,8 @@
 #include "base/crc32.hpp"
 #include "base/file_read.hpp"
 #include "drivers/log.hpp"
+#include "formats/ply.hpp"
+#include "formats/scan_file.hpp"
 #include "formats/yaml_text.hpp"
 
 namespace cellsight::app {
@@ -31,6 +33,10 @@ std::string grid_text(const algo::GridSpec& g) {
 }
 
 }  // namespace
+
+Expected<std::vector<algo::ScanPoint>> parse_taught_scan(std::string_view bytes) {
+  return formats::is_scan_file(bytes) ? formats::parse_scan_file(bytes) : formats::parse_ply(bytes);
+}
 
 Expected<ModelDb> ModelDb::open(const std::string& dir, const algo::GridSpec& grid, bool create) {
   ModelDb db;
@@ -79,7 +85,7 @@ Expected<ModelDb> ModelDb::open_for_writing(const std::string& dir, const algo::
 std::vector<std::string> ModelDb::remove_unlisted_files() const {
   namespace fs = std::filesystem;
   // What teach and train write before the manifest that names it (DESIGN.md "Model database": files first, the
-  // manifest last): templates/*.dmap, scans/PART/*.ply and svm-*.model in the folder itself.
+  // manifest last): templates/*.dmap, scans/PART/*.cscan (*.ply before issue 11) and svm-*.model in the folder itself.
   std::set<std::string> listed;
   for (const formats::PartEntry& p : manifest_.parts) {
     listed.insert(p.template_file);
@@ -89,9 +95,11 @@ std::vector<std::string> ModelDb::remove_unlisted_files() const {
   return base::remove_files_below(dir_, [&](const fs::path& relative) {
     const std::string name = relative.filename().string();
     const auto depth = std::distance(relative.begin(), relative.end());
-    const bool ours = depth == 1   ? name.starts_with("svm-") && name.ends_with(".model")
-                      : depth == 2 ? *relative.begin() == "templates" && name.ends_with(".dmap")
-                                   : depth == 3 && *relative.begin() == "scans" && name.ends_with(".ply");
+    const bool ours = depth == 1 ? name.starts_with("svm-") && name.ends_with(".model")
+                      : depth == 2
+                          ? *relative.begin() == "templates" && name.ends_with(".dmap")
+                          : depth == 3 && *relative.begin() == "scans" &&
+                                (name.ends_with(kTaughtScanExtension) || name.ends_with(kLegacyTaughtScanExtension));
     return ours && listed.count(relative.generic_string()) == 0;
   });
 }

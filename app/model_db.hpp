@@ -12,6 +12,7 @@
 
 #include "algo/grid.hpp"
 #include "algo/result.hpp"
+#include "algo/scan.hpp"
 #include "formats/manifest.hpp"
 
 namespace cellsight::app {
@@ -22,6 +23,16 @@ namespace cellsight::app {
 inline constexpr std::size_t kMaxManifestBytes = std::size_t{256} << 20;
 inline constexpr std::size_t kMaxSvmModelBytes = std::size_t{1} << 30;
 inline constexpr std::size_t kMaxTaughtScanBytes = std::size_t{4} << 30;
+
+// Taught scans are stored as formats/scan_file (scans/PART/NNNNN.cscan): its own extension, so that nobody takes
+// one for a PLY and remove_unlisted_files knows what is the database's.
+inline constexpr std::string_view kTaughtScanExtension = ".cscan";
+// A database taught before issue 11 holds binary PLY scans (scans/PART/NNNNN.ply); they keep working.
+inline constexpr std::string_view kLegacyTaughtScanExtension = ".ply";
+
+// The points of a taught scan file's bytes, whichever way it was stored: the compact format (told by its magic) or
+// PLY. The caller has read the file and checked its CRC against the manifest.
+[[nodiscard]] Expected<std::vector<algo::ScanPoint>> parse_taught_scan(std::string_view bytes);
 
 class ModelDb {
  public:
@@ -47,9 +58,10 @@ class ModelDb {
   // Empty when the SVM matches the parts; otherwise why it is stale and what to run.
   [[nodiscard]] std::string svm_stale_reason() const;
 
-  // Removes the templates (templates/*.dmap), taught scans (scans/PART/*.ply) and SVM models (svm-*.model) that the
-  // manifest does not name: what a teach or train killed between writing its files and saving the manifest left, or
-  // the model a training killed just after its save replaced. open_for_writing() calls it. Returns the paths removed.
+  // Removes the templates (templates/*.dmap), taught scans (scans/PART/*.cscan or *.ply) and SVM models (svm-*.model)
+  // that the manifest does not name: what a teach or train killed between writing its files and saving the manifest
+  // left, or the model a training killed just after its save replaced. open_for_writing() calls it. Returns the paths
+  // removed.
   [[nodiscard]] std::vector<std::string> remove_unlisted_files() const;
   // Writes manifest.yaml atomically (checksum on its last line).
   [[nodiscard]] Status save() const;

@@ -61,6 +61,8 @@ constexpr const char* kUsage =
     "        seeded scan artefacts; SPEC: KIND[:STRENGTH][@SHARE],... with KIND noise, dropout, glare, stray_edge,\n"
     "        stray_points, thin, swing, mixed or none (see README, 'Robustness')\n"
     "  parts list | show NAME | delete NAME\n"
+    "  parts export NAME --out DIR\n"
+    "        the part's taught scans as binary PLY files (DIR/NNNNN.ply, DIR created) to teach them elsewhere\n"
     "  parts rebuild [NAME ...] [--calibration FILE]\n"
     "        build the templates again from the stored scans (e.g. of an older template format); then train\n"
     "  help  this text\n";

@@ -1,16 +1,20 @@
-// `cellsight parts`: list (every file checked as loading checks it, template sizes), show, delete, rebuild.
+// `cellsight parts`: list (every file checked as loading checks it, template sizes), show, delete, rebuild, export.
 #include "cli/parts_mode.hpp"
 
 #include <algorithm>
 #include <cstdint>
 #include <cstdio>
+#include <filesystem>
 
 #include "app/model_db.hpp"
 #include "app/recognition.hpp"
 #include "app/scan_acquisition.hpp"
+#include "base/atomic_file.hpp"
 #include "cli/cli.hpp"
 #include "cli/mode_args.hpp"
 #include "cli/teach_mode.hpp"
+#include "cli/train_mode.hpp"
+#include "formats/ply.hpp"
 #include "formats/template_file.hpp"
 
 namespace cellsight::cli {
@@ -142,13 +146,40 @@ int rebuild_parts(app::ModelDb& db, const app::Config& config, const ModeArgs& a
   return kExitOk;
 }
 
+// `parts export NAME --out DIR`: every taught scan of the part as a binary PLY named after the stored file
+// (scans/NAME/00001.cscan -> DIR/00001.ply), each checked against its manifest CRC first, so a scan set can leave the
+// cell and be taught elsewhere (`teach --part NAME DIR/*.ply`). DIR is filled under a temporary name and renamed into
+// place: an existing non-empty DIR is refused and a failure leaves no half-filled one.
+int export_part(const app::ModelDb& db, const formats::PartEntry& part, const std::string& out_arg) {
+  namespace fs = std::filesystem;
+  std::string out = fs::path(out_arg).lexically_normal().string();  // "DIR/" names DIR, not an empty name inside it
+  while (out.size() > 1 && out.back() == '/') out.pop_back();
+  std::error_code ec;
+  const fs::path parent = fs::absolute(out, ec).parent_path();
+  if (!ec) fs::create_directories(parent, ec);
+  if (ec) return fail(kExitUsage, "parts export: " + out + ": cannot create its parent folder: " + ec.message());
+  auto staged = base::StagedDirectory::create(out);
+  if (!staged) return fail(kExitUsage, "parts export: " + staged.error().message);
+  for (const formats::ScanEntry& s : part.scans) {
+    auto points = load_taught_scan(db, s);
+    if (!points) return fail(kExitFailure, "parts export: " + points.error().message);
+    const std::string name = fs::path(s.file).stem().string() + ".ply";
+    if (auto ok = base::write_file_atomic(staged->path() + "/" + name, formats::write_ply_binary(*points)); !ok) {
+      return fail(kExitFailure, "parts export: " + ok.error().message);
+    }
+  }
+  if (auto ok = staged->commit(); !ok) return fail(kExitFailure, "parts export: " + ok.error().message);
+  std::printf("%s: %zu scans written to %s as binary PLY\n", part.name.c_str(), part.scans.size(), out.c_str());
+  return kExitOk;
+}
+
 }  // namespace
 
 int run_parts(const std::vector<std::string>& words, const app::Config& config, const std::string& models_dir) {
-  constexpr const char* kUsage = "parts needs list, show NAME, delete NAME or rebuild [NAME...]";
+  constexpr const char* kUsage = "parts needs list, show NAME, delete NAME, rebuild [NAME...] or export NAME --out DIR";
   ModeArgs args;
   std::string error;
-  if (!parse_mode_args(words, {"--calibration"}, {}, args, error)) return fail(kExitUsage, "parts: " + error);
+  if (!parse_mode_args(words, {"--calibration", "--out"}, {}, args, error)) return fail(kExitUsage, "parts: " + error);
   if (args.positional.empty()) return fail(kExitUsage, kUsage);
   const std::string& action = args.positional.front();
   const bool writes = action == "delete" || action == "rebuild";
@@ -157,13 +188,19 @@ int run_parts(const std::vector<std::string>& words, const app::Config& config, 
   if (!db) return fail(kExitUsage, db.error().message);
   if (action == "list" && args.positional.size() == 1) return list_parts(*db, config);
   if (action == "rebuild") return rebuild_parts(*db, config, args);
-  if ((action == "show" || action == "delete") && args.positional.size() == 2) {
+  if (args.value("--out") != nullptr && action != "export") return fail(kExitUsage, "parts: --out is for export");
+  if ((action == "show" || action == "delete" || action == "export") && args.positional.size() == 2) {
     const std::string& name = args.positional[1];
     const formats::PartEntry* p = db->find(name);
     if (p == nullptr) return fail(kExitUsage, "parts: no part '" + name + "' in " + db->manifest_path());
     if (action == "show") {
       print_part(*db, *p, true);
       return kExitOk;
+    }
+    if (action == "export") {
+      const std::string* out = args.value("--out");
+      if (out == nullptr) return fail(kExitUsage, "parts export needs --out DIR");
+      return export_part(*db, *p, *out);
     }
     if (auto ok = db->delete_part(name); !ok) return fail(kExitFailure, "parts delete: " + ok.error().message);
     std::printf("deleted %s; the SVM is now stale: run 'cellsight train'\n", name.c_str());

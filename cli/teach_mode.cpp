@@ -23,6 +23,7 @@
 #include "formats/calibration_file.hpp"
 #include "formats/input_file.hpp"
 #include "formats/ply.hpp"
+#include "formats/scan_file.hpp"
 #include "formats/template_file.hpp"
 
 namespace cellsight::cli {
@@ -34,6 +35,7 @@ constexpr int kMaxTeachCount = 10000;
 struct TaughtScan {
   std::vector<algo::ScanPoint> points;
   std::string source;
+  std::string stored;  // the file's bytes (formats/scan_file), once encode_for_storage has run
 };
 
 int fail(int code, const std::string& message) {
@@ -43,8 +45,8 @@ int fail(int code, const std::string& message) {
 
 std::string scan_file_name(const std::string& part, std::size_t index) {
   char buf[32];
-  std::snprintf(buf, sizeof buf, "%05zu.ply", index);
-  return "scans/" + part + "/" + buf;
+  std::snprintf(buf, sizeof buf, "%05zu", index);
+  return "scans/" + part + "/" + buf + std::string(app::kTaughtScanExtension);
 }
 
 // Acquires `count` passes of `part` on the simulated cell, seeds first_seed.., on all cores (each perturbed when
@@ -400,7 +402,22 @@ int start_new_part(const app::Config& config, app::ModelDb& db, app::ScanPrepare
   return kExitOk;
 }
 
-// Writes the scans (binary PLY, atomically) and the manifest; on a failure removes every file this teach wrote.
+// Encodes every scan as it will be stored and takes the stored points back (coordinates on the 16 um steps): the
+// template, the checks and a later `parts rebuild` or `train` then all see the same points. A scan that cannot be
+// stored (a coordinate beyond +-34 km) is refused before anything is written.
+Status encode_for_storage(std::vector<TaughtScan>& scans) {
+  for (TaughtScan& s : scans) {
+    auto bytes = formats::write_scan_file(s.points);
+    if (!bytes) return make_error(s.source + ": " + bytes.error().message);
+    auto points = formats::parse_scan_file(*bytes);
+    if (!points) return make_error(s.source + ": " + points.error().message);  // a bug: what was just written
+    s.points = std::move(*points);
+    s.stored = std::move(*bytes);
+  }
+  return {};
+}
+
+// Writes the scans (formats/scan_file, atomically) and the manifest; on a failure removes every file this teach wrote.
 int store_scans(app::ModelDb& db, const std::vector<TaughtScan>& scans, const std::string& part, std::size_t already,
                 std::size_t template_index, formats::PartEntry& entry, formats::PartEntry* existing,
                 std::vector<std::string>& written) {
@@ -417,14 +434,13 @@ int store_scans(app::ModelDb& db, const std::vector<TaughtScan>& scans, const st
     do {
       file = scan_file_name(part, ++index);
     } while (std::filesystem::exists(db.path_of(file)));
-    const std::string bytes = formats::write_ply_binary(s.points);
-    if (auto ok = base::write_file_atomic(db.path_of(file), bytes); !ok) {
+    if (auto ok = base::write_file_atomic(db.path_of(file), s.stored); !ok) {
       undo();
       return fail(kExitFailure, "teach: " + ok.error().message);
     }
     written.push_back(file);
     if (static_cast<std::size_t>(&s - scans.data()) == template_index) entry.template_scan = file;
-    entry.scans.push_back({file, base::crc32(bytes), s.source});
+    entry.scans.push_back({file, base::crc32(s.stored), s.source});
   }
   if (existing != nullptr) {
     *existing = entry;
@@ -459,6 +475,9 @@ int run_teach(const std::vector<std::string>& words, const app::Config& config, 
   const std::size_t already = existing != nullptr ? existing->scans.size() : 0;
   auto scans = gather_scans(t, config, *id, already, calibration_path, *perturb ? &**perturb : nullptr);
   if (!scans) return fail(kExitUsage, "teach: " + scans.error().message);
+  if (Status ok = encode_for_storage(*scans); !ok) {
+    return fail(kExitUsage, "teach: " + ok.error().message + "; nothing was stored");
+  }
 
   // Every scan must show a part that fits the grid before anything is written.
   app::ScanPreparer preparer(config, *support, app::scan_builder_params(config).max_points);

@@ -100,7 +100,7 @@ Expected<std::vector<algo::ScanPoint>> load_taught_scan(const app::ModelDb& db, 
                       ": checksum differs from the manifest: the scan was changed or damaged; delete the "
                       "part ('cellsight parts delete') and teach it again");
   }
-  auto points = formats::parse_ply(*bytes);
+  auto points = app::parse_taught_scan(*bytes);
   if (!points) return make_error(path + ": " + points.error().message);
   return points;
 }

@@ -11,7 +11,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-TARGETS=(fuzz_ply fuzz_config fuzz_template fuzz_svm fuzz_manifest fuzz_modbus_request)
+TARGETS=(fuzz_ply fuzz_scan_file fuzz_config fuzz_template fuzz_svm fuzz_manifest fuzz_modbus_request)
 BUILD=${CELLSIGHT_FUZZ_BUILD:-build-fuzz}
 # Limits every target must stay within: a reader answers a small file quickly and in proportion to its size.
 LIMITS=(-timeout=10 -rss_limit_mb=2048 -malloc_limit_mb=256 -max_len=16384)

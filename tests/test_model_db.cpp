@@ -20,9 +20,11 @@
 #include "drivers/sim/rig.hpp"
 #include "formats/calibration_file.hpp"
 #include "formats/ply.hpp"
+#include "formats/scan_file.hpp"
 #include "formats/template_file.hpp"
 #include "sim_test_util.hpp"
 #include "tests/scratch_dir.hpp"
+#include "true_calibration_file.hpp"
 
 namespace fs = std::filesystem;
 using namespace cellsight;
@@ -79,17 +81,7 @@ struct SmallCell {
     INFO((loaded.ok() ? std::string() : loaded.error().message));
     REQUIRE(loaded.ok());
     config = *loaded;
-    const sim::Rig rig = sim::make_rig(config.rig);
-    formats::CalibrationRecord record;
-    record.has_camera = record.has_laser = record.has_conveyor = record.has_support = true;
-    record.sensor = test::true_calibration(rig);
-    record.camera_date = record.laser_date = record.conveyor_date = record.support_date = "2026-12-01 12:00:00";
-    record.camera_views = 12;
-    record.laser_points = 1000;
-    record.support_points = 1000;
-    record.support.normal = Eigen::Vector3d::UnitZ();
-    record.support.offset_m = config.rig.carrier.plane_z_m;
-    REQUIRE(formats::save_calibration((dir / "calibration.yaml").string(), record).ok());
+    test::write_true_calibration(config, (dir / "calibration.yaml").string());
     models = (dir / "models").string();
   }
 
@@ -578,7 +570,7 @@ TEST_CASE(
   INFO(train.output);
   CHECK(killed(train));
   CHECK(train.output.find("plate_5h.dmap: not in the manifest") != std::string::npos);
-  CHECK(train.output.find("plate_5h/00001.ply: not in the manifest") != std::string::npos);
+  CHECK(train.output.find("plate_5h/00001.cscan: not in the manifest") != std::string::npos);
   CHECK_FALSE(fs::exists(models / "templates" / "plate_5h.dmap"));
   as_before();
   std::size_t extra_models = 0;
@@ -694,5 +686,145 @@ TEST_CASE(
     CHECK(refused.output.find("needs") != std::string::npos);
     CHECK(refused.output.find("more than runtime.model_memory_mb: 1 in " + tight) != std::string::npos);
   }
+  fs::remove_all(cell.dir);
+}
+
+namespace {
+
+// The relative paths of the regular files below `dir`, sorted.
+std::vector<std::string> files_below(const fs::path& dir) {
+  std::vector<std::string> out;
+  for (const auto& e : fs::recursive_directory_iterator(dir)) {
+    if (e.is_regular_file()) out.push_back(e.path().lexically_relative(dir).generic_string());
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+// Rewrites every taught scan of the database at `models` as a binary PLY (scans/PART/NNNNN.ply), the way teach
+// stored them before issue 11, the manifest's names and checksums with them.
+void make_legacy_ply_database(const SmallCell& cell) {
+  auto db = app::ModelDb::open(cell.models, app::grid_spec(cell.config), false);
+  REQUIRE(db.ok());
+  for (formats::PartEntry& p : db->manifest().parts) {
+    for (formats::ScanEntry& s : p.scans) {
+      auto points = formats::parse_scan_file(read_all(db->path_of(s.file)));
+      REQUIRE(points.ok());
+      const std::string ply_file = fs::path(s.file).replace_extension(".ply").generic_string();
+      const std::string bytes = formats::write_ply_binary(*points);
+      std::ofstream(db->path_of(ply_file), std::ios::binary) << bytes;
+      fs::remove(db->path_of(s.file));
+      if (p.template_scan == s.file) p.template_scan = ply_file;
+      s.file = ply_file;
+      s.crc32 = base::crc32(bytes);
+    }
+  }
+  REQUIRE(db->save().ok());
+}
+
+}  // namespace
+
+TEST_CASE(
+    "taught scans are stored compactly and recognised; parts export gives PLY files another cell can teach; a "
+    "database of PLY scans still trains",
+    "[model_db][scan_file]") {
+  const SmallCell cell = SmallCell::named("compact");
+  const fs::path models(cell.models);
+  const std::string calibration = (cell.dir / "calibration.yaml").string();
+  // Given two parts taught on the simulated cell
+  for (const char* part : {"plate_4h", "bracket_l"}) {
+    const Run r = cell.run(std::string("teach --sim --part ") + part + " --count 5");
+    INFO(r.output);
+    REQUIRE(r.exit_code == 0);
+  }
+  // Then their scans are compact files, each file's CRC-32 in the manifest, and no PLY among them
+  {
+    auto db = app::ModelDb::open(cell.models, app::grid_spec(cell.config), false);
+    REQUIRE(db.ok());
+    std::size_t scans = 0;
+    for (const formats::PartEntry& p : db->manifest().parts) {
+      for (const formats::ScanEntry& s : p.scans) {
+        CHECK(s.file.ends_with(".cscan"));
+        const std::string bytes = read_all(models / s.file);
+        CHECK(formats::is_scan_file(bytes));
+        CHECK(base::crc32(bytes) == s.crc32);
+        CHECK(bytes.size() < 400'000);  // a 1.8 MB binary PLY
+        ++scans;
+      }
+    }
+    CHECK(scans == 10);
+  }
+  // ... the model trains on them and recognises a new pass
+  const fs::path probe = cell.dir / "probe.ply";
+  REQUIRE(cell.run("scan --sim --part plate_4h --seed 901 --calibration " + calibration + " --out " + probe.string())
+              .exit_code == 0);
+  const auto recognised = [&] {
+    const Run classify = cell.run("classify --json " + probe.string());
+    INFO(classify.output);
+    CHECK(classify.exit_code == 0);
+    CHECK(classify.output.find("\"class\": \"plate_4h\"") != std::string::npos);
+  };
+  {
+    const Run train = cell.run("train");
+    INFO(train.output);
+    REQUIRE(train.exit_code == 0);
+  }
+  recognised();
+
+  // When a part is exported (into a folder whose parent does not exist yet)
+  const fs::path exported = cell.dir / "outgoing" / "plate_4h";
+  const Run e = cell.run("parts export plate_4h --out " + exported.string());
+  INFO(e.output);
+  REQUIRE(e.exit_code == 0);
+  // Then it holds one binary PLY per taught scan, named after the stored file, with all its points
+  const std::vector<std::string> names = {"00001.ply", "00002.ply", "00003.ply", "00004.ply", "00005.ply"};
+  CHECK(files_below(exported) == names);
+  for (const std::string& n : names) {
+    const std::string ply = read_all(exported / n);
+    auto points = formats::parse_ply(ply);
+    REQUIRE(points.ok());
+    auto stored =
+        formats::parse_scan_file(read_all(models / "scans" / "plate_4h" / fs::path(n).replace_extension(".cscan")));
+    REQUIRE(stored.ok());
+    CHECK(points->size() == stored->size());
+    CHECK(ply.find("format binary_little_endian") != std::string::npos);
+  }
+  // ... a second export into it, an unknown part and a missing --out are refused with exit 2
+  const Run again = cell.run("parts export plate_4h --out " + exported.string());
+  CHECK(again.exit_code == 2);
+  CHECK(again.output.find("not an empty folder") != std::string::npos);
+  CHECK(cell.run("parts export nope --out " + (cell.dir / "nope").string()).exit_code == 2);
+  CHECK(cell.run("parts export plate_4h").exit_code == 2);
+  CHECK(cell.run("parts show plate_4h --out " + (cell.dir / "x").string()).exit_code == 2);
+  // ... and another cell's database is taught from the exported files through the PLY path
+  {
+    std::string files;
+    for (const std::string& n : names) files += " " + (exported / n).string();
+    const Run r =
+        cell.run("--models " + (cell.dir / "elsewhere").string() + " teach --part plate_copy --id 77" + files);
+    INFO(r.output);
+    REQUIRE(r.exit_code == 0);
+    CHECK(files_below(cell.dir / "elsewhere" / "scans" / "plate_copy").size() == names.size());
+  }
+
+  // Given the database as teach stored it before issue 11: every scan a binary PLY
+  make_legacy_ply_database(cell);
+  // Then it trains and recognises as before ...
+  {
+    const Run train = cell.run("train");
+    INFO(train.output);
+    REQUIRE(train.exit_code == 0);
+    CHECK(train.output.find("not in the manifest") == std::string::npos);
+  }
+  recognised();
+  // ... and a part taught into it is stored compactly beside the old PLY scans, which stay (and export as before)
+  const Run more = cell.run("teach --sim --part channel_u --count 4");
+  INFO(more.output);
+  REQUIRE(more.exit_code == 0);
+  CHECK(more.output.find("not in the manifest") == std::string::npos);
+  CHECK(fs::exists(models / "scans" / "plate_4h" / "00001.ply"));
+  CHECK(fs::exists(models / "scans" / "channel_u" / "00001.cscan"));
+  CHECK(cell.run("parts export bracket_l --out " + (cell.dir / "old").string() + "/").exit_code == 0);
+  CHECK(files_below(cell.dir / "old") == names);
   fs::remove_all(cell.dir);
 }

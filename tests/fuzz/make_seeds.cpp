@@ -12,6 +12,7 @@
 #include "base/file_read.hpp"
 #include "formats/manifest.hpp"
 #include "formats/ply.hpp"
+#include "formats/scan_file.hpp"
 #include "formats/template_file.hpp"
 #include "tests/fuzz/seed_grid.hpp"
 
@@ -129,6 +130,14 @@ bool modbus_seeds(const fs::path& dir) {
 
 }  // namespace
 
+// A scan as teach stores it, and the empty scan, each in both modes.
+bool scan_file_seeds(const fs::path& dir) {
+  auto scan = formats::write_scan_file(small_scan());
+  auto empty = formats::write_scan_file({});
+  if (!scan || !empty) return false;
+  return put_checksummed(dir, "scan.cscan", *scan) && put_checksummed(dir, "empty.cscan", *empty);
+}
+
 int main(int argc, char** argv) {
   if (argc != 2) {
     std::fprintf(stderr, "usage: make_fuzz_seeds CORPUS_DIR\n");
@@ -144,7 +153,8 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "make_fuzz_seeds: %s\n", (dmap ? svm.error() : dmap.error()).message.c_str());
     return 1;
   }
-  const bool ok = ply_seeds(corpus / "fuzz_ply") && put_checksummed(corpus / "fuzz_template", "seed.dmap", *dmap) &&
+  const bool ok = ply_seeds(corpus / "fuzz_ply") && scan_file_seeds(corpus / "fuzz_scan_file") &&
+                  put_checksummed(corpus / "fuzz_template", "seed.dmap", *dmap) &&
                   put_checksummed(corpus / "fuzz_svm", "svm.bin", *svm) &&
                   put_checksummed(corpus / "fuzz_manifest", "manifest.yaml", manifest_file()) &&
                   modbus_seeds(corpus / "fuzz_modbus_request");
