@@ -191,6 +191,7 @@ void read_svm_section(formats::YamlSection s, Config& cfg) {
   s.integer("seed", cfg.svm.seed, 0, INT64_MAX, "");
   s.integer("augment_per_scan", cfg.svm.augment_per_scan, 0, 100, "");
   s.integer("augment_search_per_scan", cfg.svm.augment_search_per_scan, 0, 100, "");
+  s.integer("search_classes", cfg.svm.search_classes, 0, 100000, "classes");
   s.finish();
 }
 

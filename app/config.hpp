@@ -75,6 +75,9 @@ struct SvmConfig {
   // annealing scores its candidates on at most augment_search_per_scan of them, the final SVM learns from all.
   int augment_per_scan = 8;
   int augment_search_per_scan = 1;
+  // With more parts than this the feature search scores on this many of them (the nearest centroids, algo
+  // TrainParams::search_classes); 0 = all parts.
+  int search_classes = 40;
 };
 
 // The recognition parameters are the algorithms' own structs, so their defaults (documented and measured there)

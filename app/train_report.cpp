@@ -270,6 +270,8 @@ void append_summary_header(std::string& s, const algo::TrainingReport& report, c
         "search scored %d samples\n",
         report.synthetic_samples, report.search_samples);
   }
+  if (const std::string scope = algo::search_scope_text(report); !scope.empty())
+    s += "Search:          " + scope + "\n";
   s += string_printf("Features:        version %u, %d computed per scan\n", context.feature_version,
                      algo::kFeatureCount);
 

@@ -97,6 +97,7 @@ std::string training_report_yaml(const algo::TrainingReport& report, const Train
   out << YAML::Key << "test_samples" << YAML::Value << report.test_samples;
   out << YAML::Key << "synthetic_samples" << YAML::Value << report.synthetic_samples;
   out << YAML::Key << "search_samples" << YAML::Value << report.search_samples;
+  out << YAML::Key << "search_classes" << YAML::Value << YAML::Flow << report.search_class_names;  // [] = all
   out << YAML::Key << "folds" << YAML::Value << report.folds;
   out << YAML::Key << "threads" << YAML::Value << report.threads;
   out << YAML::Key << "seconds" << YAML::Value << report.seconds;

@@ -1,6 +1,7 @@
 // `cellsight train`: dataset from the taught scans, training (algo/training), thresholds, atomic database update.
 #include "cli/train_mode.hpp"
 
+#include <algorithm>
 #include <csignal>
 #include <cstdio>
 #include <filesystem>
@@ -182,12 +183,57 @@ Expected<TaughtData> build_dataset(const app::Config& config, const app::ModelDb
   return out;
 }
 
-// The scans of every other class against each template (the runner-ups learn_thresholds() keeps a margin to):
-// result[c] = reports of the other classes' scans against class c's template. Runs on `threads` threads.
-Expected<std::vector<std::vector<algo::MatchReport>>> cross_matches(const app::Config& config, const app::ModelDb& db,
-                                                                    const algo::Plane& support, int threads,
-                                                                    const app::LoadedTemplates& templates,
-                                                                    const std::atomic<bool>* stop) {
+namespace {
+
+// The other classes' scans that could reach a template's verification, and what they scored against it.
+struct CrossMatches {
+  std::vector<std::vector<algo::MatchReport>> reports;  // [class c]: scans of other classes against c's template
+  std::vector<std::vector<std::size_t>> from;           // [class c][k]: the class of the scan of reports[c][k]
+};
+
+// A taught scan is matched against the templates of the classes its SVM ranks highest: this many at least, and
+// twice cascade.pm_candidates (taught scans sit closer to the model than tomorrow's scans do, hence the margin).
+constexpr int kMinCrossRivals = 8;
+constexpr int kCrossRivalsPerCandidate = 2;
+
+// Per taught scan (manifest order): the classes whose templates it is matched against. At run time a scan is
+// verified only against the SVM's most probable pm_candidates and the passing class's look-alikes (algo/cascade),
+// so a template's thresholds need a margin only to scans that can reach its verification: the classes the
+// just-trained SVM ranks in the scan's top N, its own class left out. Look-alikes are learnt from these same
+// matches, so they stay within that reach too. With N >= classes - 1 (small catalogues) every other template,
+// as before issue 11; at 300 parts this turns 3600 x 299 Perfect Match evaluations (~1.5 h) into 3600 x N.
+std::vector<std::vector<std::size_t>> cross_match_rivals(const app::Config& config, const TaughtData& taught,
+                                                         algo::SvmModel& model) {
+  const algo::Dataset& data = taught.data;
+  const std::size_t classes = data.classes.size();
+  const auto reach = static_cast<std::size_t>(
+      std::max(kMinCrossRivals, kCrossRivalsPerCandidate * app::cascade_params(config).pm_candidates));
+  std::vector<std::vector<std::size_t>> rivals;
+  for (std::size_t i = 0; i < data.size(); ++i) {
+    if (data.variant_of(i) != 0) continue;  // groups are the scans in manifest order, the taught scan first
+    const auto own = static_cast<std::size_t>(data.labels[i]);
+    std::vector<std::size_t>& r = rivals.emplace_back();
+    if (reach + 1 >= classes) {
+      for (std::size_t c = 0; c < classes; ++c) {
+        if (c != own) r.push_back(c);
+      }
+      continue;
+    }
+    for (const algo::ClassProbability& p : model.predict(data.features[i])) {
+      if (r.size() == reach) break;
+      if (static_cast<std::size_t>(p.class_index) != own) r.push_back(static_cast<std::size_t>(p.class_index));
+    }
+    std::sort(r.begin(), r.end());
+  }
+  return rivals;
+}
+
+// The taught scans against the templates of their rivals (the runner-ups learn_thresholds() keeps a margin to).
+// rivals[j]: the classes scan j (manifest order) is matched against. Runs on `threads` threads.
+Expected<CrossMatches> cross_matches(const app::Config& config, const app::ModelDb& db, const algo::Plane& support,
+                                     int threads, const app::LoadedTemplates& templates,
+                                     const std::vector<std::vector<std::size_t>>& rivals,
+                                     const std::atomic<bool>* stop) {
   const formats::Manifest& m = db.manifest();
   struct Job {
     std::size_t label;
@@ -197,8 +243,9 @@ Expected<std::vector<std::vector<algo::MatchReport>>> cross_matches(const app::C
   for (std::size_t c = 0; c < m.parts.size(); ++c) {
     for (const formats::ScanEntry& s : m.parts[c].scans) jobs.push_back({c, &s});
   }
+  if (rivals.size() != jobs.size()) return make_error("the rivals do not match the taught scans");
   const std::size_t classes = m.parts.size();
-  // reports[j][c]: scan j against template c (c != its own class).
+  // reports[j][k]: scan j against the template of rivals[j][k].
   std::vector<std::vector<algo::MatchReport>> reports(jobs.size());
   std::mutex mutex;
   std::string first_error;
@@ -212,26 +259,30 @@ Expected<std::vector<std::vector<algo::MatchReport>>> cross_matches(const app::C
           if (first_error.empty()) first_error = db.path_of(jobs[i].scan->file) + ": cannot be prepared";
           return false;
         }
-        reports[i].resize(classes);
-        for (std::size_t c = 0; c < classes; ++c) {
-          if (c == jobs[i].label || !templates.models[c].map.valid()) continue;
-          reports[i][c] = w.cascade.evaluate(templates.models[c], w.preparer.part_points());
+        reports[i].resize(rivals[i].size());
+        for (std::size_t k = 0; k < rivals[i].size(); ++k) {
+          const std::size_t c = rivals[i][k];
+          if (templates.models[c].map.valid())
+            reports[i][k] = w.cascade.evaluate(templates.models[c], w.preparer.part_points());
         }
         return true;
       },
       config, support);
   if (!first_error.empty()) return make_error(first_error);
   if (!complete || (stop != nullptr && stop->load())) return make_error("stopped");
-  std::vector<std::vector<algo::MatchReport>> out(classes);
+  CrossMatches out;
+  out.reports.resize(classes);
+  out.from.resize(classes);
   for (std::size_t i = 0; i < jobs.size(); ++i) {
-    for (std::size_t c = 0; c < classes; ++c) {
-      if (c != jobs[i].label && templates.models[c].map.valid()) out[c].push_back(reports[i][c]);
+    for (std::size_t k = 0; k < rivals[i].size(); ++k) {
+      const std::size_t c = rivals[i][k];
+      if (!templates.models[c].map.valid()) continue;
+      out.reports[c].push_back(reports[i][k]);
+      out.from[c].push_back(jobs[i].label);
     }
   }
   return out;
 }
-
-namespace {
 
 // A refusal of `cellsight train`: the exit code and the message printed after "cellsight train: ".
 struct TrainFailure {
@@ -254,6 +305,7 @@ std::optional<TrainFailure> read_train_params(const ModeArgs& args, const app::C
   params.seed = static_cast<std::uint64_t>(config.svm.seed);
   params.threads = config.svm.threads;
   params.search_variants = config.svm.augment_search_per_scan;
+  params.search_classes = config.svm.search_classes;
   params.kernel = config.svm.kernel == "poly" ? algo::KernelType::kPoly : algo::KernelType::kRbf;
   params.compare = args.has("--compare");
   if (const std::string* v = args.value("--iterations")) {
@@ -322,11 +374,11 @@ struct LearntParts {
 // Acceptance thresholds of every template from its own taught scans that agree with each other, with a margin to
 // the other parts' scans (the unknown-part decision, algo/cascade); warns about scans that disagree.
 void learn_part_thresholds(const formats::Manifest& m, const app::Config& config, const TaughtData& taught,
-                           const std::vector<std::vector<algo::MatchReport>>& others, LearntParts& learnt_parts) {
+                           const CrossMatches& others, LearntParts& learnt_parts) {
   learnt_parts.flagged.assign(m.parts.size(), {});
   for (std::size_t c = 0; c < taught.own_matches.size(); ++c) {
     const algo::ThresholdLearning learnt =
-        algo::learn_thresholds(taught.own_matches[c], others[c], app::cascade_params(config));
+        algo::learn_thresholds(taught.own_matches[c], others.reports[c], app::cascade_params(config));
     const algo::TemplateThresholds& t = learnt.thresholds;
     learnt_parts.template_thresholds.push_back(t);
     learnt_parts.thresholds.push_back({true, t.max_error, t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered,
@@ -353,21 +405,16 @@ void learn_part_thresholds(const formats::Manifest& m, const app::Config& config
 
 // Look-alikes: a part whose scans came within kNearPassFactor of passing another's template (either way round) is
 // verified with it at run time (algo::CascadeParams, candidate policy).
-void find_look_alikes(const formats::Manifest& m, const std::vector<std::vector<algo::MatchReport>>& others,
-                      LearntParts& learnt_parts) {
+void find_look_alikes(const formats::Manifest& m, const CrossMatches& others, LearntParts& learnt_parts) {
   constexpr double kNearPassFactor = 3.0;
   std::vector<std::set<std::string>>& confusable = learnt_parts.confusable;
   confusable.assign(m.parts.size(), {});
   for (std::size_t c = 0; c < m.parts.size(); ++c) {
-    std::size_t k = 0;  // others[c] holds the other classes' scans in manifest order
-    for (std::size_t o = 0; o < m.parts.size(); ++o) {
-      if (o == c) continue;
-      for (std::size_t s = 0; s < m.parts[o].scans.size(); ++s, ++k) {
-        if (k < others[c].size() &&
-            algo::near_pass(others[c][k], learnt_parts.template_thresholds[c], kNearPassFactor)) {
-          confusable[c].insert(m.parts[o].name);
-          confusable[o].insert(m.parts[c].name);
-        }
+    for (std::size_t k = 0; k < others.reports[c].size(); ++k) {
+      if (algo::near_pass(others.reports[c][k], learnt_parts.template_thresholds[c], kNearPassFactor)) {
+        const std::size_t o = others.from[c][k];
+        confusable[c].insert(m.parts[o].name);
+        confusable[o].insert(m.parts[c].name);
       }
     }
   }
@@ -432,6 +479,7 @@ void print_training_result(const algo::TrainingResult& trained, const std::strin
     std::printf("MLP: %.2f %% test (CV %.2f %%), %s\n", report.mlp->test_accuracy * 100.0,
                 report.mlp->cv_accuracy * 100.0, report.mlp->parameters.c_str());
   }
+  if (const std::string scope = algo::search_scope_text(report); !scope.empty()) std::printf("%s\n", scope.c_str());
   std::printf("model -> %s (%.1f s)\n", model_path.c_str(), report.seconds);
 }
 
@@ -489,8 +537,12 @@ int run_train(const std::vector<std::string>& words, const app::Config& config, 
   const algo::TrainingReport& report = trained->report;
   if (report.stopped) std::printf("stopped: the model is trained on the best feature set found so far\n");
 
-  std::printf("learning the acceptance thresholds (every taught scan against every template)...\n");
-  auto others = cross_matches(config, *db, *support, threads, templates, &g_stop);
+  const std::vector<std::vector<std::size_t>> rivals = cross_match_rivals(config, *taught, trained->model);
+  std::printf(
+      "learning the acceptance thresholds (every taught scan against the templates of its %zu most "
+      "probable other parts)...\n",
+      rivals.empty() ? std::size_t{0} : rivals.front().size());
+  auto others = cross_matches(config, *db, *support, threads, templates, rivals, &g_stop);
   if (!others) return report_failure({kExitFailure, "thresholds: " + others.error().message});
   LearntParts learnt_parts;
   learn_part_thresholds(m, config, *taught, *others, learnt_parts);

@@ -8,6 +8,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
+#include <functional>
 #include <limits>
 #include <random>
 #include <string>
@@ -157,6 +158,17 @@ algo::TrainParams small_params() {
   p.annealing.start_temperature = 2.0;
   p.annealing.cooling_ratio = 0.8;
   return p;
+}
+
+// The split trained twice: with `p`, then with `change` applied to it (both must succeed).
+std::pair<algo::TrainingResult, algo::TrainingResult> train_twice(
+    const algo::DatasetSplit& split, algo::TrainParams p, const std::function<void(algo::TrainParams&)>& change) {
+  auto a = algo::train_recogniser(split, p);
+  change(p);
+  auto b = algo::train_recogniser(split, p);
+  REQUIRE(a.ok());
+  REQUIRE(b.ok());
+  return {std::move(*a), std::move(*b)};
 }
 
 }  // namespace
@@ -397,11 +409,9 @@ SCENARIO("Training is deterministic for a seed, whatever the thread count", "[tr
     REQUIRE(split.ok());
     algo::TrainParams p = small_params();
     p.threads = 1;
-    auto a = algo::train_recogniser(*split, p);
-    p.threads = 2;
-    auto b = algo::train_recogniser(*split, p);
-    REQUIRE(a.ok());
-    REQUIRE(b.ok());
+    auto [ra, rb] = train_twice(*split, p, [](algo::TrainParams& q) { q.threads = 2; });
+    const auto* a = &ra;
+    const auto* b = &rb;
     THEN("masks, parameters, annealing curves and model bytes are identical") {
       CHECK(a->report.svm.mask == b->report.svm.mask);
       CHECK(a->report.svm.parameters == b->report.svm.parameters);
@@ -583,6 +593,90 @@ SCENARIO("The held-back test reports the top-2 rate and the calibration of the S
         CHECK(svm.test_ece == Approx(ece / scans));
         CHECK(right / scans == Approx(svm.test_accuracy));
       }
+    }
+  }
+}
+
+namespace {
+
+// make_clusters with class `twin` replaced by near copies of class `of`'s samples (a near twin: its centroid lies
+// far closer to `of` than any two other classes' do).
+algo::Dataset with_near_twin(int classes, int per_class, int twin, int of) {
+  algo::Dataset d = make_clusters(classes, per_class, 21);
+  std::mt19937_64 rng(3);
+  std::normal_distribution<float> g(0.0F, 0.05F);
+  std::vector<FeatureVector> originals;
+  for (std::size_t i = 0; i < d.size(); ++i) {
+    if (d.labels[i] == of) originals.push_back(d.features[i]);
+  }
+  std::size_t k = 0;
+  for (std::size_t i = 0; i < d.size(); ++i) {
+    if (d.labels[i] != twin) continue;
+    d.features[i] = originals[k++ % originals.size()];
+    for (float& v : d.features[i]) v += g(rng);
+  }
+  return d;
+}
+
+}  // namespace
+
+SCENARIO("The search's class subset holds the near twins and is deterministic", "[training]") {
+  GIVEN("12 classes where class 11 is a near twin of class 3") {
+    const algo::Dataset d = with_near_twin(12, 6, 11, 3);
+    WHEN("a subset of 4 classes is chosen, twice") {
+      const std::vector<int> a = algo::search_class_subset(d, 4);
+      const std::vector<int> b = algo::search_class_subset(d, 4);
+      THEN("it has 4 classes in ascending order, both twins among them, the same both times") {
+        REQUIRE(a.size() == 4);
+        CHECK(std::is_sorted(a.begin(), a.end()));
+        CHECK(std::find(a.begin(), a.end(), 3) != a.end());
+        CHECK(std::find(a.begin(), a.end(), 11) != a.end());
+        CHECK(a == b);
+      }
+    }
+    THEN("no subset when every class fits or the limit is 0 (all)") {
+      CHECK(algo::search_class_subset(d, 12).empty());
+      CHECK(algo::search_class_subset(d, 0).empty());
+    }
+  }
+}
+
+SCENARIO("With many classes the annealing searches on the subset and the model still knows every class", "[training]") {
+  GIVEN("8 classes (class 7 a near twin of class 2) and search_classes 4, on 1 and on 2 threads") {
+    auto split = algo::split_per_class(with_near_twin(8, 9, 7, 2), 6, 1);
+    REQUIRE(split.ok());
+    algo::TrainParams p = small_params();
+    p.annealing.iterations = 4;
+    p.search_classes = 4;
+    p.threads = 1;
+    auto [ra, rb] = train_twice(*split, p, [](algo::TrainParams& q) { q.threads = 2; });
+    algo::TrainingResult* a = &ra;
+    const algo::TrainingResult* b = &rb;
+    THEN("the report names 4 searched classes with both twins, the model predicts over all 8, deterministically") {
+      const std::vector<std::string>& names = a->report.search_class_names;
+      REQUIRE(names.size() == 4);
+      CHECK(std::find(names.begin(), names.end(), "class_2") != names.end());
+      CHECK(std::find(names.begin(), names.end(), "class_7") != names.end());
+      CHECK(a->report.search_samples == 4 * 6);
+      CHECK(a->model.predict(split->test.features[0]).size() == 8);
+      CHECK(a->report.svm.confusion.size() == 8);
+      CHECK(algo::search_scope_text(a->report).find("4 of 8 classes") != std::string::npos);
+      CHECK(a->model.serialize() == b->model.serialize());
+    }
+  }
+}
+
+SCENARIO("A catalogue within search_classes trains exactly as the thesis search on all classes", "[training]") {
+  GIVEN("3 classes, trained with search_classes 3 and with 0 (all)") {
+    algo::TrainParams within = small_params();
+    within.search_classes = 3;
+    const auto split = algo::split_per_class(make_clusters(3, 18, 8), 12, 1);
+    REQUIRE(split.ok());
+    const auto [a, b] = train_twice(*split, within, [](algo::TrainParams& q) { q.search_classes = 0; });
+    THEN("no subset is reported and the models are byte-identical") {
+      CHECK(a.report.search_class_names.empty());
+      CHECK(algo::search_scope_text(a.report).empty());
+      CHECK(a.model.serialize() == b.model.serialize());
     }
   }
 }
