@@ -58,7 +58,7 @@ Expected<std::vector<TaughtScan>> acquire_sim_scans(const app::Config& config, c
   auto ok = app::acquire_sim_passes(
       config, part, count, first_seed, calibration_path, "scanned",
       [&](int index, std::uint64_t seed, std::vector<algo::ScanPoint>&& points) -> Status {
-        scans[static_cast<std::size_t>(index)] = {std::move(points), "sim seed " + std::to_string(seed)};
+        scans[static_cast<std::size_t>(index)] = {std::move(points), "sim seed " + std::to_string(seed), {}};
         return {};
       },
       perturb);
@@ -71,7 +71,7 @@ Expected<std::vector<TaughtScan>> import_scans(const std::vector<std::string>& f
   for (const std::string& f : files) {
     auto points = formats::load_ply_file(f);
     if (!points) return points.error();
-    scans.push_back({std::move(*points), std::filesystem::absolute(f).lexically_normal().string()});
+    scans.push_back({std::move(*points), std::filesystem::absolute(f).lexically_normal().string(), {}});
   }
   return scans;
 }
@@ -515,7 +515,7 @@ Expected<formats::TemplateModel> rebuild_template(const app::Config& config, app
     auto points = load_taught_scan(db, s);
     if (!points) return points.error();
     if (&s == base) index = scans.size();
-    scans.push_back({std::move(*points), db.path_of(s.file)});
+    scans.push_back({std::move(*points), db.path_of(s.file), {}});
   }
   const app::PrepareReport r = preparer.prepare(scans[index].points);
   if (r.status != app::PrepareStatus::kOk) {

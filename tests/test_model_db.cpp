@@ -90,10 +90,10 @@ struct SmallCell {
     return run_with_config(config_path, args, env);
   }
   // As run(), with another configuration file.
-  [[nodiscard]] Run run_with_config(const std::string& config, const std::string& args,
+  [[nodiscard]] Run run_with_config(const std::string& config_file, const std::string& args,
                                     const std::string& env = "") const {
-    const std::string command = (env.empty() ? "" : env + " ") + kExe + " --config " + config + " --models " + models +
-                                " --log-level warn " + args + " 2>&1";
+    const std::string command = (env.empty() ? "" : env + " ") + kExe + " --config " + config_file + " --models " +
+                                models + " --log-level warn " + args + " 2>&1";
     FILE* pipe = ::popen(command.c_str(), "r");
     REQUIRE(pipe != nullptr);
     std::string out;
@@ -678,7 +678,7 @@ TEST_CASE(
   const Run over_list = with_tight("parts list");
   INFO(over_list.output);
   CHECK(over_list.output.find("OVER BUDGET") != std::string::npos);
-  for (const std::string args :
+  for (const std::string& args :
        {"classify " + probe.string(), std::string("run --sim --parts 1 --calibration ") + calibration}) {
     const Run refused = with_tight(args);
     INFO(args << "\n" << refused.output);
