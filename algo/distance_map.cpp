@@ -207,15 +207,10 @@ MapSample DistanceMapView::coarse_sample(const double c[3]) const {
   for (int k = 0; k < 2; ++k)
     for (int j = 0; j < 2; ++j)
       for (int i = 0; i < 2; ++i) v[i + 2 * j + 4 * k] = data_.coarse[part[0][i] + part[1][j] + part[2][k]];
-  const double tx = t[0], ty = t[1], tz = t[2];
-  const double ux = 1.0 - tx, uy = 1.0 - ty, uz = 1.0 - tz;
-  const double e00 = ux * v[0] + tx * v[1], e10 = ux * v[2] + tx * v[3];
-  const double e01 = ux * v[4] + tx * v[5], e11 = ux * v[6] + tx * v[7];
-  const double dx = uz * (uy * (v[1] - v[0]) + ty * (v[3] - v[2])) + tz * (uy * (v[5] - v[4]) + ty * (v[7] - v[6]));
-  const double dy = uz * (e10 - e00) + tz * (e11 - e01);
+  const Trilinear i = trilinear(v, t);
   const double grad_scale = fine_grad_scale_ * kInvEdge;
-  return {(uz * (uy * e00 + ty * e10) + tz * (uy * e01 + ty * e11)) * kDistanceUnitM, sloped[0] ? dx * grad_scale : 0.0,
-          sloped[1] ? dy * grad_scale : 0.0, false};
+  return {i.value * kDistanceUnitM, sloped[0] ? i.slope_x * grad_scale : 0.0, sloped[1] ? i.slope_y * grad_scale : 0.0,
+          false};
 }
 
 double DistanceMapView::cell_distance_m(int x, int y, int z) const {

@@ -247,6 +247,28 @@ class DistanceMap {
 
 // --- inline sampling -------------------------------------------------------------------------------------------------
 
+// Trilinear interpolation of 8 corner values (corner (i, j, k) at v[i + 2 j + 4 k]) at fractions t, and the
+// interpolant's slopes along x and y per unit of t. Shared by the fine cells and the coarse field.
+struct Trilinear {
+  double value, slope_x, slope_y;
+};
+[[nodiscard]] inline Trilinear trilinear(const double v[8], const double t[3]) {
+  const double tx = t[0];
+  const double ty = t[1];
+  const double tz = t[2];
+  const double ux = 1.0 - tx;
+  const double uy = 1.0 - ty;
+  const double uz = 1.0 - tz;
+  // Along x first: the four x-edges, then their y-z bilinear mix; the x slope is the mix of the edges' steps.
+  const double e00 = ux * v[0] + tx * v[1], e10 = ux * v[2] + tx * v[3];
+  const double e01 = ux * v[4] + tx * v[5], e11 = ux * v[6] + tx * v[7];
+  const double y0 = uy * e00 + ty * e10;
+  const double y1 = uy * e01 + ty * e11;
+  return {uz * y0 + tz * y1,
+          uz * (uy * (v[1] - v[0]) + ty * (v[3] - v[2])) + tz * (uy * (v[5] - v[4]) + ty * (v[7] - v[6])),
+          uz * (e10 - e00) + tz * (e11 - e01)};
+}
+
 inline MapSample DistanceMapView::sample(double x_m, double y_m, double z_m) const {
   const double f[3] = {x_m * inv_resolution_ - offset_[0], y_m * inv_resolution_ - offset_[1],
                        z_m * inv_resolution_ - offset_[2]};
@@ -289,22 +311,10 @@ inline MapSample DistanceMapView::sample(double x_m, double y_m, double z_m) con
   }
   MapSample s{};
   if (fine_ok) {
-    const double tx = t[0];
-    const double ty = t[1];
-    const double tz = t[2];
-    const double ux = 1.0 - tx;
-    const double uy = 1.0 - ty;
-    const double uz = 1.0 - tz;
-    // Along x first: the four x-edges, then their y-z bilinear mix; the x slope is the mix of the edges' steps.
-    const double e00 = ux * v[0] + tx * v[1], e10 = ux * v[2] + tx * v[3];
-    const double e01 = ux * v[4] + tx * v[5], e11 = ux * v[6] + tx * v[7];
-    const double y0 = uy * e00 + ty * e10;
-    const double y1 = uy * e01 + ty * e11;
-    const double dx = uz * (uy * (v[1] - v[0]) + ty * (v[3] - v[2])) + tz * (uy * (v[5] - v[4]) + ty * (v[7] - v[6]));
-    const double dy = uz * (e10 - e00) + tz * (e11 - e01);
-    s.distance_m = (uz * y0 + tz * y1) * kDistanceUnitM;
-    s.grad_x = step_[0] != 0 ? dx * fine_grad_scale_ : 0.0;
-    s.grad_y = step_[1] != 0 ? dy * fine_grad_scale_ : 0.0;
+    const Trilinear i = trilinear(v, t);
+    s.distance_m = i.value * kDistanceUnitM;
+    s.grad_x = step_[0] != 0 ? i.slope_x * fine_grad_scale_ : 0.0;
+    s.grad_y = step_[1] != 0 ? i.slope_y * fine_grad_scale_ : 0.0;
     s.fine = true;
   } else {
     s = coarse_sample(c);
