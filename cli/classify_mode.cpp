@@ -197,6 +197,7 @@ struct EvalTotals {
   int svm_ranked = 0, svm_top1 = 0, svm_top2 = 0, decided = 0, decided_within_two = 0;
   std::vector<std::string> reasons;  // one line per unknown taught scan or wrong id
   std::vector<double> pose_mm, pose_deg, ms;
+  std::vector<double> features_ms, svm_ms, cascade_ms;  // the decision's stages (ms = their sum)
   std::map<std::string, int> sources;
 };
 
@@ -397,6 +398,9 @@ void count_decision(const LabelledScan& s, const algo::Decision& d, const runtim
   ++t.confusion[s.truth_class][decided];
   ++t.sources[std::string(algo::to_string(d.source))];
   t.ms.push_back(d.total_ms);
+  t.features_ms.push_back(d.features_ms);
+  t.svm_ms.push_back(d.svm_ms);
+  t.cascade_ms.push_back(d.total_ms - d.features_ms - d.svm_ms);
   if (!taught) {
     ++t.untaught;
     if (d.class_index < 0)
@@ -460,6 +464,9 @@ void print_eval_totals(const EvalTotals& t, const std::string& dir) {
   print_stats("pose xy", t.pose_mm, "mm");
   print_stats("pose theta", t.pose_deg, "deg");
   print_stats("time", t.ms, "ms");
+  print_stats(" features", t.features_ms, "ms");  // scan -> part points -> grid -> 74 features
+  print_stats(" svm", t.svm_ms, "ms");
+  print_stats(" cascade", t.cascade_ms, "ms");  // Perfect Match + two-way checks of the candidates
 }
 
 // Rows: the true classes seen; columns: the taught parts in manifest order, then unknown.

@@ -249,6 +249,7 @@ Expected<CrossMatches> cross_matches(const app::Config& config, const app::Model
   std::vector<std::vector<algo::MatchReport>> reports(jobs.size());
   std::mutex mutex;
   std::string first_error;
+  std::atomic<std::size_t> done{0};
   const bool complete = base::parallel_for_with_state<MatchWorker>(
       static_cast<int>(jobs.size()), std::max(1, threads), stop,
       [&](int job, MatchWorker& w) {
@@ -265,6 +266,9 @@ Expected<CrossMatches> cross_matches(const app::Config& config, const app::Model
           if (templates.models[c].map.valid())
             reports[i][k] = w.cascade.evaluate(templates.models[c], w.preparer.part_points());
         }
+        const std::size_t n = ++done;
+        if (n % 200 == 0 || n == jobs.size())
+          CS_LOG_INFO("train", "rivals matched for %zu / %zu scans", n, jobs.size());
         return true;
       },
       config, support);
