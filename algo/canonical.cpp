@@ -122,10 +122,11 @@ Box rasterise(std::span<const ScanPoint> in, const GridSpec& spec, double cx, do
   Box box{nx, -1, ny, -1};
   cells = sum_ix = sum_iy = 0.0;
   const double c = std::cos(-turn), s = std::sin(-turn);
+  const double inv = 1.0 / spec.resolution_m;  // a product per point, not a division (it runs 3 x per decision)
   for (const ScanPoint& p : in) {
     const double dx = p.x - cx, dy = p.y - cy;
-    const double fx = (cx + c * dx - s * dy - spec.origin_m.x()) / spec.resolution_m;
-    const double fy = (cy + s * dx + c * dy - spec.origin_m.y()) / spec.resolution_m;
+    const double fx = (cx + c * dx - s * dy - spec.origin_m.x()) * inv;
+    const double fy = (cy + s * dx + c * dy - spec.origin_m.y()) * inv;
     if (!(fx >= 0.0 && fy >= 0.0 && fx < nx && fy < ny)) continue;  // also rejects NaN
     const int ix = static_cast<int>(fx), iy = static_cast<int>(fy);
     std::uint8_t& m = mask[static_cast<std::size_t>(iy) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(ix)];

@@ -37,7 +37,8 @@ void square_morphology(const std::vector<std::uint8_t>& src, std::vector<std::ui
   line_pass(tmp, dst, nx, box, r, dilate, false);
 }
 
-PartIsolator::PartIsolator(const GridSpec& grid, const IsolationParams& params) : grid_(grid), params_(params) {
+PartIsolator::PartIsolator(const GridSpec& grid, const IsolationParams& params)
+    : grid_(grid), inv_resolution_(1.0 / grid.resolution_m), params_(params) {
   const auto cells = static_cast<std::size_t>(grid.nx) * static_cast<std::size_t>(grid.ny);
   occupied_.assign(cells, 0);
   bridged_.assign(cells, 0);
@@ -52,12 +53,19 @@ PartIsolator::PartIsolator(const GridSpec& grid, const IsolationParams& params) 
   scratch_.assign(cells, 0);
 }
 
-bool PartIsolator::cell_of(const ScanPoint& p, std::size_t& index) const {
-  const double fx = (static_cast<double>(p.x) - grid_.origin_m.x()) / grid_.resolution_m;
-  const double fy = (static_cast<double>(p.y) - grid_.origin_m.y()) / grid_.resolution_m;
+bool PartIsolator::cell_of(const ScanPoint& p, int& x, int& y) const {
+  const double fx = (static_cast<double>(p.x) - grid_.origin_m.x()) * inv_resolution_;
+  const double fy = (static_cast<double>(p.y) - grid_.origin_m.y()) * inv_resolution_;
   if (!(fx >= 0.0 && fy >= 0.0 && fx < grid_.nx && fy < grid_.ny)) return false;  // NaN fails too
-  index = static_cast<std::size_t>(static_cast<int>(fy)) * static_cast<std::size_t>(grid_.nx) +
-          static_cast<std::size_t>(static_cast<int>(fx));
+  x = static_cast<int>(fx);
+  y = static_cast<int>(fy);
+  return true;
+}
+
+bool PartIsolator::cell_of(const ScanPoint& p, std::size_t& index) const {
+  int x = 0, y = 0;
+  if (!cell_of(p, x, y)) return false;
+  index = static_cast<std::size_t>(y) * static_cast<std::size_t>(grid_.nx) + static_cast<std::size_t>(x);
   return true;
 }
 
@@ -66,11 +74,9 @@ CellBox PartIsolator::occupied_box(const ScanBuffer& part, bool count) {
   if (count) std::fill(occupied_.begin(), occupied_.end(), 0);
   CellBox b{grid_.nx, -1, grid_.ny, -1};
   for (const ScanPoint& p : part.points()) {
-    std::size_t i = 0;
-    if (!cell_of(p, i)) continue;
-    if (count) ++occupied_[i];
-    const int x = static_cast<int>(i % nx);
-    const int y = static_cast<int>(i / nx);
+    int x = 0, y = 0;
+    if (!cell_of(p, x, y)) continue;
+    if (count) ++occupied_[static_cast<std::size_t>(y) * nx + static_cast<std::size_t>(x)];
     b.x0 = std::min(b.x0, x);
     b.x1 = std::max(b.x1, x);
     b.y0 = std::min(b.y0, y);

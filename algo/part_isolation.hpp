@@ -72,10 +72,12 @@ class PartIsolator {
 
  private:
   [[nodiscard]] bool cell_of(const ScanPoint& p, std::size_t& index) const;
+  [[nodiscard]] bool cell_of(const ScanPoint& p, int& x, int& y) const;
   // The cell box of the part's points on the grid; with count, occupied_ gets the points per cell.
   CellBox occupied_box(const ScanBuffer& part, bool count);
 
   GridSpec grid_;
+  double inv_resolution_ = 0.0;  // 1 / grid_.resolution_m: a product per point, not a division
   IsolationParams params_;
   std::vector<std::int32_t> occupied_;  // points per cell
   std::vector<std::uint8_t> bridged_;   // dilated occupancy
