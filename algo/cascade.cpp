@@ -708,11 +708,14 @@ bool Cascade::evaluate_candidate(std::span<const TemplateModel> templates, std::
   return true;
 }
 
-MatchReport Cascade::evaluate(const TemplateModel& model, std::span<const ScanPoint> scan) {
+MatchReport Cascade::evaluate(const TemplateModel& model, std::span<const ScanPoint> scan,
+                              const TemplateThresholds* gross_limits) {
   matcher_.set_scan(scan);
   outline_valid_ = false;
   const PerfectMatchResult pm = matcher_.match(model.map, model.centroid_m, matcher_.centroid_start(model.centroid_m));
-  MatchReport report = check_prepared(model, scan, pm.pose, nullptr);
+  // A pass against the provisional limits does not end the check: the learnt ones may be lower, and then decide()
+  // would try the outline pose.
+  MatchReport report = check_prepared(model, scan, pm.pose, gross_limits, false);
   report.pm = pm;
   return report;
 }
@@ -726,7 +729,7 @@ MatchReport Cascade::two_way_check(const TemplateModel& model, std::span<const S
 }
 
 MatchReport Cascade::check_prepared(const TemplateModel& model, std::span<const ScanPoint> scan, const PlanarPose& pose,
-                                    const TemplateThresholds* thresholds) {
+                                    const TemplateThresholds* thresholds, bool settle_on_pass) {
   const Roi rt = rasterise_template(model);
   MatchReport best = check_at(model.centroid_m, scan, pose, rt);
   // Passing at Perfect Match's pose already answers "is there an alignment at which they agree".
@@ -736,7 +739,7 @@ MatchReport Cascade::check_prepared(const TemplateModel& model, std::span<const 
                                                best.extra_area_m2 > kGrossFailure * thresholds->max_extra_area_m2 ||
                                                1.0 - best.coverage > kGrossFailure * thresholds->max_uncovered ||
                                                best.scan_outliers > kGrossFailure * thresholds->max_outliers);
-  const bool settled = thresholds != nullptr && (gross || best.check_passes(*thresholds));
+  const bool settled = thresholds != nullptr && (gross || (settle_on_pass && best.check_passes(*thresholds)));
   if (!settled && params_.refine_iterations > 0 && !outline_valid_) {
     prepare_scan_outline(scan);
     outline_valid_ = true;

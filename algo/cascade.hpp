@@ -263,7 +263,12 @@ class Cascade {
                                 std::chrono::steady_clock::time_point deadline);
 
   // Perfect Match from the centroid start plus the two-way check (training: the reports learn_thresholds() takes).
-  [[nodiscard]] MatchReport evaluate(const TemplateModel& model, std::span<const ScanPoint> scan);
+  // The check also tries the outline pose and keeps the better figures. With `gross_limits`, a check that fails one
+  // of them by far at Perfect Match's pose is not retried there, as decide() does with the learnt thresholds: train
+  // passes a template's own-class limits, which learn_thresholds() only ever lowers, so decide() skips the retry of
+  // that scan too and sees the same figures (issue 11: at 300 parts this halves the rival matching).
+  [[nodiscard]] MatchReport evaluate(const TemplateModel& model, std::span<const ScanPoint> scan,
+                                     const TemplateThresholds* gross_limits = nullptr);
 
   // The two-way check alone, from a given pose (it also tries the outline pose; the report's pm is left default).
   // Exposed for tests and diagnostics.
@@ -311,9 +316,11 @@ class Cascade {
   bool evaluate_candidate(std::span<const TemplateModel> templates, std::span<const ScanPoint> scan,
                           std::chrono::steady_clock::time_point deadline, Candidate& out);
   // The check proper (takes the scan's outline when it first needs it and outline_valid_ is false). With
-  // thresholds, a pass at `pose` ends it (the outline pose is only tried when the given one fails).
+  // thresholds, a gross failure at `pose` ends it, and so does a pass when settle_on_pass (the outline pose is only
+  // tried when the given one fails).
   [[nodiscard]] MatchReport check_prepared(const TemplateModel& model, std::span<const ScanPoint> scan,
-                                           const PlanarPose& pose, const TemplateThresholds* thresholds);
+                                           const PlanarPose& pose, const TemplateThresholds* thresholds,
+                                           bool settle_on_pass = true);
   void prepare_scan_outline(std::span<const ScanPoint> scan);
   [[nodiscard]] bool prepare_template_outline(const Roi& template_box);
   [[nodiscard]] double outline_cost(const Eigen::Vector2d& centre_m, const PlanarPose& pose, double cutoff_m,

@@ -229,10 +229,13 @@ std::vector<std::vector<std::size_t>> cross_match_rivals(const app::Config& conf
 }
 
 // The taught scans against the templates of their rivals (the runner-ups learn_thresholds() keeps a margin to).
-// rivals[j]: the classes scan j (manifest order) is matched against. Runs on `threads` threads.
+// rivals[j]: the classes scan j (manifest order) is matched against. own_limits[c]: template c's limits from its own
+// scans alone (learn_thresholds without rivals), an upper bound of the learnt ones: a rival that fails them by far
+// at Perfect Match's pose is not retried at the outline pose (Cascade::evaluate). Runs on `threads` threads.
 Expected<CrossMatches> cross_matches(const app::Config& config, const app::ModelDb& db, const algo::Plane& support,
                                      int threads, const app::LoadedTemplates& templates,
                                      const std::vector<std::vector<std::size_t>>& rivals,
+                                     std::span<const algo::TemplateThresholds> own_limits,
                                      const std::atomic<bool>* stop) {
   const formats::Manifest& m = db.manifest();
   struct Job {
@@ -243,8 +246,10 @@ Expected<CrossMatches> cross_matches(const app::Config& config, const app::Model
   for (std::size_t c = 0; c < m.parts.size(); ++c) {
     for (const formats::ScanEntry& s : m.parts[c].scans) jobs.push_back({c, &s});
   }
-  if (rivals.size() != jobs.size()) return make_error("the rivals do not match the taught scans");
   const std::size_t classes = m.parts.size();
+  if (rivals.size() != jobs.size() || own_limits.size() != classes) {
+    return make_error("the rivals do not match the taught scans");
+  }
   // reports[j][k]: scan j against the template of rivals[j][k].
   std::vector<std::vector<algo::MatchReport>> reports(jobs.size());
   std::mutex mutex;
@@ -264,7 +269,7 @@ Expected<CrossMatches> cross_matches(const app::Config& config, const app::Model
         for (std::size_t k = 0; k < rivals[i].size(); ++k) {
           const std::size_t c = rivals[i][k];
           if (templates.models[c].map.valid())
-            reports[i][k] = w.cascade.evaluate(templates.models[c], w.preparer.part_points());
+            reports[i][k] = w.cascade.evaluate(templates.models[c], w.preparer.part_points(), &own_limits[c]);
         }
         const std::size_t n = ++done;
         if (n % 200 == 0 || n == jobs.size())
@@ -546,7 +551,10 @@ int run_train(const std::vector<std::string>& words, const app::Config& config, 
       "learning the acceptance thresholds (every taught scan against the templates of its %zu most "
       "probable other parts)...\n",
       rivals.empty() ? std::size_t{0} : rivals.front().size());
-  auto others = cross_matches(config, *db, *support, threads, templates, rivals, &g_stop);
+  std::vector<algo::TemplateThresholds> own_limits;
+  for (const std::vector<algo::MatchReport>& own : taught->own_matches)
+    own_limits.push_back(algo::learn_thresholds(own, app::cascade_params(config)));
+  auto others = cross_matches(config, *db, *support, threads, templates, rivals, own_limits, &g_stop);
   if (!others) return report_failure({kExitFailure, "thresholds: " + others.error().message});
   LearntParts learnt_parts;
   learn_part_thresholds(m, config, *taught, *others, learnt_parts);

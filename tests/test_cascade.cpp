@@ -1137,6 +1137,49 @@ TEST_CASE("learn_thresholds leaves out a taught scan that disagrees and keeps a 
   CHECK(same.other_scans_inseparable == 1);
 }
 
+TEST_CASE("learn_thresholds only ever lowers the own-class limits for other parts' scans", "[cascade]") {
+  // train's rival matching relies on this (Cascade::evaluate's gross_limits): the own-class limits bound the
+  // learnt ones, so a rival failing them by far fails the learnt ones by far, and decide() skips its retry too.
+  CascadeParams p;
+  std::mt19937_64 rng(1101);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  const auto report = [&](double scale) {
+    MatchReport r;
+    r.pm.error = scale * (1e-4 + 8e-4 * u(rng));
+    r.missing_area_m2 = scale * (10.0 + 300.0 * u(rng)) * 1e-6;
+    r.extra_area_m2 = scale * (10.0 + 300.0 * u(rng)) * 1e-6;
+    r.coverage = 1.0 - scale * 0.004 * u(rng);
+    r.scan_outliers = scale * 0.004 * u(rng);
+    r.size_dx_m = scale * 0.002 * (u(rng) - 0.5);
+    r.size_dy_m = scale * 0.002 * (u(rng) - 0.5);
+    return r;
+  };
+  int lowered = 0;
+  for (int trial = 0; trial < 200; ++trial) {
+    std::vector<MatchReport> own(12), others(30);
+    for (MatchReport& r : own) r = report(1.0);
+    for (MatchReport& r : others) r = report(0.5 + 3.0 * u(rng));  // some pass the own-class limits, most do not
+    const algo::TemplateThresholds alone = algo::learn_thresholds(own, p);
+    const algo::TemplateThresholds learnt = algo::learn_thresholds(own, others, p).thresholds;
+    INFO("trial " << trial);
+    CHECK(learnt.max_error <= alone.max_error);
+    CHECK(learnt.max_missing_area_m2 <= alone.max_missing_area_m2);
+    CHECK(learnt.max_extra_area_m2 <= alone.max_extra_area_m2);
+    CHECK(learnt.max_uncovered <= alone.max_uncovered);
+    CHECK(learnt.max_outliers <= alone.max_outliers);
+    CHECK(learnt.max_size_dev_m <= alone.max_size_dev_m);
+    CHECK(learnt.size_centre_x_m == alone.size_centre_x_m);
+    CHECK(learnt.size_centre_y_m == alone.size_centre_y_m);
+    lowered += learnt.max_error < alone.max_error || learnt.max_missing_area_m2 < alone.max_missing_area_m2 ||
+                       learnt.max_extra_area_m2 < alone.max_extra_area_m2 ||
+                       learnt.max_uncovered < alone.max_uncovered || learnt.max_outliers < alone.max_outliers ||
+                       learnt.max_size_dev_m < alone.max_size_dev_m
+                   ? 1
+                   : 0;
+  }
+  CHECK(lowered > 20);  // the margin step did act in many trials (the property is not vacuous)
+}
+
 TEST_CASE("learn_thresholds separates a twin by a levelled error far below the coarse error floor", "[cascade]") {
   // Given own-class matches that err by 3-8e-6 (levelled; catalogue 8302's rnd03 against its template) with small
   // blobs, and a twin (louvres where the part has ribs) whose areas and shares are the same but whose error is
