@@ -266,7 +266,7 @@ class Cascade {
   // The check also tries the outline pose and keeps the better figures. With `gross_limits`, a check that fails one
   // of them by far at Perfect Match's pose is not retried there, as decide() does with the learnt thresholds: train
   // passes a template's own-class limits, which learn_thresholds() only ever lowers, so decide() skips the retry of
-  // that scan too and sees the same figures (issue 11: at 300 parts this halves the rival matching).
+  // that scan too and sees the same figures (issue 11: 10.7 instead of 17.6 min of rival matching at 297 parts).
   [[nodiscard]] MatchReport evaluate(const TemplateModel& model, std::span<const ScanPoint> scan,
                                      const TemplateThresholds* gross_limits = nullptr);
 
