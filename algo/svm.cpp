@@ -151,9 +151,9 @@ void multiclass_probability(int k, const double* r, double* q, double* qp, doubl
     for (std::size_t t = 0; t < kk; ++t) {
       const double qpt = scale * qp[t];
       const double diff = (-qpt + pqp) / q[t * kk + t];
-      p[t] += diff / scale;
+      const double step = diff / scale;  // diff in stored units
+      p[t] += step;
       pqp = (pqp + diff * (diff * q[t * kk + t] + 2 * qpt)) / (1 + diff) / (1 + diff);
-      const double step = diff / scale;
       const double* qt = &q[t * kk];
       for (std::size_t j = 0; j < kk; ++j) qp[j] += step * qt[j];
       scale /= (1 + diff);

@@ -248,7 +248,7 @@ Expected<CrossMatches> cross_matches(const app::Config& config, const app::Model
   }
   const std::size_t classes = m.parts.size();
   if (rivals.size() != jobs.size() || own_limits.size() != classes) {
-    return make_error("the rivals do not match the taught scans");
+    return make_error("the rivals or the own-class limits do not match the taught parts and scans");
   }
   // reports[j][k]: scan j against the template of rivals[j][k].
   std::vector<std::vector<algo::MatchReport>> reports(jobs.size());
