@@ -152,15 +152,23 @@ struct OutlineField {
 
 namespace {
 
-// The six gated figures of a report, in TemplateThresholds order (the size's deviation needs the template's centres).
-constexpr int kFigures = 6;
-constexpr int kSizeFigure = 5;
+// The seven gated figures of a report, in TemplateThresholds order (the size's deviation needs the template's
+// centres; it comes last).
+constexpr int kFigures = 7;
+constexpr int kHolePatternFigure = 5;
+constexpr int kSizeFigure = 6;
 [[nodiscard]] std::array<double, kFigures> figures_of(const MatchReport& r, const TemplateThresholds& t) {
-  return {r.pm.error,       r.missing_area_m2, r.extra_area_m2,
-          1.0 - r.coverage, r.scan_outliers,   t.size_deviation(r.size_dx_m, r.size_dy_m)};
+  return {r.pm.error,
+          r.missing_area_m2,
+          r.extra_area_m2,
+          1.0 - r.coverage,
+          r.scan_outliers,
+          r.hole_pattern_m2,
+          t.size_deviation(r.size_dx_m, r.size_dy_m)};
 }
 [[nodiscard]] std::array<double, kFigures> limits_of(const TemplateThresholds& t) {
-  return {t.max_error, t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered, t.max_outliers, t.max_size_dev_m};
+  return {t.max_error,    t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered,
+          t.max_outliers, t.max_hole_pattern_m2, t.max_size_dev_m};
 }
 // Whether a figure fails its limit: NaN fails, except the size's (unmeasured; MatchReport::check_passes).
 [[nodiscard]] bool fails(int figure, double value, double limit) {
@@ -174,12 +182,13 @@ void set_limit(TemplateThresholds& t, int figure, double v) {
     case 2: t.max_extra_area_m2 = v; break;
     case 3: t.max_uncovered = v; break;
     case 4: t.max_outliers = v; break;
+    case kHolePatternFigure: t.max_hole_pattern_m2 = v; break;
     default: t.max_size_dev_m = v; break;
   }
 }
-constexpr RejectReason kFigureReason[kFigures] = {RejectReason::kPmError,   RejectReason::kMissingArea,
-                                                  RejectReason::kExtraArea, RejectReason::kUncovered,
-                                                  RejectReason::kOutliers,  RejectReason::kSize};
+constexpr RejectReason kFigureReason[kFigures] = {
+    RejectReason::kPmError,  RejectReason::kMissingArea, RejectReason::kExtraArea, RejectReason::kUncovered,
+    RejectReason::kOutliers, RejectReason::kHolePattern, RejectReason::kSize};
 
 [[nodiscard]] double median_of(std::vector<double> v) {
   if (v.empty()) return 0.0;
@@ -216,10 +225,11 @@ bool near_pass(const MatchReport& report, const TemplateThresholds& t, double fa
 ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::span<const MatchReport> other_classes,
                                    const CascadeParams& params) {
   ThresholdLearning out;
-  const double factor[kFigures] = {params.error_factor, params.area_factor,  params.area_factor,
-                                   params.share_factor, params.share_factor, params.size_factor};
+  const double factor[kFigures] = {params.error_factor, params.area_factor, params.area_factor, params.share_factor,
+                                   params.share_factor, params.area_factor, params.size_factor};
   const double floor[kFigures] = {params.error_floor, params.area_floor_m2, params.area_floor_m2,
-                                  params.share_floor, params.share_floor,   params.size_floor_m};
+                                  params.share_floor, params.share_floor,   params.hole_pattern_floor_m2,
+                                  params.size_floor_m};
   // 0. The size's centres: the own class's medians (all its scans: a median is not moved by the few that disagree).
   {
     std::vector<double> dx, dy;
@@ -663,6 +673,7 @@ void Cascade::report_candidates(DecideState& s, const Candidate* winner, bool am
     o.evidence_m2 = c.report.evidence_m2;
     o.coverage = c.report.coverage;
     o.outliers = c.report.scan_outliers;
+    o.hole_pattern_m2 = c.report.hole_pattern_m2;
     const TemplateModel* t = s.template_of(c.class_index);
     if (t != nullptr) o.size_dev_m = t->thresholds.size_deviation(c.report.size_dx_m, c.report.size_dy_m);
     if (t == nullptr) {
@@ -700,6 +711,7 @@ bool Cascade::evaluate_candidate(std::span<const TemplateModel> templates, std::
     // Fails on its error alone: the check could not save it, so it is not run (its figures stay NaN).
     constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
     out.report.missing_area_m2 = out.report.extra_area_m2 = out.report.coverage = out.report.scan_outliers = kNaN;
+    out.report.hole_pattern_m2 = kNaN;
     out.report.check_pose = pm.pose;
   }
   out.report.pm = pm;
@@ -738,7 +750,8 @@ MatchReport Cascade::check_prepared(const TemplateModel& model, std::span<const 
   const bool gross = thresholds != nullptr && (best.missing_area_m2 > kGrossFailure * thresholds->max_missing_area_m2 ||
                                                best.extra_area_m2 > kGrossFailure * thresholds->max_extra_area_m2 ||
                                                1.0 - best.coverage > kGrossFailure * thresholds->max_uncovered ||
-                                               best.scan_outliers > kGrossFailure * thresholds->max_outliers);
+                                               best.scan_outliers > kGrossFailure * thresholds->max_outliers ||
+                                               best.hole_pattern_m2 > kGrossFailure * thresholds->max_hole_pattern_m2);
   const bool settled = thresholds != nullptr && (gross || (settle_on_pass && best.check_passes(*thresholds)));
   if (!settled && params_.refine_iterations > 0 && !outline_valid_) {
     prepare_scan_outline(scan);
@@ -755,7 +768,7 @@ MatchReport Cascade::check_prepared(const TemplateModel& model, std::span<const 
     if (shift_m > kRecheckShiftM || std::abs(refined.theta_rad - pose.theta_rad) > kRecheckTurnRad) {
       MatchReport other = check_at(model.centroid_m, scan, refined, rt);
       other.outline_rms_m = rms_m;
-      if (other.missing_area_m2 + other.extra_area_m2 < best.missing_area_m2 + best.extra_area_m2) best = other;
+      if (other.evidence_m2 < best.evidence_m2) best = other;
     }
   }
   reset_template(rt);
@@ -822,6 +835,7 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
     mark_lost_data(roi);
     measure_size(roi, r);
     const double covered_hole = covered_hole_cells(roi);
+    r.hole_pattern_m2 = hole_pattern_cells(roi) * cell_area_m2;
     const BlobEvidence missing = blob_evidence(roi, kMissing, false);
     const BlobEvidence extra = blob_evidence(roi, kExtra, true);
     r.missing_area_m2 = missing.largest_cells * cell_area_m2;
@@ -844,7 +858,7 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
     // Points beyond the raster have no template anywhere near; they count as one more extra blob.
     r.extra_area_m2 = std::max(r.extra_area_m2, outside * resolution_m_ * resolution_m_);
   }
-  r.evidence_m2 = r.missing_area_m2 + r.extra_area_m2;
+  r.evidence_m2 = r.missing_area_m2 + r.extra_area_m2 + r.hole_pattern_m2;
   return r;
 }
 
@@ -1339,6 +1353,119 @@ double Cascade::covered_hole_cells(const Roi& roi) {
     for (int x = roi.x0; x < roi.x1; ++x) row[x] &= static_cast<std::uint8_t>(~kVisited);
   }
   return largest;
+}
+
+double Cascade::hole_pattern_cells(const Roi& roi) {
+  // Each side's flood marks its cells kVisited; the other side's (and blob_evidence) need them clear.
+  auto clear_visited = [&] {
+    for (int y = roi.y0; y < roi.y1; ++y) {
+      std::uint8_t* row = flags_.data() + static_cast<std::size_t>(y) * static_cast<std::size_t>(width_);
+      for (int x = roi.x0; x < roi.x1; ++x) row[x] &= static_cast<std::uint8_t>(~kVisited);
+    }
+  };
+  double total = unmatched_hole_cells(roi, true);
+  clear_visited();
+  total += unmatched_hole_cells(roi, false);
+  clear_visited();
+  return total;
+}
+
+double Cascade::unmatched_hole_cells(const Roi& roi, bool scan_holes) {
+  // A hole of one surface is a 4-connected piece of its empty cells that the box's edge does not reach. Empty: no
+  // point in the cell, and not a gap of one cell between two occupied ones along x (a missing profile, a dropout run
+  // along a profile). It must have a core (a cell whose four neighbours are empty too: two profiles' gaps side by
+  // side have none; an 11 mm hole has one) and be compact (elongation below band_elongation: glare leaves bands), of
+  // hole size (kMinCells to kMaxCells), clear of relief walls (no kStep cell: the laser shadow beside a wall differs
+  // between poses) and not mostly lost data; and clean: its own surface holds at least kMinShare of the ring around
+  // it (a pocket between glare's residue points has no solid ring). It is unmatched when the other surface is solid
+  // where it lies: at least kMinSolidShare of the cells within hole_match_radius_m of its centre occupied, for the
+  // scan by material at the template's depth (not kExtra: a neighbour's sheet edge at another depth covers nothing).
+  // The same hole seen at a pose a millimetre or two off has the other's hole within the radius, which leaves at
+  // most about half of them solid. Cost: one flood fill of each side's empty cells, and a ring and a disc per hole.
+  constexpr std::size_t kMinCells = 4;    // ~19 mm^2: a 5 mm hole; smaller empty pieces are sampling gaps
+  constexpr std::size_t kMaxCells = 400;  // ~1 900 mm^2 (50 mm): larger holes leave blobs the area gate sees
+  constexpr double kMinShare = 0.6;
+  constexpr double kMinSolidShare = 0.75;
+  constexpr double kRingInner = 1.0, kRingOuter = 2.5;  // cells beyond the hole's equivalent radius
+  const int w = width_;
+  auto own_occupied = [&](std::size_t i) { return scan_holes ? s_lo_[i] <= s_hi_[i] : t_lo_[i] <= t_hi_[i]; };
+  auto at = [&](int x, int y) { return static_cast<std::size_t>(y) * static_cast<std::size_t>(w) + x; };
+  auto occupied_at = [&](int x, int y) { return x >= roi.x0 && x < roi.x1 && own_occupied(at(x, y)); };
+  // Empty: no point, and not a gap of one profile between two occupied cells (a missing profile, a dropout run
+  // along a profile: one cell wide in x).
+  auto empty = [&](int x, int y) { return !occupied_at(x, y) && !(occupied_at(x - 1, y) && occupied_at(x + 1, y)); };
+  auto other_solid = [&](std::size_t i) {
+    return scan_holes ? t_lo_[i] <= t_hi_[i] : (s_lo_[i] <= s_hi_[i] && (flags_[i] & kExtra) == 0);
+  };
+  const double match_cells = params_.hole_match_radius_m / resolution_m_;
+  double unmatched = 0.0;
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    for (int x = roi.x0; x < roi.x1; ++x) {
+      const std::size_t seed = at(x, y);
+      if ((flags_[seed] & kVisited) != 0 || !empty(x, y)) continue;
+      flags_[seed] |= kVisited;
+      std::size_t top = 0, count = 0, lost = 0, core = 0;
+      bool edge = false, wall = false;
+      CellMoments moments;
+      stack_[top++] = static_cast<std::int32_t>(seed);
+      while (top > 0) {
+        const std::int32_t c = stack_[--top];
+        ++count;
+        const auto ci = static_cast<std::size_t>(c);
+        if ((flags_[ci] & kLost) != 0) ++lost;
+        if ((flags_[ci] & kStep) != 0) wall = true;
+        const int cx = c % w, cy = c / w;
+        moments.add(cx, cy);
+        const int nx[4] = {cx - 1, cx + 1, cx, cx};
+        const int ny[4] = {cy, cy, cy - 1, cy + 1};
+        int empty_neighbours = 0;
+        for (int k = 0; k < 4; ++k) {
+          if (nx[k] < roi.x0 || nx[k] >= roi.x1 || ny[k] < roi.y0 || ny[k] >= roi.y1) {
+            edge = true;
+            continue;
+          }
+          if (!empty(nx[k], ny[k])) continue;
+          ++empty_neighbours;
+          const std::size_t n = at(nx[k], ny[k]);
+          if ((flags_[n] & kVisited) == 0) {
+            flags_[n] |= kVisited;
+            stack_[top++] = static_cast<std::int32_t>(n);
+          }
+        }
+        if (empty_neighbours == 4) ++core;
+      }
+      if (edge || wall || core == 0 || count < kMinCells || count > kMaxCells || 2 * lost >= count ||
+          moments.elongation() >= params_.band_elongation) {
+        continue;
+      }
+      const Eigen::Vector2d centre = moments.mean();
+      const double radius = std::sqrt(static_cast<double>(count) / std::numbers::pi);
+      // Ring around the hole on its own surface; disc at its centre on the other.
+      const double r0 = radius + kRingInner, r1 = radius + kRingOuter;
+      const int bx0 = std::max(static_cast<int>(std::floor(centre.x() - r1)), roi.x0);
+      const int bx1 = std::min(static_cast<int>(std::ceil(centre.x() + r1)), roi.x1 - 1);
+      const int by0 = std::max(static_cast<int>(std::floor(centre.y() - r1)), roi.y0);
+      const int by1 = std::min(static_cast<int>(std::ceil(centre.y() + r1)), roi.y1 - 1);
+      int ring = 0, ring_occupied = 0, disc = 0, disc_solid = 0;
+      for (int yy = by0; yy <= by1; ++yy) {
+        for (int xx = bx0; xx <= bx1; ++xx) {
+          const double d = std::hypot(xx - centre.x(), yy - centre.y());
+          const std::size_t i = at(xx, yy);
+          if (d >= r0 && d <= r1) {
+            ++ring;
+            ring_occupied += own_occupied(i) ? 1 : 0;
+          }
+          if (d <= match_cells) {
+            ++disc;
+            disc_solid += other_solid(i) ? 1 : 0;
+          }
+        }
+      }
+      if (ring == 0 || disc == 0 || static_cast<double>(ring_occupied) < kMinShare * ring) continue;
+      if (static_cast<double>(disc_solid) >= kMinSolidShare * disc) unmatched += static_cast<double>(count);
+    }
+  }
+  return unmatched;
 }
 
 Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, bool extra) {

@@ -98,6 +98,16 @@ struct CascadeParams {
   // shares on the 12-part simulated catalogue stay below 0.05 % (acceptance run, README); 0.3 % sits well between.
   double share_factor = 1.5;
   double share_floor = 0.003;
+  // Hole pattern (issue 11): the window that absorbs the pose error also hides holes narrower than about 13 mm (a
+  // hole of radius R leaves pi (R - 6.6 mm)^2 of blob), so two perforated sheets whose 11 mm hole fields lie 42 mm
+  // apart (a mirrored twin) left blobs of 30-40 mm^2 and 99.97 % coverage. Each side's holes are therefore compared
+  // as holes: a compact hole of one surface, clean (solid material around it), where the other surface is solid
+  // within hole_match_radius_m of its centre, counts with its area (the scan's holes where the template is solid,
+  // the template's holes the scan covers at the template's depth). A pose error of a millimetre or two moves a hole
+  // by as much, so the same hole pattern counts nothing. Threshold: own-class maximum * area_factor + this floor
+  // (one 11 mm hole is ~80 mm^2 of cells).
+  double hole_pattern_floor_m2 = 120e-6;
+  double hole_match_radius_m = 0.0044;
   // Evidence is judged by its shape. A blob of missing or extra cells that is a thin band (elongation >=
   // band_elongation) touching the outside (missing) or the matched scan (extra) only at its ends (share of its boundary
   // <= band_contact_max) is what glare, a dropout line, a chain or a hook leave: it counts with weak_evidence_weight
@@ -134,6 +144,7 @@ struct TemplateThresholds {
   double max_extra_area_m2 = 0.0;    // largest connected scan area the template lacks
   double max_uncovered = 0.0;        // share of the template's cells the scan lacks (1 - coverage), all blobs together
   double max_outliers = 0.0;         // share of the scan's cells the template lacks (scan_outliers)
+  double max_hole_pattern_m2 = 0.0;  // holes of one surface where the other is solid, all together (hole_pattern_m2)
   // Outer size: the scan's width and height less the template's (MatchReport::size_dx_m / size_dy_m) are expected at
   // these centres (own-class medians: sampling and the template's cells bias them); a deviation beyond
   // max_size_dev_m on either fails. The default never fails (thresholds learnt before the size was measured).
@@ -181,7 +192,10 @@ struct MatchReport {
   double size_dy_m = std::numeric_limits<double>::quiet_NaN();
   int template_cells = 0;
   int scan_cells = 0;
-  // Weighted evidence against the template: the largest weighted missing plus extra blob (see CascadeParams).
+  // Hole pattern: the area of the scan's small holes where the template is solid plus that of the template's holes
+  // the scan covers (see CascadeParams::hole_pattern_floor_m2), which the window-based blobs cannot see.
+  double hole_pattern_m2 = 0.0;
+  // Weighted evidence against the template: the largest weighted missing plus extra blob, plus the hole pattern.
   double evidence_m2 = 0.0;
   // Template area the scan lacks that counted as lost data (glare, a dropout band): where it lies, a feature that
   // tells this part from a twin may be hidden (CascadeParams::verify_all_lost_m2).
@@ -192,7 +206,7 @@ struct MatchReport {
     // areas and shares anyway.
     return missing_area_m2 <= t.max_missing_area_m2 && extra_area_m2 <= t.max_extra_area_m2 &&
            1.0 - coverage <= t.max_uncovered && scan_outliers <= t.max_outliers &&
-           !(t.size_deviation(size_dx_m, size_dy_m) > t.max_size_dev_m);
+           hole_pattern_m2 <= t.max_hole_pattern_m2 && !(t.size_deviation(size_dx_m, size_dy_m) > t.max_size_dev_m);
   }
   [[nodiscard]] bool passes(const TemplateThresholds& t) const { return pm.error <= t.max_error && check_passes(t); }
 };
@@ -358,6 +372,11 @@ class Cascade {
   // The largest of the template's holes (cells) that the scan's material covers, densely or porously (after
   // mark_lost_data, before blob_evidence): see the definition.
   [[nodiscard]] double covered_hole_cells(const Roi& roi);
+  // MatchReport::hole_pattern_m2 in cells (after mark_lost_data; see CascadeParams::hole_pattern_floor_m2).
+  [[nodiscard]] double hole_pattern_cells(const Roi& roi);
+  // hole_pattern_cells()'s half for one side: the scan's holes (mask_s_ empty, not reached from the box's edge) or
+  // the template's (mask_a_ and mask_b_ empty).
+  [[nodiscard]] double unmatched_hole_cells(const Roi& roi, bool scan_holes);
   // Flood-fills the blobs of `bit` (kMissing, or kExtra with `extra`) and weighs each by its shape
   // (CascadeParams::weak_evidence_weight).
   [[nodiscard]] BlobEvidence blob_evidence(const Roi& roi, std::uint8_t bit, bool extra);

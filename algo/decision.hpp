@@ -50,6 +50,7 @@ enum class RejectReason : std::uint8_t {
   kExtraArea,    // the scan has material where the template has none (a template hole covered)
   kUncovered,    // too much of the template unseen, all places together
   kOutliers,     // too much of the scan off the template, all places together
+  kHolePattern,  // holes of one surface where the other is solid (a perforation field shifted or mirrored)
   kSize,         // outer size (width or height) off the template's by more than its own scans vary (5 mm taller)
   kAmbiguous,    // passed, but another candidate passed as well without a clear margin
   kNotVerified,  // ranked too low: the verification budget or the candidate limit ended first
@@ -64,6 +65,7 @@ enum class RejectReason : std::uint8_t {
     case RejectReason::kExtraArea: return "extra_area";
     case RejectReason::kUncovered: return "uncovered";
     case RejectReason::kOutliers: return "outliers";
+    case RejectReason::kHolePattern: return "hole_pattern";
     case RejectReason::kSize: return "size";
     case RejectReason::kAmbiguous: return "ambiguous";
     case RejectReason::kNotVerified: return "not_verified";
@@ -87,6 +89,7 @@ struct CandidateOutcome {
   double coverage = std::numeric_limits<double>::quiet_NaN();     // share of its template the scan covers
   double outliers = std::numeric_limits<double>::quiet_NaN();     // share of the scan its template does not explain
   double size_dev_m = std::numeric_limits<double>::quiet_NaN();   // outer size off its template's (TemplateThresholds)
+  double hole_pattern_m2 = std::numeric_limits<double>::quiet_NaN();  // MatchReport::hole_pattern_m2
   double ms = 0.0;
 };
 

@@ -245,6 +245,8 @@ void read_cascade_section(formats::YamlSection s, Config& cfg) {
   s.number("area_floor_m2", cfg.cascade.area_floor_m2, 0.0, 1.0, "m^2");
   s.number("share_factor", cfg.cascade.share_factor, 1.0, 100.0, "");
   s.number("share_floor", cfg.cascade.share_floor, 0.0, 1.0, "");
+  s.number("hole_pattern_floor_m2", cfg.cascade.hole_pattern_floor_m2, 0.0, 1.0, "m^2");
+  s.number("hole_match_radius_m", cfg.cascade.hole_match_radius_m, 0.0, 0.05, "m");
   s.number("weak_evidence_weight", cfg.cascade.weak_evidence_weight, 0.0, 1.0, "");
   s.number("band_elongation", cfg.cascade.band_elongation, 1.0, 1000.0, "");
   s.number("band_contact_max", cfg.cascade.band_contact_max, 0.0, 1.0, "");

@@ -153,9 +153,10 @@ LoadedTemplates open_templates(const Config& config, const ModelDb& db) {
     algo::TemplateModel model;
     model.class_index = static_cast<int>(c);
     model.part_id = p.id;
-    model.thresholds = {p.thresholds.max_error,       p.thresholds.max_missing_area_m2, p.thresholds.max_extra_area_m2,
-                        p.thresholds.max_uncovered,   p.thresholds.max_outliers,        p.thresholds.size_centre_x_m,
-                        p.thresholds.size_centre_y_m, p.thresholds.max_size_dev_m};
+    model.thresholds = {
+        p.thresholds.max_error,       p.thresholds.max_missing_area_m2, p.thresholds.max_extra_area_m2,
+        p.thresholds.max_uncovered,   p.thresholds.max_outliers,        p.thresholds.max_hole_pattern_m2,
+        p.thresholds.size_centre_x_m, p.thresholds.size_centre_y_m,     p.thresholds.max_size_dev_m};
     auto file = formats::TemplateFile::open(db.path_of(p.template_file), grid);
     if (!file) {
       out.problems.push_back("part '" + p.name + "' disabled: " + file.error().message);

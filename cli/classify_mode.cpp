@@ -100,7 +100,7 @@ std::string decision_json(const std::string& scan, const algo::Decision& d, std:
       << ", \"pm_error\": " << json_number(c.pm_error) << ", \"missing_mm2\": " << json_number(c.missing_area_m2 * 1e6)
       << ", \"extra_mm2\": " << json_number(c.extra_area_m2 * 1e6) << ", \"coverage\": " << json_number(c.coverage)
       << ", \"outliers\": " << json_number(c.outliers) << ", \"size_dev_mm\": " << json_number(c.size_dev_m * 1e3)
-      << ", \"ms\": " << json_number(c.ms) << "}";
+      << ", \"hole_pattern_mm2\": " << json_number(c.hole_pattern_m2 * 1e6) << ", \"ms\": " << json_number(c.ms) << "}";
   }
   o << "]}";
   return o.str();
@@ -120,7 +120,8 @@ std::string unknown_reason_text(const algo::Decision& d, const ClassNames& names
                c.rejected_by == algo::RejectReason::kOutliers) {
       std::snprintf(buf, sizeof buf, "; %s (p %.2f): %s %.3g > %.3g", names(c.class_index).c_str(), c.probability,
                     std::string(algo::to_string(c.rejected_by)).c_str(), c.value, c.limit);
-    } else if (c.rejected_by == algo::RejectReason::kMissingArea || c.rejected_by == algo::RejectReason::kExtraArea) {
+    } else if (c.rejected_by == algo::RejectReason::kMissingArea || c.rejected_by == algo::RejectReason::kExtraArea ||
+               c.rejected_by == algo::RejectReason::kHolePattern) {
       std::snprintf(buf, sizeof buf, "; %s (p %.2f): %s %.0f > %.0f mm2", names(c.class_index).c_str(), c.probability,
                     std::string(algo::to_string(c.rejected_by)).c_str(), c.value * 1e6, c.limit * 1e6);
     } else {

@@ -58,6 +58,8 @@ void print_part(const app::ModelDb& db, const formats::PartEntry& p, bool detail
         "  accepts      PM error <= %.3g, missing <= %.0f mm2 (%.2f %% in all), extra <= %.0f mm2 (%.2f %% in all)\n",
         p.thresholds.max_error, p.thresholds.max_missing_area_m2 * 1e6, p.thresholds.max_uncovered * 100.0,
         p.thresholds.max_extra_area_m2 * 1e6, p.thresholds.max_outliers * 100.0);
+    std::printf("  hole pattern <= %.0f mm2 of holes where the other surface is solid\n",
+                p.thresholds.max_hole_pattern_m2 * 1e6);
     std::printf("  size         width and height within %.1f mm of its own scans'\n",
                 p.thresholds.max_size_dev_m * 1e3);
   }

@@ -391,7 +391,8 @@ void learn_part_thresholds(const formats::Manifest& m, const app::Config& config
     const algo::TemplateThresholds& t = learnt.thresholds;
     learnt_parts.template_thresholds.push_back(t);
     learnt_parts.thresholds.push_back({true, t.max_error, t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered,
-                                       t.max_outliers, t.size_centre_x_m, t.size_centre_y_m, t.max_size_dev_m});
+                                       t.max_outliers, t.max_hole_pattern_m2, t.size_centre_x_m, t.size_centre_y_m,
+                                       t.max_size_dev_m});
     const formats::PartEntry& part = m.parts[c];
     for (const int i : learnt.flagged) {
       learnt_parts.flagged[c].push_back(part.scans[static_cast<std::size_t>(i)].file);

@@ -48,6 +48,7 @@ std::string manifest_text(const Manifest& m) {
       << ", max_extra_area_m2: " << number(p.thresholds.max_extra_area_m2)
       << ", max_uncovered: " << number(p.thresholds.max_uncovered)
       << ", max_outliers: " << number(p.thresholds.max_outliers)
+      << ", max_hole_pattern_m2: " << number(p.thresholds.max_hole_pattern_m2)
       << ", size_centre_x_m: " << number(p.thresholds.size_centre_x_m)
       << ", size_centre_y_m: " << number(p.thresholds.size_centre_y_m)
       << ", max_size_dev_m: " << number(p.thresholds.max_size_dev_m) << "}\n";
@@ -152,6 +153,7 @@ constexpr ThresholdField kThresholdFields[] = {
     {"max_extra_area_m2", &PartThresholds::max_extra_area_m2, 0.0, 100.0, "m2"},
     {"max_uncovered", &PartThresholds::max_uncovered, 0.0, 1.0, ""},
     {"max_outliers", &PartThresholds::max_outliers, 0.0, 1.0, ""},
+    {"max_hole_pattern_m2", &PartThresholds::max_hole_pattern_m2, 0.0, 100.0, "m2"},
     {"size_centre_x_m", &PartThresholds::size_centre_x_m, -1.0, 1.0, "m"},
     {"size_centre_y_m", &PartThresholds::size_centre_y_m, -1.0, 1.0, "m"},
     {"max_size_dev_m", &PartThresholds::max_size_dev_m, 0.0, 1.0, "m"},

@@ -22,6 +22,7 @@ struct PartThresholds {
   double max_extra_area_m2 = 0.0;    // largest scan region where the template has nothing
   double max_uncovered = 0.0;        // share of the template absent from a scan, all regions together
   double max_outliers = 0.0;         // share of a scan where the template has nothing
+  double max_hole_pattern_m2 = 0.0;  // holes of one surface where the other is solid (algo::MatchReport)
   double size_centre_x_m = 0.0;      // outer width / height of a scan less the template's, as its own scans show
   double size_centre_y_m = 0.0;
   double max_size_dev_m = 0.0;  // ... and the largest deviation from those accepted

@@ -952,6 +952,96 @@ SCENARIO("A part that passes only with lost data brings every candidate to verif
   }
 }
 
+namespace {
+
+// A 450 x 650 mm plate with a 34 mm hole and a 6 x 8 field of 11 mm holes (pitch 21 x 33 mm) centred at x_mm: the
+// random catalogue's rnd062, whose mirrored twin rnd268 has the field at -x_mm, two pitches over (issue 11).
+sim::PartSpec perforated_plate(double field_x_mm) {
+  sim::PartSpec p;
+  p.name = "field";
+  p.width_mm = 450;
+  p.height_mm = 650;
+  const sim::FeatureSpec field{.kind = sim::FeatureKind::kHoleArray,
+                               .x_mm = field_x_mm,
+                               .y_mm = 120,
+                               .diameter_mm = 11,
+                               .count_x = 6,
+                               .count_y = 8,
+                               .pitch_x_mm = 21,
+                               .pitch_y_mm = 33};
+  const sim::FeatureSpec hole{.kind = sim::FeatureKind::kHole, .y_mm = -150, .diameter_mm = 34};
+  p.features = {field, hole};
+  REQUIRE(sim::validate_part(p).empty());
+  return p;
+}
+
+}  // namespace
+
+SCENARIO("The hole pattern sees a field of small holes two pitches over, which the window cannot",
+         "[cascade][two-way]") {
+  GIVEN("a perforated plate's template with thresholds learnt from its own scans at five other poses") {
+    const sim::PartSpec plate = perforated_plate(21.0);
+    const sim::PartSpec mirrored = perforated_plate(-21.0);
+    Cascade cascade(CascadeParams{}, pm_params(), test_grid());
+    static const std::unique_ptr<Template> t = teach_from("field", kTaughtPose, sample_part(plate, kTaughtPose, 61));
+    TemplateModel m = model_of(*t, 0, 1);
+    std::vector<MatchReport> own;
+    for (std::size_t i = 0; i < other_poses().size(); ++i) {
+      own.push_back(cascade.evaluate(m, sample_part(plate, other_poses()[i], 620 + i)));
+    }
+    m.thresholds = algo::learn_thresholds(own, cascade.params());
+    double own_max = 0.0;
+    for (const MatchReport& r : own) own_max = std::max(own_max, r.hole_pattern_m2);
+    INFO("own-class hole pattern up to " << own_max * 1e6 << " mm2, limit " << m.thresholds.max_hole_pattern_m2 * 1e6);
+    // One 11 mm hole covers ~20 cells of 2.2 mm; its empty core, 6-12.
+    constexpr double kOneHoleM2 = 6 * 0.0022 * 0.0022;
+    CHECK(own_max < kOneHoleM2);
+    WHEN("the scan is of the twin whose field lies 42 mm over (16 holes where the template is solid, 16 covered)") {
+      const MatchReport r = cascade.evaluate(m, sample_part(mirrored, kTestPose, 63));
+      double value = 0.0, limit = 0.0;
+      const algo::RejectReason reason = algo::first_failed_gate(r, m.thresholds, value, limit);
+      THEN("the hole pattern rejects it, and it is the first gate that does") {
+        INFO("hole pattern " << r.hole_pattern_m2 * 1e6 << " mm2; missing " << r.missing_area_m2 * 1e6 << " extra "
+                             << r.extra_area_m2 * 1e6 << " mm2, coverage " << r.coverage);
+        CHECK(reason == algo::RejectReason::kHolePattern);
+        CHECK(r.hole_pattern_m2 > 32 * kOneHoleM2);
+        CHECK(r.evidence_m2 >= r.hole_pattern_m2);
+      }
+    }
+    WHEN("the scan is of the part itself at a test pose, with 3 % dropouts, or a glare band over its field") {
+      const auto clean = sample_part(plate, kTestPose, 64);
+      float cx = 0.0F;
+      for (const ScanPoint& p : clean) cx += p.x;
+      cx /= static_cast<float>(clean.size());
+      const MatchReport r = cascade.evaluate(m, clean);
+      const MatchReport dropped = cascade.evaluate(m, with_dropouts(clean, 0.03, 65));
+      const MatchReport glare = cascade.evaluate(m, with_glare_residue(clean, cx + 0.005, cx + 0.030, 0.03, 66));
+      THEN("it passes, and the hole pattern finds less than a hole in each") {
+        INFO("hole pattern: clean " << r.hole_pattern_m2 * 1e6 << ", dropouts " << dropped.hole_pattern_m2 * 1e6
+                                    << ", glare " << glare.hole_pattern_m2 * 1e6 << " mm2");
+        CHECK(r.passes(m.thresholds));
+        CHECK(dropped.passes(m.thresholds));
+        CHECK(glare.passes(m.thresholds));
+        CHECK(std::max({r.hole_pattern_m2, dropped.hole_pattern_m2, glare.hole_pattern_m2}) < kOneHoleM2);
+      }
+    }
+    WHEN("the check of the part's own scan runs at a pose 1.5 mm and 1 mm off the fitted one, without realignment") {
+      CascadeParams fixed_params;
+      fixed_params.refine_iterations = 0;
+      Cascade fixed(fixed_params, pm_params(), test_grid());
+      const auto scan = sample_part(plate, kTestPose, 67);
+      const MatchReport fitted = fixed.evaluate(m, scan);
+      const PlanarPose off{fitted.pm.pose.x_m + 0.0015, fitted.pm.pose.y_m - 0.001, fitted.pm.pose.theta_rad};
+      const MatchReport r = fixed.two_way_check(m, scan, off);
+      THEN("the same holes still match: a pose error moves every hole by as much") {
+        INFO("hole pattern " << r.hole_pattern_m2 * 1e6 << " mm2 (at the fitted pose " << fitted.hole_pattern_m2 * 1e6
+                             << ")");
+        CHECK(r.hole_pattern_m2 < kOneHoleM2);
+      }
+    }
+  }
+}
+
 SCENARIO("Evidence is judged by its shape: data loss and hangers weigh little, a hole or an edge fully",
          "[cascade][evidence]") {
   GIVEN("the plate_4h template with thresholds learnt from clean own-class scans") {
@@ -1062,7 +1152,8 @@ SCENARIO("Evidence is judged by its shape: data loss and hangers weigh little, a
         INFO("size dx " << r.size_dx_m * 1e3 << " dy " << r.size_dy_m * 1e3 << " mm; centres "
                         << m.thresholds.size_centre_x_m * 1e3 << ", " << m.thresholds.size_centre_y_m * 1e3
                         << "; limit " << m.thresholds.max_size_dev_m * 1e3 << " mm; missing " << r.missing_area_m2 * 1e6
-                        << " extra " << r.extra_area_m2 * 1e6 << " mm2");
+                        << " extra " << r.extra_area_m2 * 1e6 << " mm2; hole pattern " << r.hole_pattern_m2 * 1e6
+                        << " > " << m.thresholds.max_hole_pattern_m2 * 1e6 << " mm2");
         CHECK(reason == algo::RejectReason::kSize);
         CHECK(r.size_dy_m - m.thresholds.size_centre_y_m == Approx(0.005).margin(0.0017));
       }

@@ -102,7 +102,7 @@ std::string manifest_file() {
     e.scans = {{"scans/" + e.name + "/0001.ply", 0x12345678U, "sim seed 1"},
                {"scans/" + e.name + "/0002.ply", 0x9abcdef0U, "/data/import \"b\".ply"}};
     e.template_scan = e.scans[1].file;
-    e.thresholds = {true, 0.01, 0.002, 0.003, 0.1, 0.05, 0.001, -0.002, 0.01};
+    e.thresholds = {true, 0.01, 0.002, 0.003, 0.1, 0.05, 0.0005, 0.001, -0.002, 0.01};
     e.confusable = {p == 0 ? "seed_b" : "seed_a"};
     e.flagged = {e.scans[0].file};
     m.parts.push_back(e);
