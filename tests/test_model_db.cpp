@@ -364,6 +364,33 @@ TEST_CASE(
   CHECK(back->parts.at(0).scans.at(0).source == p.scans.at(0).source);
 }
 
+TEST_CASE("limits learnt before a gate existed read as not learnt, so the database asks for training", "[model_db]") {
+  formats::Manifest m;
+  formats::PartEntry p;
+  p.name = "plate";
+  p.id = 3;
+  p.template_file = "templates/plate.dmap";
+  p.scans.push_back({"scans/plate/00001.ply", 0x1234abcdU, "sim seed 1"});
+  p.thresholds = {true, 0.01, 0.002, 0.003, 0.1, 0.05, 0.0004, 0.001, -0.002, 0.01};
+  m.parts.push_back(p);
+  const std::string text = formats::manifest_text(m);
+  const auto back = formats::parse_manifest("manifest.yaml", text);
+  REQUIRE(back.ok());
+  CHECK(back->parts.at(0).thresholds.learnt);
+  CHECK(back->parts.at(0).thresholds.max_hole_pattern_m2 == Approx(0.0004));
+  // The same limits without the hole pattern's (a database trained before it, issue 11): read, but not learnt.
+  std::string old = text.substr(0, text.find("checksum_crc32"));
+  const std::size_t at = old.find(", max_hole_pattern_m2: ");
+  REQUIRE(at != std::string::npos);
+  old.erase(at, old.find(',', at + 2) - at);
+  char line[40];
+  std::snprintf(line, sizeof line, "checksum_crc32: \"%08x\"\n", base::crc32(old));
+  const auto before = formats::parse_manifest("manifest.yaml", old + line);
+  INFO(old);
+  REQUIRE(before.ok());
+  CHECK_FALSE(before->parts.at(0).thresholds.learnt);
+}
+
 TEST_CASE("a part taught with few scans lowers the folds; too few for any test is refused with the count needed",
           "[cycle]") {
   const SmallCell cell = SmallCell::named("few");  // 3-fold CV configured
