@@ -393,9 +393,10 @@ struct Cascade::DecideState {
   std::span<const TemplateModel> templates_by_class;
   std::span<const ScanPoint> scan;
   Clock::time_point deadline;
-  Clock::time_point budget_end;  // of the verification: verify_budget_ms after decide() began
+  Clock::time_point budget_end;  // of the verification: verify_budget_ms after the decision began
   std::size_t k = 0;             // candidates: the pm_candidates most probable classes
   bool complete = true;          // every candidate the policy asked for was verified
+  Clock::duration longest{};     // the longest candidate check of this decision so far
 
   // Class ci's template, when it has a distance map.
   [[nodiscard]] const TemplateModel* template_of(int ci) const {
@@ -403,7 +404,8 @@ struct Cascade::DecideState {
     const TemplateModel& t = templates_by_class[static_cast<std::size_t>(ci)];
     return t.map.valid() ? &t : nullptr;
   }
-  [[nodiscard]] bool over_budget() const { return d.verified_count > 0 && Clock::now() >= budget_end; }
+  // After the first candidate: no other when the longest check so far would end beyond the budget.
+  [[nodiscard]] bool over_budget() const { return d.verified_count > 0 && Clock::now() + longest >= budget_end; }
 };
 
 // The verified candidates ranked: among the passing ones the least evidence wins.
@@ -416,8 +418,10 @@ struct Cascade::Ranking {
 
 Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
                          std::span<const TemplateModel> templates_by_class,
-                         std::span<const ScanPoint> scan_without_carrier, Clock::time_point deadline) {
+                         std::span<const ScanPoint> scan_without_carrier, Clock::time_point deadline,
+                         Clock::time_point began) {
   const Clock::time_point start = Clock::now();
+  if (began == Clock::time_point{} || began > start) began = start;
   Decision d;
   d.source = DecisionSource::kUnknown;
   auto finish = [&]() -> Decision {
@@ -427,7 +431,7 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
   if (svm_best_first.empty()) return finish();
   d.probability = svm_best_first[0].probability;
 
-  const Clock::time_point budget_end = start + std::chrono::duration_cast<Clock::duration>(
+  const Clock::time_point budget_end = began + std::chrono::duration_cast<Clock::duration>(
                                                    std::chrono::duration<double, std::milli>(params_.verify_budget_ms));
   DecideState s{d,
                 svm_best_first,
@@ -466,7 +470,9 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
 }
 
 bool Cascade::verify(DecideState& s, std::size_t j) {
+  const Clock::time_point start = Clock::now();
   if (!evaluate_candidate(s.templates_by_class, s.scan, s.deadline, candidates_[j])) return false;
+  s.longest = std::max(s.longest, Clock::now() - start);
   ++s.d.verified_count;
   s.d.pm_ms += candidates_[j].ms;
   return true;

@@ -304,8 +304,8 @@ class ModelRecogniser final : public runtime::Recogniser {
         if (probabilities.size() > 1) d.second_class_index = probabilities[1].class_index;
       }
     } else {
-      d = cascade_.decide(probabilities, models_.templates.models, preparer_.part_points(), deadline);
-      if (d.class_index < 0 && r.edge_pieces > 0 && Clock::now() < deadline) d = second_look(points, d, deadline);
+      d = cascade_.decide(probabilities, models_.templates.models, preparer_.part_points(), deadline, t0);
+      if (d.class_index < 0 && r.edge_pieces > 0 && Clock::now() < deadline) d = second_look(points, d, deadline, t0);
     }
     d.features_ms = std::chrono::duration<double, std::milli>(t1 - t0).count();
     d.svm_ms = svm_ms;
@@ -323,12 +323,14 @@ class ModelRecogniser final : public runtime::Recogniser {
   // part's end cuts off a strip that looks just like that (issue 10), so the scan is decided once more with the
   // piece kept; its answer counts only when a candidate passes. A neighbour's part kept adds material no template
   // has (the two-way check rejects it), so this never turns a neighbour into an id. Allocation-free like the first.
+  // It shares the first look's verification budget (`began`): at least its first candidate is verified.
   algo::Decision second_look(std::span<const algo::ScanPoint> points, const algo::Decision& first,
-                             std::chrono::steady_clock::time_point deadline) {
+                             std::chrono::steady_clock::time_point deadline,
+                             std::chrono::steady_clock::time_point began) {
     if (preparer_.prepare(points, true).status != PrepareStatus::kOk) return first;
     const std::span<const algo::ClassProbability> probabilities = models_.svm.predict(preparer_.features());
     const algo::Decision d =
-        cascade_.decide(probabilities, models_.templates.models, preparer_.part_points(), deadline);
+        cascade_.decide(probabilities, models_.templates.models, preparer_.part_points(), deadline, began);
     return d.class_index >= 0 ? d : first;
   }
 

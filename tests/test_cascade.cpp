@@ -780,6 +780,19 @@ SCENARIO("The cascade decides by the thesis 6.4.4 table and verifies every accep
         CHECK(d.candidates[1].rejected_by == algo::RejectReason::kNotVerified);
       }
     }
+    WHEN("the budget is generous but was spent before decide() (it counts from when the decision began)") {
+      const ClassProbability svm[] = {{1, 0.50}, {0, 0.45}, {2, 0.03}, {3, 0.02}};
+      const Clock::time_point began =
+          Clock::now() - std::chrono::milliseconds(static_cast<long>(cat.cascade().params().verify_budget_ms) + 1);
+      const Decision d = cat.cascade().decide(svm, cat.models(), scan, far_deadline(), began);
+      const Decision fresh = cat.cascade().decide(svm, cat.models(), scan, far_deadline());
+      THEN("only the first candidate is verified and the scan is unknown; begun now, the same call finds the part") {
+        CHECK(d.verified_count == 1);
+        CHECK(d.source == DecisionSource::kUnknown);
+        CHECK(d.candidates[1].rejected_by == algo::RejectReason::kNotVerified);
+        CHECK(fresh.class_index == 0);
+      }
+    }
     WHEN("the deadline has already passed") {
       const ClassProbability svm[] = {{0, 0.90}, {2, 0.05}, {1, 0.03}, {3, 0.02}};
       const Decision d = cat.cascade().decide(svm, cat.models(), scan, Clock::now() - std::chrono::milliseconds(1));
