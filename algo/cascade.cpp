@@ -1508,11 +1508,13 @@ Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, b
       std::size_t lost = 0;      // missing cells mark_lost_data found in a region of lost data
       std::size_t shadow = 0;    // extra cells covered_hole_cells found in the template's laser shadow
       std::size_t conflict = 0;  // cells both surfaces cover, at depths that disagree
+      std::size_t stepped = 0;   // cells within the window of a template depth step (kStep): a relief wall's shadow
       while (top > 0) {
         const std::int32_t c = stack_[--top];
         blob_cells_[count++] = c;
         const auto ci = static_cast<std::size_t>(c);
         if ((flags_[ci] & kLost) != 0) ++lost;
+        if ((flags_[ci] & kStep) != 0) ++stepped;
         if ((flags_[ci] & kShadow) != 0) ++shadow;
         if (extra ? t_lo_[ci] <= t_hi_[ci] : s_lo_[ci] <= s_hi_[ci]) ++conflict;
         const int cx = c % w;
@@ -1564,7 +1566,9 @@ Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, b
       }
       out.largest_cells = std::max(out.largest_cells, weight * area);
       out.total_cells += weight * area;
-      out.weak_cells += (1.0 - weight) * area;
+      // Lost data that may hide a twin's feature: not the strips beside the template's own relief walls, whose
+      // laser shadow every ribbed part's scan shows somewhere (it brought every candidate to verification).
+      out.weak_cells += (1.0 - weight) * static_cast<double>(count - stepped);
     }
   }
   return out;

@@ -202,7 +202,9 @@ struct MatchReport {
   // Weighted evidence against the template: the largest weighted missing plus extra blob, plus the hole pattern.
   double evidence_m2 = 0.0;
   // Template area the scan lacks that counted as lost data (glare, a dropout band): where it lies, a feature that
-  // tells this part from a twin may be hidden (CascadeParams::verify_all_lost_m2).
+  // tells this part from a twin may be hidden (CascadeParams::verify_all_lost_m2). Cells within the check's window
+  // of a template depth step of kShadowStepM (a relief wall, whose foot the laser's shadow hides in some poses) are
+  // left out: every ribbed part's scan has such strips.
   double lost_area_m2 = 0.0;
   // The two-way check's part of the thresholds. Written so that NaN fails.
   [[nodiscard]] bool check_passes(const TemplateThresholds& t) const {
@@ -314,7 +316,7 @@ class Cascade {
   struct BlobEvidence {
     double largest_cells = 0.0;  // weighted area of the heaviest blob
     double total_cells = 0.0;    // weighted area of all blobs
-    double weak_cells = 0.0;     // area the shape rules weighed down (lost data, thin bands)
+    double weak_cells = 0.0;     // area the shape rules weighed down (lost data, thin bands), beside no relief wall
   };
 
   // decide()'s steps (cascade.cpp): verification in rank order, then of what could also pass (false when the deadline
