@@ -1376,6 +1376,24 @@ double Cascade::hole_pattern_cells(const Roi& roi) {
   return total;
 }
 
+void Cascade::mark_empty_cells(const Roi& roi, bool scan_side) {
+  // Empty: no point, and not a gap of one profile between two occupied cells (a missing profile, a dropout run
+  // along a profile: one cell wide in x). Into mask_b_ (free here: covered_hole_cells read it last).
+  const auto w = static_cast<std::size_t>(width_);
+  auto occupied = [&](std::size_t i) { return scan_side ? s_lo_[i] <= s_hi_[i] : t_lo_[i] <= t_hi_[i]; };
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    const std::size_t row = static_cast<std::size_t>(y) * w;
+    bool left = false;
+    bool mid = occupied(row + static_cast<std::size_t>(roi.x0));
+    for (int x = roi.x0; x < roi.x1; ++x) {
+      const bool right = x + 1 < roi.x1 && occupied(row + static_cast<std::size_t>(x) + 1);
+      mask_b_[row + static_cast<std::size_t>(x)] = !mid && !(left && right) ? 1 : 0;
+      left = mid;
+      mid = right;
+    }
+  }
+}
+
 double Cascade::unmatched_hole_cells(const Roi& roi, bool scan_holes) {
   // A hole of one surface is a 4-connected piece of its empty cells that the box's edge does not reach. Empty: no
   // point in the cell, and not a gap of one cell between two occupied ones along x (a missing profile, a dropout run
@@ -1396,19 +1414,7 @@ double Cascade::unmatched_hole_cells(const Roi& roi, bool scan_holes) {
   const int w = width_;
   auto own_occupied = [&](std::size_t i) { return scan_holes ? s_lo_[i] <= s_hi_[i] : t_lo_[i] <= t_hi_[i]; };
   auto at = [&](int x, int y) { return static_cast<std::size_t>(y) * static_cast<std::size_t>(w) + x; };
-  // Empty: no point, and not a gap of one profile between two occupied cells (a missing profile, a dropout run
-  // along a profile: one cell wide in x). Once per side into mask_b_ (free here: covered_hole_cells read it last).
-  for (int y = roi.y0; y < roi.y1; ++y) {
-    const std::size_t row = at(0, y);
-    bool left = false;
-    bool mid = own_occupied(row + static_cast<std::size_t>(roi.x0));
-    for (int x = roi.x0; x < roi.x1; ++x) {
-      const bool right = x + 1 < roi.x1 && own_occupied(row + static_cast<std::size_t>(x) + 1);
-      mask_b_[row + static_cast<std::size_t>(x)] = !mid && !(left && right) ? 1 : 0;
-      left = mid;
-      mid = right;
-    }
-  }
+  mark_empty_cells(roi, scan_holes);
   auto empty = [&](int x, int y) { return mask_b_[at(x, y)] != 0; };
   auto other_solid = [&](std::size_t i) {
     return scan_holes ? t_lo_[i] <= t_hi_[i] : (s_lo_[i] <= s_hi_[i] && (flags_[i] & kExtra) == 0);

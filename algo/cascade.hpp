@@ -385,6 +385,8 @@ class Cascade {
   // hole_pattern_cells()'s half for one side: the scan's holes (mask_s_ empty, not reached from the box's edge) or
   // the template's (mask_a_ and mask_b_ empty).
   [[nodiscard]] double unmatched_hole_cells(const Roi& roi, bool scan_holes);
+  // unmatched_hole_cells()'s empty cells of one side into mask_b_.
+  void mark_empty_cells(const Roi& roi, bool scan_side);
   // Flood-fills the blobs of `bit` (kMissing, or kExtra with `extra`) and weighs each by its shape
   // (CascadeParams::weak_evidence_weight).
   [[nodiscard]] BlobEvidence blob_evidence(const Roi& roi, std::uint8_t bit, bool extra);
