@@ -396,7 +396,7 @@ struct Cascade::DecideState {
   Clock::time_point budget_end;  // of the verification: verify_budget_ms after the decision began
   std::size_t k = 0;             // candidates: the pm_candidates most probable classes
   bool complete = true;          // every candidate the policy asked for was verified
-  Clock::duration longest{};     // the longest candidate check of this decision so far
+  double longest_ms = 0.0;       // the longest candidate check of this decision so far (Candidate::ms)
 
   // Class ci's template, when it has a distance map.
   [[nodiscard]] const TemplateModel* template_of(int ci) const {
@@ -405,7 +405,11 @@ struct Cascade::DecideState {
     return t.map.valid() ? &t : nullptr;
   }
   // After the first candidate: no other when the longest check so far would end beyond the budget.
-  [[nodiscard]] bool over_budget() const { return d.verified_count > 0 && Clock::now() + longest >= budget_end; }
+  [[nodiscard]] bool over_budget() const {
+    return d.verified_count > 0 && Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                                      std::chrono::duration<double, std::milli>(longest_ms)) >=
+                                       budget_end;
+  }
 };
 
 // The verified candidates ranked: among the passing ones the least evidence wins.
@@ -470,9 +474,8 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
 }
 
 bool Cascade::verify(DecideState& s, std::size_t j) {
-  const Clock::time_point start = Clock::now();
   if (!evaluate_candidate(s.templates_by_class, s.scan, s.deadline, candidates_[j])) return false;
-  s.longest = std::max(s.longest, Clock::now() - start);
+  s.longest_ms = std::max(s.longest_ms, candidates_[j].ms);
   ++s.d.verified_count;
   s.d.pm_ms += candidates_[j].ms;
   return true;
@@ -1354,25 +1357,27 @@ double Cascade::covered_hole_cells(const Roi& roi) {
       }
     }
   }
-  for (int y = roi.y0; y < roi.y1; ++y) {  // blob_evidence needs kVisited clear
-    std::uint8_t* row = flags_.data() + static_cast<std::size_t>(y) * static_cast<std::size_t>(w);
-    for (int x = roi.x0; x < roi.x1; ++x) row[x] &= static_cast<std::uint8_t>(~kVisited);
-  }
+  clear_flag(roi, kVisited);  // blob_evidence needs it clear
   return largest;
+}
+
+void Cascade::clear_flag(const Roi& roi, std::uint8_t bit) {
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    std::uint8_t* row = flags_.data() + static_cast<std::size_t>(y) * static_cast<std::size_t>(width_);
+    for (int x = roi.x0; x < roi.x1; ++x) row[x] &= static_cast<std::uint8_t>(~bit);
+  }
+}
+
+bool Cascade::occupied(std::size_t i, bool scan_side) const {
+  return scan_side ? s_lo_[i] <= s_hi_[i] : t_lo_[i] <= t_hi_[i];
 }
 
 double Cascade::hole_pattern_cells(const Roi& roi) {
   // Each side's flood marks its cells kVisited; the other side's (and blob_evidence) need them clear.
-  auto clear_visited = [&] {
-    for (int y = roi.y0; y < roi.y1; ++y) {
-      std::uint8_t* row = flags_.data() + static_cast<std::size_t>(y) * static_cast<std::size_t>(width_);
-      for (int x = roi.x0; x < roi.x1; ++x) row[x] &= static_cast<std::uint8_t>(~kVisited);
-    }
-  };
   double total = unmatched_hole_cells(roi, true);
-  clear_visited();
+  clear_flag(roi, kVisited);
   total += unmatched_hole_cells(roi, false);
-  clear_visited();
+  clear_flag(roi, kVisited);
   return total;
 }
 
@@ -1380,13 +1385,12 @@ void Cascade::mark_empty_cells(const Roi& roi, bool scan_side) {
   // Empty: no point, and not a gap of one profile between two occupied cells (a missing profile, a dropout run
   // along a profile: one cell wide in x). Into mask_b_ (free here: covered_hole_cells read it last).
   const auto w = static_cast<std::size_t>(width_);
-  auto occupied = [&](std::size_t i) { return scan_side ? s_lo_[i] <= s_hi_[i] : t_lo_[i] <= t_hi_[i]; };
   for (int y = roi.y0; y < roi.y1; ++y) {
     const std::size_t row = static_cast<std::size_t>(y) * w;
     bool left = false;
-    bool mid = occupied(row + static_cast<std::size_t>(roi.x0));
+    bool mid = occupied(row + static_cast<std::size_t>(roi.x0), scan_side);
     for (int x = roi.x0; x < roi.x1; ++x) {
-      const bool right = x + 1 < roi.x1 && occupied(row + static_cast<std::size_t>(x) + 1);
+      const bool right = x + 1 < roi.x1 && occupied(row + static_cast<std::size_t>(x) + 1, scan_side);
       mask_b_[row + static_cast<std::size_t>(x)] = !mid && !(left && right) ? 1 : 0;
       left = mid;
       mid = right;
@@ -1412,12 +1416,11 @@ double Cascade::unmatched_hole_cells(const Roi& roi, bool scan_holes) {
   constexpr double kMinSolidShare = 0.75;
   constexpr double kRingInner = 1.0, kRingOuter = 2.5;  // cells beyond the hole's equivalent radius
   const int w = width_;
-  auto own_occupied = [&](std::size_t i) { return scan_holes ? s_lo_[i] <= s_hi_[i] : t_lo_[i] <= t_hi_[i]; };
   auto at = [&](int x, int y) { return static_cast<std::size_t>(y) * static_cast<std::size_t>(w) + x; };
   mark_empty_cells(roi, scan_holes);
   auto empty = [&](int x, int y) { return mask_b_[at(x, y)] != 0; };
   auto other_solid = [&](std::size_t i) {
-    return scan_holes ? t_lo_[i] <= t_hi_[i] : (s_lo_[i] <= s_hi_[i] && (flags_[i] & kExtra) == 0);
+    return occupied(i, !scan_holes) && (scan_holes || (flags_[i] & kExtra) == 0);
   };
   const double match_cells = params_.hole_match_radius_m / resolution_m_;
   double unmatched = 0.0;
@@ -1475,7 +1478,7 @@ double Cascade::unmatched_hole_cells(const Roi& roi, bool scan_holes) {
           const std::size_t i = at(xx, yy);
           if (d >= r0 && d <= r1) {
             ++ring;
-            ring_occupied += own_occupied(i) ? 1 : 0;
+            ring_occupied += occupied(i, scan_holes) ? 1 : 0;
           }
           if (d <= match_cells) {
             ++disc;

@@ -382,11 +382,14 @@ class Cascade {
   [[nodiscard]] double covered_hole_cells(const Roi& roi);
   // MatchReport::hole_pattern_m2 in cells (after mark_lost_data; see CascadeParams::hole_pattern_floor_m2).
   [[nodiscard]] double hole_pattern_cells(const Roi& roi);
-  // hole_pattern_cells()'s half for one side: the scan's holes (mask_s_ empty, not reached from the box's edge) or
-  // the template's (mask_a_ and mask_b_ empty).
+  // hole_pattern_cells()'s half for one side: the unmatched holes (cells) of the scan, or of the template.
   [[nodiscard]] double unmatched_hole_cells(const Roi& roi, bool scan_holes);
   // unmatched_hole_cells()'s empty cells of one side into mask_b_.
   void mark_empty_cells(const Roi& roi, bool scan_side);
+  // Whether raster cell i holds a point of the scan (scan_side) or of the template.
+  [[nodiscard]] bool occupied(std::size_t i, bool scan_side) const;
+  // Clears `bit` in flags_ over the box.
+  void clear_flag(const Roi& roi, std::uint8_t bit);
   // Flood-fills the blobs of `bit` (kMissing, or kExtra with `extra`) and weighs each by its shape
   // (CascadeParams::weak_evidence_weight).
   [[nodiscard]] BlobEvidence blob_evidence(const Roi& roi, std::uint8_t bit, bool extra);
