@@ -143,6 +143,35 @@ algo::CascadeParams cascade_params(const Config& config) {
   return config.cascade;
 }
 
+algo::TemplateThresholds template_thresholds(const formats::PartThresholds& p) {
+  algo::TemplateThresholds t;
+  t.max_error = p.max_error;
+  t.max_missing_area_m2 = p.max_missing_area_m2;
+  t.max_extra_area_m2 = p.max_extra_area_m2;
+  t.max_uncovered = p.max_uncovered;
+  t.max_outliers = p.max_outliers;
+  t.max_hole_pattern_m2 = p.max_hole_pattern_m2;
+  t.size_centre_x_m = p.size_centre_x_m;
+  t.size_centre_y_m = p.size_centre_y_m;
+  t.max_size_dev_m = p.max_size_dev_m;
+  return t;
+}
+
+formats::PartThresholds part_thresholds(const algo::TemplateThresholds& t, bool learnt) {
+  formats::PartThresholds p;
+  p.learnt = learnt;
+  p.max_error = t.max_error;
+  p.max_missing_area_m2 = t.max_missing_area_m2;
+  p.max_extra_area_m2 = t.max_extra_area_m2;
+  p.max_uncovered = t.max_uncovered;
+  p.max_outliers = t.max_outliers;
+  p.max_hole_pattern_m2 = t.max_hole_pattern_m2;
+  p.size_centre_x_m = t.size_centre_x_m;
+  p.size_centre_y_m = t.size_centre_y_m;
+  p.max_size_dev_m = t.max_size_dev_m;
+  return p;
+}
+
 LoadedTemplates open_templates(const Config& config, const ModelDb& db) {
   LoadedTemplates out;
   const algo::GridSpec grid = grid_spec(config);
@@ -153,10 +182,7 @@ LoadedTemplates open_templates(const Config& config, const ModelDb& db) {
     algo::TemplateModel model;
     model.class_index = static_cast<int>(c);
     model.part_id = p.id;
-    model.thresholds = {
-        p.thresholds.max_error,       p.thresholds.max_missing_area_m2, p.thresholds.max_extra_area_m2,
-        p.thresholds.max_uncovered,   p.thresholds.max_outliers,        p.thresholds.max_hole_pattern_m2,
-        p.thresholds.size_centre_x_m, p.thresholds.size_centre_y_m,     p.thresholds.max_size_dev_m};
+    model.thresholds = template_thresholds(p.thresholds);
     auto file = formats::TemplateFile::open(db.path_of(p.template_file), grid);
     if (!file) {
       out.problems.push_back("part '" + p.name + "' disabled: " + file.error().message);

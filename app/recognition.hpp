@@ -95,6 +95,10 @@ class ScanPreparer {
 // Parameters of the recognition stages from the configuration.
 [[nodiscard]] algo::PerfectMatchParams perfect_match_params(const Config& config);
 [[nodiscard]] algo::CascadeParams cascade_params(const Config& config);
+// A part's learnt limits between the manifest (formats::PartThresholds) and the cascade (algo::TemplateThresholds),
+// field by field: the one place that maps them.
+[[nodiscard]] algo::TemplateThresholds template_thresholds(const formats::PartThresholds& p);
+[[nodiscard]] formats::PartThresholds part_thresholds(const algo::TemplateThresholds& t, bool learnt);
 
 // The memory-mapped templates of every part, by class index (manifest order). A template that is missing or refused
 // leaves an empty map in `models` (its class can never be accepted) and a line in `problems`.

@@ -390,9 +390,7 @@ void learn_part_thresholds(const formats::Manifest& m, const app::Config& config
         algo::learn_thresholds(taught.own_matches[c], others.reports[c], app::cascade_params(config));
     const algo::TemplateThresholds& t = learnt.thresholds;
     learnt_parts.template_thresholds.push_back(t);
-    learnt_parts.thresholds.push_back({true, t.max_error, t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered,
-                                       t.max_outliers, t.max_hole_pattern_m2, t.size_centre_x_m, t.size_centre_y_m,
-                                       t.max_size_dev_m});
+    learnt_parts.thresholds.push_back(app::part_thresholds(t, true));
     const formats::PartEntry& part = m.parts[c];
     for (const int i : learnt.flagged) {
       learnt_parts.flagged[c].push_back(part.scans[static_cast<std::size_t>(i)].file);

@@ -391,6 +391,33 @@ TEST_CASE("limits learnt before a gate existed read as not learnt, so the databa
   CHECK_FALSE(before->parts.at(0).thresholds.learnt);
 }
 
+TEST_CASE("a part's limits go from the manifest to the cascade and back field by field", "[model_db]") {
+  // Every field a different value, so that two swapped fields show.
+  const formats::PartThresholds p{true, 1e-3, 2e-4, 3e-4, 4e-3, 5e-3, 6e-4, 7e-3, -8e-3, 9e-3};
+  const algo::TemplateThresholds t = app::template_thresholds(p);
+  CHECK(t.max_error == p.max_error);
+  CHECK(t.max_missing_area_m2 == p.max_missing_area_m2);
+  CHECK(t.max_extra_area_m2 == p.max_extra_area_m2);
+  CHECK(t.max_uncovered == p.max_uncovered);
+  CHECK(t.max_outliers == p.max_outliers);
+  CHECK(t.max_hole_pattern_m2 == p.max_hole_pattern_m2);
+  CHECK(t.size_centre_x_m == p.size_centre_x_m);
+  CHECK(t.size_centre_y_m == p.size_centre_y_m);
+  CHECK(t.max_size_dev_m == p.max_size_dev_m);
+  // ... and back: the manifest writes the same limits (every field is in its text).
+  auto text_of = [](const formats::PartThresholds& limits) {
+    formats::Manifest m;
+    formats::PartEntry e;
+    e.name = "plate";
+    e.id = 1;
+    e.template_file = "templates/plate.dmap";
+    e.thresholds = limits;
+    m.parts.push_back(e);
+    return formats::manifest_text(m);
+  };
+  CHECK(text_of(app::part_thresholds(t, true)) == text_of(p));
+}
+
 TEST_CASE("a part taught with few scans lowers the folds; too few for any test is refused with the count needed",
           "[cycle]") {
   const SmallCell cell = SmallCell::named("few");  // 3-fold CV configured
