@@ -51,6 +51,53 @@ PartIsolator::PartIsolator(const GridSpec& grid, const IsolationParams& params)
   closed_.assign(cells, 0);
   opened_.assign(cells, 0);
   scratch_.assign(cells, 0);
+  depth_count_.assign(static_cast<std::size_t>(std::max(grid.nz, 1)), 0);
+}
+
+std::size_t PartIsolator::drop_depth_outliers(ScanBuffer& part) {
+  const int nz = static_cast<int>(depth_count_.size());
+  std::fill(depth_count_.begin(), depth_count_.end(), 0);
+  const auto layer_of = [&](const ScanPoint& p) {  // -1 below the grid, nz above it (NaN: below)
+    const double f = (static_cast<double>(p.z) - grid_.origin_m.z()) * inv_resolution_;
+    if (!(f >= 0.0)) return -1;
+    return f < nz ? static_cast<int>(f) : nz;
+  };
+  std::size_t counted = 0;
+  for (const ScanPoint& p : part.points()) {
+    const int z = layer_of(p);
+    if (z < 0 || z >= nz) continue;
+    ++depth_count_[static_cast<std::size_t>(z)];
+    ++counted;
+  }
+  if (counted == 0) return 0;
+  const auto densest =
+      static_cast<int>(std::max_element(depth_count_.begin(), depth_count_.end()) - depth_count_.begin());
+  const double empty = params_.depth_empty_share * static_cast<double>(counted);
+  const int gap = std::max(1, static_cast<int>(std::ceil(params_.depth_gap_m * inv_resolution_)));
+  // The last populated layer before `gap` empty ones, walking from the densest layer in direction step.
+  const auto reach = [&](int step) {
+    int last = densest;
+    for (int z = densest + step; z >= 0 && z < nz && std::abs(z - last) <= gap; z += step) {
+      if (static_cast<double>(depth_count_[static_cast<std::size_t>(z)]) > empty) last = z;
+    }
+    return last;
+  };
+  const int lo = reach(-1), hi = reach(+1);
+  // Points beyond the grid's depth stay when the part reaches that end (the outside-the-grid check judges them).
+  const int keep_lo = lo == 0 ? -1 : lo, keep_hi = hi == nz - 1 ? nz : hi;
+  bool any = false;
+  for (const ScanPoint& p : part.points()) {
+    const int z = layer_of(p);
+    if (z < keep_lo || z > keep_hi) {
+      any = true;
+      break;
+    }
+  }
+  if (!any) return 0;
+  return part.filter([&](const ScanPoint& p) {
+    const int z = layer_of(p);
+    return z >= keep_lo && z <= keep_hi;
+  });
 }
 
 bool PartIsolator::cell_of(const ScanPoint& p, int& x, int& y) const {
@@ -88,6 +135,8 @@ CellBox PartIsolator::occupied_box(const ScanBuffer& part, bool count) {
 IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, double scanned_x1_m,
                                       bool keep_edge_pieces) {
   IsolationReport report;
+  report.depth_points = drop_depth_outliers(part);
+  report.dropped_points = report.depth_points;
   const int nx = grid_.nx;
   const int ny = grid_.ny;
   const CellBox box = occupied_box(part, true);
@@ -164,7 +213,7 @@ IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, dou
     report.edge_pieces += !keep && large ? 1 : 0;
   }
   if (report.dropped_pieces == 0) return report;
-  report.dropped_points = part.filter([&](const ScanPoint& p) {
+  report.dropped_points += part.filter([&](const ScanPoint& p) {
     std::size_t i = 0;
     if (!cell_of(p, i)) return true;
     const std::int32_t id = label_[i];

@@ -24,13 +24,22 @@ struct IsolationParams {
   // scanned field and is narrower than this: it is cut off where it meets the part (remove_hanger). The shipped
   // chains are 6-10 mm; a part is wider than this wherever it could reach the field's top.
   double hanger_max_width_m = 0.016;
+  // Depth: the part hangs in a plane and its relief (ribs, louvres, flanges seen on their face) fills the depths
+  // between its sheet and its highest point, so a band of depth holding no more than depth_empty_share of the points
+  // and at least depth_gap_m wide separates the part from what lies beyond it: a secondary reflection of the stripe
+  // off bare metal triangulates to a ghost surface 100-600 mm in front of the part, over the part in x-y where the
+  // x-y pieces cannot tell it apart (issue 11: 2 % of a pass's points, every template's Perfect Match error 10-50
+  // times its limit, the pass unknown after all 15 candidates). The cluster grows from the most populated depth.
+  double depth_gap_m = 0.04;
+  double depth_empty_share = 1e-4;
 };
 
 struct IsolationReport {
   int pieces = 0;  // connected pieces found (before dropping)
   int dropped_pieces = 0;
-  int edge_pieces = 0;  // of the dropped: large enough, dropped only for reaching the field's edge
-  std::size_t dropped_points = 0;
+  int edge_pieces = 0;             // of the dropped: large enough, dropped only for reaching the field's edge
+  std::size_t dropped_points = 0;  // of the dropped pieces and beyond the depth gap
+  std::size_t depth_points = 0;    // of them, beyond the depth gap
 };
 
 struct CellBox {
@@ -48,7 +57,8 @@ struct HangerReport {
   int removed_cells = 0;
 };
 
-// Connected pieces of the part points' x-y occupancy on the grid's raster: the largest always stays; another piece
+// First the points beyond a depth gap go (IsolationParams::depth_gap_m). Then connected pieces of the part points' x-y
+// occupancy on the grid's raster: the largest always stays; another piece
 // is dropped when it touches an end of the scanned x range or is tiny. Points outside the grid are left alone (the
 // caller's outside-the-grid check judges them). A glare band that cuts the part in two leaves two large inner pieces:
 // both stay.
@@ -72,6 +82,8 @@ class PartIsolator {
 
  private:
   [[nodiscard]] bool cell_of(const ScanPoint& p, std::size_t& index) const;
+  // Drops the points beyond a depth gap (IsolationParams::depth_gap_m); returns how many.
+  std::size_t drop_depth_outliers(ScanBuffer& part);
   [[nodiscard]] bool cell_of(const ScanPoint& p, int& x, int& y) const;
   // The cell box of the part's points on the grid; with count, occupied_ gets the points per cell.
   CellBox occupied_box(const ScanBuffer& part, bool count);
@@ -86,10 +98,11 @@ class PartIsolator {
   std::vector<std::int32_t> piece_cells_;  // occupied cells per piece
   std::vector<std::uint8_t> piece_border_;
   std::vector<std::uint8_t> piece_keep_;
-  std::vector<std::uint8_t> mask_;     // occupancy (bit 0); remove_hanger: cut off (bit 1)
-  std::vector<std::uint8_t> closed_;   // remove_hanger: the occupancy closed by one cell
-  std::vector<std::uint8_t> opened_;   // remove_hanger: its opening
-  std::vector<std::uint8_t> scratch_;  // remove_hanger: a separable pass's rows
+  std::vector<std::uint8_t> mask_;         // occupancy (bit 0); remove_hanger: cut off (bit 1)
+  std::vector<std::uint8_t> closed_;       // remove_hanger: the occupancy closed by one cell
+  std::vector<std::uint8_t> opened_;       // remove_hanger: its opening
+  std::vector<std::uint8_t> scratch_;      // remove_hanger: a separable pass's rows
+  std::vector<std::int32_t> depth_count_;  // drop_depth_outliers: points per grid depth layer
 };
 
 }  // namespace cellsight::algo
