@@ -453,8 +453,7 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
     report_timeout(s);
     return finish();
   }
-  matcher_.set_scan(scan_without_carrier);
-  outline_valid_ = false;  // taken from this scan when a check first needs it
+  set_scan(scan_without_carrier);
 
   // Phase 1: verify in rank order until one passes. Phase 2: verify what could also pass: the passing class's
   // look-alikes (TemplateModel::confusable, learnt at training) and any candidate nearly as probable (stop_ratio);
@@ -731,8 +730,17 @@ bool Cascade::evaluate_candidate(std::span<const TemplateModel> templates, std::
 
 MatchReport Cascade::evaluate(const TemplateModel& model, std::span<const ScanPoint> scan,
                               const TemplateThresholds* gross_limits) {
+  set_scan(scan);
+  return evaluate_prepared(model, scan, gross_limits);
+}
+
+void Cascade::set_scan(std::span<const ScanPoint> scan) {
   matcher_.set_scan(scan);
-  outline_valid_ = false;
+  outline_valid_ = false;  // taken from this scan when a check first needs it
+}
+
+MatchReport Cascade::evaluate_prepared(const TemplateModel& model, std::span<const ScanPoint> scan,
+                                       const TemplateThresholds* gross_limits) {
   const PerfectMatchResult pm = matcher_.match(model.map, model.centroid_m, matcher_.centroid_start(model.centroid_m));
   // A pass against the provisional limits does not end the check: the learnt ones may be lower, and then decide()
   // would try the outline pose.

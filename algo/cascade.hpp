@@ -291,6 +291,12 @@ class Cascade {
   // that scan too and sees the same figures (issue 11: 10.7 instead of 17.6 min of rival matching at 297 parts).
   [[nodiscard]] MatchReport evaluate(const TemplateModel& model, std::span<const ScanPoint> scan,
                                      const TemplateThresholds* gross_limits = nullptr);
+  // The same for one scan against several templates (training's rival matching): set_scan() once, then
+  // evaluate_prepared() with that same scan per template. Saves the matcher's subsampling (four passes over the scan)
+  // and the scan's outline per template; the reports equal evaluate()'s.
+  void set_scan(std::span<const ScanPoint> scan);
+  [[nodiscard]] MatchReport evaluate_prepared(const TemplateModel& model, std::span<const ScanPoint> scan,
+                                              const TemplateThresholds* gross_limits = nullptr);
 
   // The two-way check alone, from a given pose (it also tries the outline pose; the report's pm is left default).
   // Exposed for tests and diagnostics.

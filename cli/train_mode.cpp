@@ -266,10 +266,12 @@ Expected<CrossMatches> cross_matches(const app::Config& config, const app::Model
           return false;
         }
         reports[i].resize(rivals[i].size());
+        w.cascade.set_scan(w.preparer.part_points());  // once for all of this scan's rivals
         for (std::size_t k = 0; k < rivals[i].size(); ++k) {
           const std::size_t c = rivals[i][k];
-          if (templates.models[c].map.valid())
-            reports[i][k] = w.cascade.evaluate(templates.models[c], w.preparer.part_points(), &own_limits[c]);
+          if (templates.models[c].map.valid()) {
+            reports[i][k] = w.cascade.evaluate_prepared(templates.models[c], w.preparer.part_points(), &own_limits[c]);
+          }
         }
         const std::size_t n = ++done;
         if (n % 200 == 0 || n == jobs.size())

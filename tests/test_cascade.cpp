@@ -1371,6 +1371,12 @@ SCENARIO("A passing class's look-alikes are verified before it is accepted, and 
   }
 }
 
+namespace {
+bool same_or_both_nan(double a, double b) {
+  return (std::isnan(a) && std::isnan(b)) || a == b;
+}
+}  // namespace
+
 TEST_CASE("decide() allocates nothing", "[cascade][alloc]") {
   // Given a cascade and its templates, built at start-up
   Catalogue4& cat = catalogue4();
@@ -1394,6 +1400,42 @@ TEST_CASE("decide() allocates nothing", "[cascade][alloc]") {
   CHECK(a.source == DecisionSource::kPm);
   CHECK(b.source == DecisionSource::kUnknown);
   CHECK(c.source == DecisionSource::kTimeout);
+}
+
+TEST_CASE("One scan prepared once and checked against several templates reports what evaluate() reports", "[cascade]") {
+  // Given the four taught classes and a plate_5h scan
+  Catalogue4& cat = catalogue4();
+  const auto scan = sample_part(part("plate_5h"), kTestPose, 703);
+  std::vector<MatchReport> single;
+  for (std::size_t c = 0; c < cat.models().size(); ++c) {
+    single.push_back(cat.cascade().evaluate(cat.models()[c], scan, &cat.models()[c].thresholds));
+  }
+  // When another scan was checked last, then this one is set once and every template is checked in turn (the outline
+  // kept from the first check that needs it), in reverse order, and the first again
+  (void)cat.cascade().evaluate(cat.models()[1], sample_part(part("ribbed_v4"), kTestPose, 704));
+  cat.cascade().set_scan(scan);
+  std::vector<MatchReport> prepared(cat.models().size());
+  for (std::size_t c = cat.models().size(); c-- > 0;) {
+    prepared[c] = cat.cascade().evaluate_prepared(cat.models()[c], scan, &cat.models()[c].thresholds);
+  }
+  const MatchReport again = cat.cascade().evaluate_prepared(cat.models()[0], scan, &cat.models()[0].thresholds);
+  // Then every figure is the same as scan-by-scan evaluation's
+  for (std::size_t c = 0; c < cat.models().size(); ++c) {
+    INFO("template " << c);
+    CHECK(prepared[c].pm.error == single[c].pm.error);
+    CHECK(prepared[c].pm.pose.x_m == single[c].pm.pose.x_m);
+    CHECK(prepared[c].pm.pose.theta_rad == single[c].pm.pose.theta_rad);
+    CHECK(same_or_both_nan(prepared[c].missing_area_m2, single[c].missing_area_m2));
+    CHECK(same_or_both_nan(prepared[c].extra_area_m2, single[c].extra_area_m2));
+    CHECK(same_or_both_nan(prepared[c].coverage, single[c].coverage));
+    CHECK(same_or_both_nan(prepared[c].hole_pattern_m2, single[c].hole_pattern_m2));
+    CHECK(prepared[c].check_pose.x_m == single[c].check_pose.x_m);
+    CHECK(prepared[c].passes(cat.models()[c].thresholds) == single[c].passes(cat.models()[c].thresholds));
+  }
+  CHECK(again.pm.error == single[0].pm.error);
+  CHECK(same_or_both_nan(again.missing_area_m2, single[0].missing_area_m2));
+  // And the templates were not all alike for this scan (the comparison covers a pass and a failure)
+  CHECK(single[0].pm.error != single[1].pm.error);
 }
 
 SCENARIO(
