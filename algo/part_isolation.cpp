@@ -85,15 +85,6 @@ std::size_t PartIsolator::drop_depth_outliers(ScanBuffer& part) {
   const int lo = reach(-1), hi = reach(+1);
   // Points beyond the grid's depth stay when the part reaches that end (the outside-the-grid check judges them).
   const int keep_lo = lo == 0 ? -1 : lo, keep_hi = hi == nz - 1 ? nz : hi;
-  bool any = false;
-  for (const ScanPoint& p : part.points()) {
-    const int z = layer_of(p);
-    if (z < keep_lo || z > keep_hi) {
-      any = true;
-      break;
-    }
-  }
-  if (!any) return 0;
   return part.filter([&](const ScanPoint& p) {
     const int z = layer_of(p);
     return z >= keep_lo && z <= keep_hi;

@@ -58,10 +58,9 @@ struct HangerReport {
 };
 
 // First the points beyond a depth gap go (IsolationParams::depth_gap_m). Then connected pieces of the part points' x-y
-// occupancy on the grid's raster: the largest always stays; another piece
-// is dropped when it touches an end of the scanned x range or is tiny. Points outside the grid are left alone (the
-// caller's outside-the-grid check judges them). A glare band that cuts the part in two leaves two large inner pieces:
-// both stay.
+// occupancy on the grid's raster: the largest always stays; another piece is dropped when it touches an end of the
+// scanned x range or is tiny. Points outside the grid are left alone (the caller's outside-the-grid check judges them).
+// A glare band that cuts the part in two leaves two large inner pieces: both stay.
 class PartIsolator {
  public:
   PartIsolator(const GridSpec& grid, const IsolationParams& params);  // allocates
@@ -82,9 +81,9 @@ class PartIsolator {
 
  private:
   [[nodiscard]] bool cell_of(const ScanPoint& p, std::size_t& index) const;
+  [[nodiscard]] bool cell_of(const ScanPoint& p, int& x, int& y) const;
   // Drops the points beyond a depth gap (IsolationParams::depth_gap_m); returns how many.
   std::size_t drop_depth_outliers(ScanBuffer& part);
-  [[nodiscard]] bool cell_of(const ScanPoint& p, int& x, int& y) const;
   // The cell box of the part's points on the grid; with count, occupied_ gets the points per cell.
   CellBox occupied_box(const ScanBuffer& part, bool count);
 
