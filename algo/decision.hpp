@@ -41,6 +41,13 @@ struct PlanarPose {
   double theta_rad = 0.0;
 };
 
+// The axes of the full pose (DESIGN.md "Pose"), in the order of Decision::pose_sigma and of the PLC's sigma registers:
+// p_scan = c + R_z(theta) R_y(ry) R_x(rx) (p_template - c) + (x, y, z), c = the template's centroid (x, y and depth),
+// rx the tilt about x, ry the swing about the hook's vertical axis y, theta = rz about the camera axis z. The rotation
+// is applied to the template point x first (rx), then y (ry), then z (theta): yaw-pitch-roll Z-Y-X.
+enum class PoseAxis : std::uint8_t { kX, kY, kZ, kRx, kRy, kRz };
+inline constexpr int kPoseAxes = 6;
+
 // Why a candidate was not accepted (classify --json "rejected_by", eval's reasons, the run loop's log line).
 enum class RejectReason : std::uint8_t {
   kNone,         // accepted, or not looked at
@@ -97,6 +104,11 @@ struct CandidateOutcome {
 inline constexpr int kMaxReportedCandidates = 16;
 
 struct Decision {
+  static constexpr std::array<double, kPoseAxes> nan_array() {
+    std::array<double, kPoseAxes> a{};
+    a.fill(std::numeric_limits<double>::quiet_NaN());
+    return a;
+  }
   DecisionSource source = DecisionSource::kNoPart;
   int class_index = -1;      // into the model's classes; -1 when there is no class (unknown, timeout, ...)
   int part_id = 0;           // the class's PLC id; 0 when none
@@ -104,6 +116,14 @@ struct Decision {
   double pm_error = std::numeric_limits<double>::quiet_NaN();  // per-point Perfect Match cost of the choice
   bool pose_valid = false;
   PlanarPose pose{};
+  // The out-of-plane part of the full pose (PoseAxis): NaN where the geometry does not fix the axis (a strip a few
+  // millimetres high gives no tilt about x) or no pose was estimated; published invalid then, never 0.
+  double z_m = std::numeric_limits<double>::quiet_NaN();
+  double rx_rad = std::numeric_limits<double>::quiet_NaN();
+  double ry_rad = std::numeric_limits<double>::quiet_NaN();
+  // 1-sigma uncertainty per PoseAxis (m for x, y, z; rad for rx, ry, theta), calibrated on the simulator's truth;
+  // NaN exactly where the axis's value is NaN or not estimated.
+  std::array<double, kPoseAxes> pose_sigma{nan_array()};
   double template_coverage = std::numeric_limits<double>::quiet_NaN();  // two-way check: template seen in scan
   double scan_outliers = std::numeric_limits<double>::quiet_NaN();      // two-way check: scan off the template
   double missing_area_m2 = std::numeric_limits<double>::quiet_NaN();    // two-way check: largest blob the scan lacks

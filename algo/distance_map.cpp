@@ -210,7 +210,7 @@ MapSample DistanceMapView::coarse_sample(const double c[3]) const {
   const Trilinear i = trilinear(v, t);
   const double grad_scale = fine_grad_scale_ * kInvEdge;
   return {i.value * kDistanceUnitM, sloped[0] ? i.slope_x * grad_scale : 0.0, sloped[1] ? i.slope_y * grad_scale : 0.0,
-          false};
+          sloped[2] ? i.slope_z * grad_scale : 0.0, false};
 }
 
 double DistanceMapView::cell_distance_m(int x, int y, int z) const {

@@ -149,6 +149,7 @@ struct MapSample {
   double distance_m;
   double grad_x;
   double grad_y;
+  double grad_z;  // dD/dz: the full pose's depth, tilt and swing (PerfectMatcher::refine); RPROP uses x and y only
   bool fine;
 };
 
@@ -248,9 +249,9 @@ class DistanceMap {
 // --- inline sampling -------------------------------------------------------------------------------------------------
 
 // Trilinear interpolation of 8 corner values (corner (i, j, k) at v[i + 2 j + 4 k]) at fractions t, and the
-// interpolant's slopes along x and y per unit of t. Shared by the fine cells and the coarse field.
+// interpolant's slopes along x, y and z per unit of t. Shared by the fine cells and the coarse field.
 struct Trilinear {
-  double value, slope_x, slope_y;
+  double value, slope_x, slope_y, slope_z;
 };
 [[nodiscard]] inline Trilinear trilinear(const double v[8], const double t[3]) {
   const double tx = t[0];
@@ -266,7 +267,7 @@ struct Trilinear {
   const double y1 = uy * e01 + ty * e11;
   return {uz * y0 + tz * y1,
           uz * (uy * (v[1] - v[0]) + ty * (v[3] - v[2])) + tz * (uy * (v[5] - v[4]) + ty * (v[7] - v[6])),
-          uz * (e10 - e00) + tz * (e11 - e01)};
+          uz * (e10 - e00) + tz * (e11 - e01), y1 - y0};
 }
 
 inline MapSample DistanceMapView::sample(double x_m, double y_m, double z_m) const {
@@ -315,6 +316,7 @@ inline MapSample DistanceMapView::sample(double x_m, double y_m, double z_m) con
     s.distance_m = i.value * kDistanceUnitM;
     s.grad_x = step_[0] != 0 ? i.slope_x * fine_grad_scale_ : 0.0;
     s.grad_y = step_[1] != 0 ? i.slope_y * fine_grad_scale_ : 0.0;
+    s.grad_z = step_[2] != 0 ? i.slope_z * fine_grad_scale_ : 0.0;
     s.fine = true;
   } else {
     s = coarse_sample(c);
@@ -336,6 +338,7 @@ inline MapSample DistanceMapView::sample(double x_m, double y_m, double z_m) con
     s.distance_m += excess * dims_.resolution_m;
     if (e[0] != 0.0) s.grad_x = e[0] / excess;
     if (e[1] != 0.0) s.grad_y = e[1] / excess;
+    if (e[2] != 0.0) s.grad_z = e[2] / excess;
   }
   return s;
 }

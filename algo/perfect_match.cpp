@@ -2,6 +2,7 @@
 #include "algo/perfect_match.hpp"
 
 #include <Eigen/Cholesky>
+#include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
 #include <cstddef>
@@ -438,6 +439,148 @@ DepthPlane PerfectMatcher::depth_plane(const DistanceMapView& map, const Eigen::
   plane.slope_x = prior.slope_x + fit[1];
   plane.slope_y = prior.slope_y + fit[2];
   return plane;
+}
+
+Eigen::Matrix3d rotation_of(const FullPose& pose) {
+  return (Eigen::AngleAxisd(pose[PoseAxis::kRz], Eigen::Vector3d::UnitZ()) *
+          Eigen::AngleAxisd(pose[PoseAxis::kRy], Eigen::Vector3d::UnitY()) *
+          Eigen::AngleAxisd(pose[PoseAxis::kRx], Eigen::Vector3d::UnitX()))
+      .toRotationMatrix();
+}
+
+FullPose full_pose_of(const Eigen::Matrix3d& r, const Eigen::Vector3d& t) {
+  // R = R_z(theta) R_y(ry) R_x(rx): R(2, 0) = -sin(ry), R(2, 1) / R(2, 2) = tan(rx), R(1, 0) / R(0, 0) = tan(theta).
+  FullPose p;
+  p[PoseAxis::kX] = t.x();
+  p[PoseAxis::kY] = t.y();
+  p[PoseAxis::kZ] = t.z();
+  p[PoseAxis::kRy] = std::asin(std::clamp(-r(2, 0), -1.0, 1.0));
+  p[PoseAxis::kRx] = std::atan2(r(2, 1), r(2, 2));
+  p[PoseAxis::kRz] = std::atan2(r(1, 0), r(0, 0));
+  return p;
+}
+
+namespace {
+Eigen::Vector3d translation_of(const FullPose& p) {
+  return {p[PoseAxis::kX], p[PoseAxis::kY], p[PoseAxis::kZ]};
+}
+}  // namespace
+
+FullPose compose(const FullPose& a, const FullPose& b) {
+  // a(b(p)) = c + R_a R_b (p - c) + R_a t_b + t_a
+  const Eigen::Matrix3d ra = rotation_of(a);
+  return full_pose_of(ra * rotation_of(b), ra * translation_of(b) + translation_of(a));
+}
+
+FullPose inverse(const FullPose& pose) {
+  // q = c + R^T (p - c) - R^T t
+  const Eigen::Matrix3d rt = rotation_of(pose).transpose();
+  return full_pose_of(rt, -(rt * translation_of(pose)));
+}
+
+namespace {
+
+constexpr int kMinRefinePoints = 30;
+constexpr double kMinRefineRcond = 1e-12;
+using Matrix6d = Eigen::Matrix<double, 6, 6>;
+using Vector6d = Eigen::Matrix<double, 6, 1>;
+
+// Normal equations of the full pose at one pose: J^T W J and J^T W d over the points with a fine-field distance.
+struct RefineSums {
+  Matrix6d h = Matrix6d::Zero();
+  Vector6d b = Vector6d::Zero();
+  double weighted_d2 = 0.0;
+  double weight = 0.0;
+  int points = 0;
+};
+
+}  // namespace
+
+FullPoseFit PerfectMatcher::refine(const DistanceMapView& map, const Eigen::Vector3d& centroid_m,
+                                   const PerfectMatchResult& planar) const {
+  // The start: the planar pose and its levelling plane. z_scan - z_template = offset + slope_x X + slope_y Y is what
+  // R_y(ry) R_x(rx) makes of a sheet through c: slope_x = -tan(ry), slope_y = tan(rx) / cos(ry).
+  FullPoseFit fit;
+  fit.sigma.fill(std::numeric_limits<double>::quiet_NaN());
+  FullPose& pose = fit.pose;
+  pose[PoseAxis::kX] = planar.pose.x_m;
+  pose[PoseAxis::kY] = planar.pose.y_m;
+  pose[PoseAxis::kZ] = planar.depth.offset_m;
+  pose[PoseAxis::kRz] = planar.pose.theta_rad;
+  pose[PoseAxis::kRy] = -std::atan(planar.depth.slope_x);
+  pose[PoseAxis::kRx] = std::atan(planar.depth.slope_y * std::cos(pose[PoseAxis::kRy]));
+  if (used_ < static_cast<std::size_t>(kMinRefinePoints) || !map.valid()) return fit;
+
+  Eigen::Matrix3d r = rotation_of(pose);
+  Eigen::Vector3d t = translation_of(pose);
+  const double lc2 = params_.refine_lc_m * params_.refine_lc_m;
+  // Each scan point back into the template frame, q = R^T (p - c - t); a small motion of the template about c by
+  // (delta, omega) (R' = R exp(omega), t' = t + R delta) moves it to q - delta - omega x q, so with g the map's
+  // gradient at c + q: dd/ddelta = -g, dd/domega = g x q.
+  const auto accumulate = [&]() {
+    RefineSums sums;
+    const Eigen::Matrix3d rt = r.transpose();
+    for (std::size_t i = 0; i < used_; ++i) {
+      const Eigen::Vector3d q = rt * (points_[i].cast<double>() - centroid_m - t);
+      const Eigen::Vector3d at = centroid_m + q;
+      const MapSample s = map.sample(at.x(), at.y(), at.z());
+      if (!s.fine) continue;
+      const Eigen::Vector3d g(s.grad_x, s.grad_y, s.grad_z);
+      Vector6d j;
+      j << -g, g.cross(q);
+      const double d = s.distance_m;
+      const double w = lc2 / (lc2 + d * d);
+      sums.h.selfadjointView<Eigen::Lower>().rankUpdate(j, w);
+      sums.b += (w * d) * j;
+      sums.weighted_d2 += w * d * d;
+      sums.weight += w;
+      ++sums.points;
+    }
+    sums.h = sums.h.selfadjointView<Eigen::Lower>();
+    return sums;
+  };
+
+  const double max_turn = params_.refine_max_step_m / params_.refine_lever_m;
+  RefineSums sums;
+  bool settled = false;
+  for (int it = 0;; ++it) {
+    sums = accumulate();
+    if (sums.points < kMinRefinePoints) return fit;
+    if (it == params_.refine_iterations || settled) break;
+    const Eigen::LDLT<Matrix6d> ldlt(sums.h);
+    if (ldlt.info() != Eigen::Success || !(ldlt.rcond() > kMinRefineRcond)) return fit;
+    const Vector6d step = -ldlt.solve(sums.b);
+    if (!step.allFinite()) return fit;
+    Eigen::Vector3d delta = step.head<3>();
+    Eigen::Vector3d omega = step.tail<3>();
+    // A step is clamped, never scaled as a whole: one badly fixed axis does not stall the others.
+    for (int k = 0; k < 3; ++k) {
+      delta[k] = std::clamp(delta[k], -params_.refine_max_step_m, params_.refine_max_step_m);
+      omega[k] = std::clamp(omega[k], -max_turn, max_turn);
+    }
+    t += r * delta;
+    const double angle = omega.norm();
+    if (angle > 0.0) r = r * Eigen::AngleAxisd(angle, omega / angle).toRotationMatrix();
+    fit.iterations = it + 1;
+    settled = std::max(delta.cwiseAbs().maxCoeff(), omega.cwiseAbs().maxCoeff() * params_.refine_lever_m) <
+              params_.refine_settle_m;
+  }
+  pose = full_pose_of(r, t);
+  fit.points = sums.points;
+  fit.rms_m = std::sqrt(sums.weighted_d2 / std::max(sums.weight, 1e-300));
+  const Eigen::LDLT<Matrix6d> ldlt(sums.h);
+  if (ldlt.info() != Eigen::Success || !(ldlt.rcond() > kMinRefineRcond)) return fit;
+  const double s2 = sums.weighted_d2 / std::max(sums.points - kPoseAxes, 1) +
+                    params_.refine_noise_floor_m * params_.refine_noise_floor_m;
+  const Matrix6d cov = s2 * ldlt.solve(Matrix6d::Identity());
+  // delta is a translation in the template frame, t moves by R delta: the scan frame's covariance is R C R^T.
+  const Eigen::Matrix3d cov_t = r * cov.topLeftCorner<3, 3>() * r.transpose();
+  for (int k = 0; k < 3; ++k) {
+    fit.sigma[static_cast<std::size_t>(k)] = std::sqrt(std::max(cov_t(k, k), 0.0));
+    fit.sigma[static_cast<std::size_t>(3 + k)] = std::sqrt(std::max(cov(3 + k, 3 + k), 0.0));
+  }
+  fit.ok = true;
+  return fit;
 }
 
 PerfectMatchResult PerfectMatcher::match(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,

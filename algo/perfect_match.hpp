@@ -6,6 +6,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <array>
 #include <cstddef>
 #include <cstdint>
 #include <span>
@@ -65,6 +66,19 @@ struct PerfectMatchParams {
   // z - (a + b X + c Y). level_passes <= 0: no levelling (the thesis's cost).
   int level_passes = 2;
   double level_clip_m = 0.008;  // points farther than this from the template surface do not enter the fit
+  // Full pose (refine()): Gauss-Newton iterations on all six axes from the levelled planar pose, with the robust
+  // (Cauchy) weights of refine_lc_m; the iterations stop when a step moves the part by less than refine_settle_m at
+  // refine_lever_m from its centre. Measured on the simulated cell (README "Pose"): 3-5 iterations.
+  int refine_iterations = 8;
+  double refine_lc_m = 0.005;
+  double refine_settle_m = 1e-6;
+  double refine_lever_m = 0.2;
+  double refine_max_step_m = 0.005;  // per iteration and axis (rotations: this at refine_lever_m)
+  // The residual scale of the 1-sigma is at least this: below it the residuals say more about how exactly the scan's
+  // points fit the template's cells than about where the part is (a noise-free scan of a flat strip fits its map to
+  // microns, yet a 2.2 mm cell places a sheet only to a fraction of itself). It makes the sigma of an axis that only a
+  // short lever fixes (the tilt of a strip a few cells high) large, as the geometry says.
+  double refine_noise_floor_m = 0.0003;
 };
 
 // Depth offset of a scan from a template (see PerfectMatchParams::level_passes): z_scan - z_template =
@@ -86,6 +100,34 @@ struct PerfectMatchResult {
   int points = 0;               // scan points used (at the finest level)
   bool converged = false;       // steps fell under their minimum before the iteration cap
   DepthPlane depth{};           // the depth levelling of the last fine pass
+};
+
+// The full pose of a scan against a template (refine()): p_scan = c + R_z(theta) R_y(ry) R_x(rx) (p_template - c) +
+// (x, y, z), c the template's centroid in x, y and depth (DESIGN.md "Pose", algo/decision.hpp PoseAxis).
+struct FullPose {
+  std::array<double, kPoseAxes> axis{};  // PoseAxis order: x, y, z [m], rx, ry, theta [rad]
+  [[nodiscard]] double operator[](PoseAxis a) const { return axis[static_cast<std::size_t>(a)]; }
+  [[nodiscard]] double& operator[](PoseAxis a) { return axis[static_cast<std::size_t>(a)]; }
+};
+
+// Rotation and translation of a full pose about c, and back.
+[[nodiscard]] Eigen::Matrix3d rotation_of(const FullPose& pose);
+[[nodiscard]] FullPose full_pose_of(const Eigen::Matrix3d& rotation, const Eigen::Vector3d& translation_m);
+// a o b: the pose that applies b first, then a (both about the same c).
+[[nodiscard]] FullPose compose(const FullPose& a, const FullPose& b);
+[[nodiscard]] FullPose inverse(const FullPose& pose);
+
+struct FullPoseFit {
+  FullPose pose{};
+  // 1-sigma per axis from the robust cost's curvature at the optimum (Gauss-Newton: s^2 (J^T W J)^-1, s^2 the
+  // weighted residual variance plus refine_noise_floor_m^2), taking the scan's points as independent: the caller scales
+  // it to what the truth says (CascadeParams::pose_sigma_scale). Rotations in the template frame (equal to rx, ry,
+  // theta's to first order).
+  std::array<double, kPoseAxes> sigma{};
+  double rms_m = 0.0;  // weighted rms distance at the optimum
+  int points = 0;      // points with a fine-field distance (the others stay out: the coarse field is no surface)
+  int iterations = 0;
+  bool ok = false;  // false: too few points or a singular system; pose is the start, sigma NaN
 };
 
 // Cost of one pose and its gradient (thesis eq. 2.56, 2.57-2.66); what match() minimises, public for tests.
@@ -151,6 +193,13 @@ class PerfectMatcher {
   // beyond level_clip_m before levelling (the edges of a strongly swung part) enter once the prior has levelled them.
   [[nodiscard]] DepthPlane depth_plane(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
                                        const PlanarPose& pose, const DepthPlane& prior = DepthPlane{}) const;
+
+  // Refines the planar result of match() (its pose and depth levelling) to the full pose against the same template:
+  // Gauss-Newton on the used points' distances d(p) to the template surface, with the map's gradient in x, y and z
+  // (d^2 is smooth through the surface, so point-to-surface Gauss-Newton converges in a few steps), robust weights
+  // 1 / (1 + d^2 / refine_lc_m^2). `centroid_m`: c in x, y and depth. Allocation-free; ~0.3 ms per iteration.
+  [[nodiscard]] FullPoseFit refine(const DistanceMapView& map, const Eigen::Vector3d& centroid_m,
+                                   const PerfectMatchResult& planar) const;
 
   // Start by centroid alignment: x, y = scan centroid - template centroid, theta 0.
   [[nodiscard]] PlanarPose centroid_start(const Eigen::Vector2d& template_centroid_m) const;

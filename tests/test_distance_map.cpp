@@ -695,6 +695,9 @@ SCENARIO("Sampling a hand-filled sparse map matches hand computation", "[distanc
         // 28, 32 and 31, 29 -> 29 and 30.5 -> 30.125.
         CHECK(s.grad_x == Approx(7e-4 / 0.01).epsilon(1e-12));
         CHECK(s.grad_y == Approx(30.125e-4 / 0.01).epsilon(1e-12));
+        // z: the two layers' bilinear values above, 191.25 - 180.75 = 10.5 units per cell.
+        CHECK(s.grad_z == Approx((z2 - z1) * 1e-4 / 0.01).epsilon(1e-12));
+        CHECK(s.grad_z == Approx(10.5e-4 / 0.01).epsilon(1e-12));
       }
     }
   }

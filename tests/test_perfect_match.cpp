@@ -811,3 +811,150 @@ SCENARIO("Depth levelling keeps the whole part in its fit when the scan already 
     }
   }
 }
+
+// --- full pose (refine) -------------------------------------------------------------------------------------------
+
+namespace {
+
+// p' = c + R_z(theta) R_y(ry) R_x(rx) (p - c) + t: DESIGN.md's full pose, written out here with Eigen's angle-axis
+// rotations (not algo::rotation_of), so the truth does not come from the code under test.
+std::vector<ScanPoint> moved_full(const std::vector<ScanPoint>& points, const Eigen::Vector3d& c,
+                                  const algo::FullPose& pose) {
+  using algo::PoseAxis;
+  const Eigen::Matrix3d r = (Eigen::AngleAxisd(pose[PoseAxis::kRz], Eigen::Vector3d::UnitZ()) *
+                             Eigen::AngleAxisd(pose[PoseAxis::kRy], Eigen::Vector3d::UnitY()) *
+                             Eigen::AngleAxisd(pose[PoseAxis::kRx], Eigen::Vector3d::UnitX()))
+                                .toRotationMatrix();
+  const Eigen::Vector3d t(pose[PoseAxis::kX], pose[PoseAxis::kY], pose[PoseAxis::kZ]);
+  std::vector<ScanPoint> out = points;
+  for (ScanPoint& p : out) {
+    const Eigen::Vector3d q = c + r * (Eigen::Vector3d(p.x, p.y, p.z) - c) + t;
+    p.x = static_cast<float>(q.x());
+    p.y = static_cast<float>(q.y());
+    p.z = static_cast<float>(q.z());
+  }
+  return out;
+}
+
+Eigen::Vector3d centre_of(const std::vector<ScanPoint>& points) {
+  Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+  for (const ScanPoint& p : points) sum += Eigen::Vector3d(p.x, p.y, p.z);
+  return sum / static_cast<double>(points.size());
+}
+
+// A flat rectangular sheet of points in the plane z = kPartCentreM[2], centred on the test's hanging point.
+std::vector<ScanPoint> flat_sheet(double width_m, double height_m, double spacing_m, double phase) {
+  std::vector<ScanPoint> out;
+  for (double y = -0.5 * height_m + phase * spacing_m; y <= 0.5 * height_m; y += spacing_m) {
+    for (double x = -0.5 * width_m + phase * spacing_m; x <= 0.5 * width_m; x += spacing_m) {
+      out.push_back({static_cast<float>(kPartCentreM[0] + x), static_cast<float>(kPartCentreM[1] + y),
+                     static_cast<float>(kPartCentreM[2]), 0, 0});
+    }
+  }
+  return out;
+}
+
+}  // namespace
+
+SCENARIO("The full pose of a part moved on all six axes is recovered, each axis with a finite 1-sigma",
+         "[perfect_match][full_pose]") {
+  using algo::PoseAxis;
+  GIVEN("louvred_panel and ribbed_v4 taught on one lattice, scanned on another, swung, tilted, lifted and shifted") {
+    for (const char* name : {"louvred_panel", "ribbed_v4"}) {
+      const Template& t = cached_template(name);
+      const auto taught = part_points(name);
+      const Eigen::Vector3d c(t.centroid_m.x(), t.centroid_m.y(), centre_of(taught).z());
+      const auto points = part_points(name, 0.0013, 0.31);
+      std::mt19937 rng(4113);
+      std::uniform_real_distribution<double> unit(-1.0, 1.0);
+      double worst[algo::kPoseAxes] = {};
+      for (int i = 0; i < 6; ++i) {
+        algo::FullPose truth;
+        truth[PoseAxis::kX] = 0.03 * unit(rng);
+        truth[PoseAxis::kY] = 0.03 * unit(rng);
+        truth[PoseAxis::kZ] = 0.005 * unit(rng);
+        truth[PoseAxis::kRx] = 1.5 * kDeg * unit(rng);
+        truth[PoseAxis::kRy] = 3.0 * kDeg * unit(rng);
+        truth[PoseAxis::kRz] = 4.0 * kDeg * unit(rng);
+        PerfectMatcher pm;
+        pm.set_scan(moved_full(points, c, truth));
+        const PerfectMatchResult planar = pm.match(t.view, t.centroid_m, pm.centroid_start(t.centroid_m));
+        const algo::FullPoseFit fit = pm.refine(t.view, c, planar);
+        REQUIRE(fit.ok);
+        const algo::FullPose& got = fit.pose;
+        for (std::size_t a = 0; a < algo::kPoseAxes; ++a) {
+          CHECK(std::isfinite(fit.sigma[a]));
+          CHECK(fit.sigma[a] > 0.0);
+          worst[a] = std::max(worst[a], std::abs(got.axis[a] - truth.axis[a]) * (a < 3 ? 1e3 : 1.0 / kDeg));
+        }
+      }
+      THEN(std::string("x, y within 0.6 mm, z within 0.3 mm, rx, ry within 0.1 deg, theta within 0.1 deg: ") + name) {
+        INFO(name << ": worst x " << worst[0] << " y " << worst[1] << " z " << worst[2] << " mm, rx " << worst[3]
+                  << " ry " << worst[4] << " theta " << worst[5] << " deg");
+        CHECK(worst[0] <= 0.6);
+        CHECK(worst[1] <= 0.6);
+        CHECK(worst[2] <= 0.3);
+        CHECK(worst[3] <= 0.1);
+        CHECK(worst[4] <= 0.1);
+        CHECK(worst[5] <= 0.1);
+      }
+    }
+  }
+}
+
+SCENARIO("A flat sheet fixes its tilt through its height; a strip a few millimetres high does not",
+         "[perfect_match][full_pose]") {
+  using algo::PoseAxis;
+  GIVEN("a flat 450 x 600 mm plate and a flat 450 x 12 mm strip, no relief, each tilted by 1 deg and swung by 2 deg") {
+    algo::FullPose truth;
+    truth[PoseAxis::kRx] = 1.0 * kDeg;
+    truth[PoseAxis::kRy] = 2.0 * kDeg;
+    truth[PoseAxis::kZ] = 0.002;
+    const auto fit_of = [&](double height_m, algo::FullPose& got) {
+      const auto taught = flat_sheet(0.45, height_m, 0.0015, 0.5);
+      const Template t = build_template(taught);
+      const Eigen::Vector3d c(t.centroid_m.x(), t.centroid_m.y(), centre_of(taught).z());
+      PerfectMatcher pm;
+      pm.set_scan(moved_full(flat_sheet(0.45, height_m, 0.0013, 0.31), c, truth));
+      const algo::FullPoseFit fit =
+          pm.refine(t.view, c, pm.match(t.view, t.centroid_m, pm.centroid_start(t.centroid_m)));
+      got = fit.pose;
+      return fit;
+    };
+    WHEN("both are refined") {
+      algo::FullPose plate_pose, strip_pose;
+      const algo::FullPoseFit plate = fit_of(0.6, plate_pose);
+      const algo::FullPoseFit strip = fit_of(0.012, strip_pose);
+      const auto rx_sigma_deg = [](const algo::FullPoseFit& f) { return f.sigma[3] / kDeg; };
+      THEN(
+          "the plate's sheet gives its tilt and swing to 0.05 deg with a small sigma; the strip's tilt sigma is 20 "
+          "times the plate's") {
+        INFO("plate rx " << plate_pose[PoseAxis::kRx] / kDeg << " ry " << plate_pose[PoseAxis::kRy] / kDeg
+                         << " sigma rx " << rx_sigma_deg(plate) << " deg; strip rx " << strip_pose[PoseAxis::kRx] / kDeg
+                         << " sigma rx " << rx_sigma_deg(strip) << " deg");
+        REQUIRE(plate.ok);
+        CHECK(std::abs(plate_pose[PoseAxis::kRx] - truth[PoseAxis::kRx]) <= 0.05 * kDeg);
+        CHECK(std::abs(plate_pose[PoseAxis::kRy] - truth[PoseAxis::kRy]) <= 0.05 * kDeg);
+        CHECK(std::abs(plate_pose[PoseAxis::kZ] - truth[PoseAxis::kZ]) <= 0.0003);
+        CHECK(rx_sigma_deg(plate) < 0.01);
+        CHECK((!strip.ok || rx_sigma_deg(strip) >= 20.0 * rx_sigma_deg(plate)));
+      }
+    }
+  }
+}
+
+SCENARIO("Full pose helpers: composing a pose with its inverse gives the identity, Euler angles round-trip",
+         "[perfect_match][full_pose]") {
+  using algo::PoseAxis;
+  algo::FullPose p;
+  p.axis = {0.012, -0.034, 0.004, 1.2 * kDeg, -2.7 * kDeg, 4.4 * kDeg};
+  const algo::FullPose back = algo::full_pose_of(algo::rotation_of(p), Eigen::Vector3d(0.012, -0.034, 0.004));
+  const algo::FullPose identity = algo::compose(p, algo::inverse(p));
+  for (std::size_t a = 0; a < algo::kPoseAxes; ++a) {
+    CHECK(back.axis[a] == Approx(p.axis[a]).margin(1e-12));
+    CHECK(identity.axis[a] == Approx(0.0).margin(1e-12));
+  }
+  // R_z R_y R_x applied to x first: a point on the x axis swung by ry moves to -sin(ry) in z (before theta).
+  const Eigen::Vector3d e = algo::rotation_of(p) * Eigen::Vector3d::UnitX();
+  CHECK(e.z() == Approx(-std::sin(p[PoseAxis::kRy])).margin(1e-12));
+}
