@@ -3,6 +3,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstddef>
 #include <numbers>
 
 #include "drivers/modbus/register_map.hpp"
@@ -20,8 +21,17 @@ std::uint16_t permille(double p) {
   return static_cast<std::uint16_t>(std::lround(std::clamp(p, 0.0, 1.0) * kPermille));
 }
 
+// An uncertainty travels only with its value: an axis published invalid has none, whatever the estimate said.
+std::uint16_t sigma_register(const algo::Decision& decision, algo::PoseAxis axis, std::int32_t published) {
+  if (published == kInvalidS32) return drivers::modbus_map::kInvalidSigma;
+  const double sigma = decision.pose_sigma[static_cast<std::size_t>(axis)];
+  const bool linear = axis == algo::PoseAxis::kX || axis == algo::PoseAxis::kY || axis == algo::PoseAxis::kZ;
+  return linear ? drivers::to_plc_sigma_micrometres(sigma) : drivers::to_plc_sigma_millidegrees(sigma * kDegPerRad);
+}
+
 // svm / perfect match: a class, and a pose the robot can use or "pose out of range".
 void map_accepted(const algo::Decision& decision, drivers::PlcResult& r) {
+  using algo::PoseAxis;
   using drivers::ResultCode;
   using drivers::ResultSource;
   r.source = decision.source == algo::DecisionSource::kSvm ? ResultSource::kSvm : ResultSource::kPerfectMatch;
@@ -37,10 +47,18 @@ void map_accepted(const algo::Decision& decision, drivers::PlcResult& r) {
   r.code = ResultCode::kOk;
   r.x_um = x_um;
   r.y_um = y_um;
-  r.z_um = 0;  // DESIGN.md: Z 0 until estimated; the planar pose has no RX, RY either
-  r.rx_mdeg = 0;
-  r.ry_mdeg = 0;
   r.rz_mdeg = rz_mdeg;
+  // The out-of-plane axes may be unfixed by the geometry (NaN): they go out invalid, never 0, and the planar pose
+  // is still an instruction the robot can follow.
+  r.z_um = drivers::to_plc_micrometres(decision.z_m);
+  r.rx_mdeg = drivers::to_plc_millidegrees(decision.rx_rad * kDegPerRad);
+  r.ry_mdeg = drivers::to_plc_millidegrees(decision.ry_rad * kDegPerRad);
+  r.sigma_x_um = sigma_register(decision, PoseAxis::kX, r.x_um);
+  r.sigma_y_um = sigma_register(decision, PoseAxis::kY, r.y_um);
+  r.sigma_z_um = sigma_register(decision, PoseAxis::kZ, r.z_um);
+  r.sigma_rx_mdeg = sigma_register(decision, PoseAxis::kRx, r.rx_mdeg);
+  r.sigma_ry_mdeg = sigma_register(decision, PoseAxis::kRy, r.ry_mdeg);
+  r.sigma_rz_mdeg = sigma_register(decision, PoseAxis::kRz, r.rz_mdeg);
 }
 
 }  // namespace

@@ -12,11 +12,13 @@
 namespace cellsight::runtime {
 
 // Decision -> result block.
-//  svm/pm -> ok (SOURCE svm / perfect match), part id, confidence = probability in per mille, pose X, Y in um and
-//           RZ = theta in millidegrees, Z/RX/RY 0 (the planar pose does not move them); an accepted decision
-//           without a usable pose -> "pose out of range" (part id kept, pose invalid).
+//  svm/pm -> ok (SOURCE svm / perfect match), part id, confidence = probability in per mille, pose X, Y, Z in um
+//           and RX, RY, RZ = theta in millidegrees, each axis's 1-sigma in the sigma registers. Z, RX, RY the
+//           geometry did not fix (NaN) go out as 0x80000000 and the result stays ok; an accepted decision whose
+//           X, Y or theta is missing or unrepresentable -> "pose out of range" (part id kept, pose invalid).
 //  unknown -> "unknown part" (confidence of the best class, part id 0); timeout, bad scan, no part -> their codes;
-//  every field without a value carries the invalid marker 0x80000000.
+//  every pose field without a value carries the invalid marker 0x80000000, every sigma without one 0xFFFF, and a
+//  sigma is published only where its axis's value is.
 [[nodiscard]] drivers::PlcResult to_plc_result(const algo::Decision& decision, std::uint32_t acq_id,
                                                std::uint64_t timestamp_us, double cycle_ms);
 

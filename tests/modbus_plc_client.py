@@ -2,14 +2,19 @@
 """A PLC program in Python (pymodbus 3.0) against cellsight's Modbus server: polls, checks, acknowledges results.
 
 Used by tests/test_modbus.cpp as an independent client (its own framing and its own high-word-first decoding via
-pymodbus's BinaryPayloadDecoder). Prints one JSON object per line on stdout:
+pymodbus's BinaryPayloadDecoder) and by scripts/demo.sh. Written for register map version 2: it reads the whole
+result block 200-234 in one request and accepts it only when both sequence copies equal RESULT_SEQ. Prints one JSON
+object per line on stdout:
   {"event": "connected", "map_version": v}
   {"event": "result", "seq": n, "acq_id": n, "code": n, "part_id": n, "confidence": n, "source": n,
    "x_um": n, "y_um": n, "z_um": n, "rx_mdeg": n, "ry_mdeg": n, "rz_mdeg": n, "timestamp_us": n, "cycle_ms": n,
+   "sigma_x_um": n, "sigma_y_um": n, "sigma_z_um": n, "sigma_rx_mdeg": n, "sigma_ry_mdeg": n, "sigma_rz_mdeg": n,
    "status": n, "heartbeat": n}
+      a pose value that is not available (0x80000000) and a sigma that is not available (0xFFFF) are null
   {"event": "error", "what": "..."}            (a protocol violation seen by the PLC)
   {"event": "done", "results": n, "torn": n, "errors": n, "heartbeat_first": n, "heartbeat_last": n}
-Exit status: 0 when --count results arrived in sequence without errors, 1 otherwise, 2 when it cannot connect.
+Exit status: 0 when --count results arrived in sequence without errors, 1 otherwise (also when MAP_VERSION is not
+2: the program was written for another map), 2 when it cannot connect.
 
 Modes: --mode ack (default) does the full handshake of DESIGN.md; --mode poll ignores the ack and reacts to
 RESULT_SEQ changing. --input reads the read-only blocks with FC04 instead of FC03.
@@ -30,11 +35,16 @@ PLC_HEARTBEAT = 4
 STATUS = 100
 STATUS_COUNT = 11
 RESULT = 200
-RESULT_COUNT = 27
+RESULT_COUNT = 35  # 200-234: map version 2, well under the 125 registers of one read
 TRIGGER_ENABLE = 1 << 0
 RESULT_ACK = 1 << 2
 RESULT_VALID = 1 << 4
 MAP_VERSION_INDEX = 10  # 110 - 100
+MAP_VERSION = 2
+INVALID_S32 = -0x80000000
+INVALID_SIGMA = 0xFFFF
+POSE = ("x_um", "y_um", "z_um", "rx_mdeg", "ry_mdeg", "rz_mdeg")
+SIGMA = ("sigma_x_um", "sigma_y_um", "sigma_z_um", "sigma_rx_mdeg", "sigma_ry_mdeg", "sigma_rz_mdeg")
 
 
 def emit(**fields):
@@ -74,7 +84,7 @@ class Plc:
 
 
 def decode_block(registers):
-    # One FC03 of 27 registers; 32/64-bit values are high word first, big-endian bytes (DESIGN.md).
+    # One FC03 of 35 registers; 32/64-bit values are high word first, big-endian bytes (README "Conventions").
     d = BinaryPayloadDecoder.fromRegisters(registers, byteorder=Endian.Big, wordorder=Endian.Big)
     block = {}
     block["seq"] = d.decode_32bit_uint()
@@ -83,11 +93,16 @@ def decode_block(registers):
     block["part_id"] = d.decode_16bit_uint()
     block["confidence"] = d.decode_16bit_uint()
     block["source"] = d.decode_16bit_uint()
-    for name in ("x_um", "y_um", "z_um", "rx_mdeg", "ry_mdeg", "rz_mdeg"):
-        block[name] = d.decode_32bit_int()
+    for name in POSE:
+        value = d.decode_32bit_int()
+        block[name] = None if value == INVALID_S32 else value
     block["timestamp_us"] = d.decode_64bit_uint()
     block["cycle_ms"] = d.decode_16bit_uint()
     block["seq_copy"] = d.decode_32bit_uint()
+    for name in SIGMA:
+        value = d.decode_16bit_uint()
+        block[name] = None if value == INVALID_SIGMA else value
+    block["seq_copy2"] = d.decode_32bit_uint()
     return block
 
 
@@ -102,6 +117,10 @@ def run(args):
         return 2
     status_regs = plc.read(STATUS, STATUS_COUNT)
     emit(event="connected", map_version=status_regs[MAP_VERSION_INDEX])
+    if status_regs[MAP_VERSION_INDEX] != MAP_VERSION:
+        plc.error(f"MAP_VERSION is {status_regs[MAP_VERSION_INDEX]}, this program is written for {MAP_VERSION}")
+        plc.client.close()
+        return 1
     plc.write(CONTROL, TRIGGER_ENABLE)
 
     deadline = time.monotonic() + args.timeout
@@ -122,7 +141,7 @@ def run(args):
             time.sleep(args.period)
             continue
         block = decode_block(plc.read(RESULT, RESULT_COUNT))
-        if block["seq"] != block["seq_copy"]:
+        if block["seq"] != block["seq_copy"] or block["seq"] != block["seq_copy2"]:
             torn += 1  # a real PLC re-reads; the server must never produce one, the C++ test checks torn == 0
             continue
         if block["seq"] == last_seq:
@@ -135,7 +154,7 @@ def run(args):
             plc.error(f"sequence jumped from {last_seq} to {block['seq']}")
         last_seq = block["seq"]
         got += 1
-        del block["seq_copy"]
+        del block["seq_copy"], block["seq_copy2"]
         emit(event="result", status=status, heartbeat=heartbeat_last, **block)
         if args.mode == "ack":
             plc.write(CONTROL, TRIGGER_ENABLE | RESULT_ACK)

@@ -8,7 +8,7 @@ Phases (each checked; exit 0 only when every check holds):
             at 1 again); the part in flight gets no result and the PLC can name it (TRIGGER_COUNT - results taken);
             every result it did take matches the truth.
   main      one `run --sim --wait-plc --parts N --sim-faults SPEC` process, while
-              PLC A   follows the README's handshake (RESULT_VALID, one FC03 of 27 registers, both sequence copies,
+              PLC A   follows the README's handshake (RESULT_VALID, one FC03 of 35 registers, both sequence copies,
                       RESULT_ACK, wait for RESULT_VALID to drop, clear the ack) and acknowledges every result; it
                       never pulses CLEAR_ERROR, so every recovery is the cell's own;
               PLC B   only polls status and result block with FC04;
@@ -58,7 +58,7 @@ except ImportError as error:  # pragma: no cover - reported as "cannot run"
     sys.exit(2)
 
 # Register map (README "PLC interface"): literal on purpose, this is the PLC's view.
-CONTROL, PLC_HEARTBEAT, STATUS, RESULT, RESULT_COUNT = 0, 4, 100, 200, 27
+CONTROL, PLC_HEARTBEAT, STATUS, RESULT, RESULT_COUNT = 0, 4, 100, 200, 35  # result block of map version 2
 TRIGGER_ENABLE, RESULT_ACK = 1 << 0, 1 << 2
 TRIGGER_ACK, BUSY, RESULT_VALID, RESULT_OVERRUN, ERROR = 1 << 2, 1 << 3, 1 << 4, 1 << 5, 1 << 6
 CODE_OK, CODE_UNKNOWN, CODE_BAD_SCAN, CODE_TIMEOUT = 0, 2, 5, 6
@@ -274,9 +274,10 @@ class PlcA:
         if word & RESULT_VALID:
             regs = self._read(RESULT, RESULT_COUNT)
             block = plc_test.decode(regs)
-            if block["seq"] != block["seq_copy"]:
+            if not plc_test.whole(block):
                 self.torn += 1
-                self.problems.add(f"{self.name}: torn block {block['seq']} / {block['seq_copy']}")
+                self.problems.add(
+                    f"{self.name}: torn block {block['seq']} / {block['seq_copy']} / {block['seq_copy2']}")
                 return st
             if block["seq"] == self.last_seq:
                 # Shown again after a reconnect or a fault with the same sequence: already taken, only acknowledge.
@@ -348,8 +349,8 @@ def plc_b(port, shared, problems):
             if st.registers[0] & RESULT_VALID and st.registers[0] & ERROR:
                 problems.add("PLC B: RESULT_VALID set while ERROR is set")
             block = plc_test.decode(rr.registers)
-            if block["seq"] != block["seq_copy"]:
-                problems.add(f"PLC B: torn block {block['seq']} / {block['seq_copy']}")
+            if not plc_test.whole(block):
+                problems.add(f"PLC B: torn block {block['seq']} / {block['seq_copy']} / {block['seq_copy2']}")
             elif block["seq"] < last:
                 problems.add(f"PLC B: RESULT_SEQ went back from {last} to {block['seq']}")
             elif block["seq"] > last:
@@ -400,7 +401,7 @@ def abuse_round(port, shared, problems):
     # A half frame (slowloris): dropped after modbus.byte_timeout_ms.
     try:
         with socket.create_connection(("127.0.0.1", port), timeout=3) as s:
-            s.sendall(plc_test.mbap(1, struct.pack(">BHH", 0x03, 200, 27))[:5])
+            s.sendall(plc_test.mbap(1, struct.pack(">BHH", 0x03, RESULT, RESULT_COUNT))[:5])
             s.settimeout(3)
             if s.recv(16) != b"":
                 problems.add("abuser: a half frame got an answer instead of a closed connection")

@@ -10,6 +10,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <array>
 #include <atomic>
 #include <catch2/catch.hpp>
@@ -25,6 +26,7 @@
 #include <memory>
 #include <optional>
 #include <random>
+#include <span>
 #include <string>
 #include <thread>
 #include <vector>
@@ -70,15 +72,25 @@ std::int32_t s32_at(const std::uint16_t* regs, int address, int base) {
   return static_cast<std::int32_t>(u32_at(regs, address, base));
 }
 
+// The result block's length as a PLC reads it (README "Register table"): version 2 reads 200-234, a PLC written for
+// version 1 reads 200-226.
+constexpr int kBlockWords = 35;
+constexpr int kBlockWordsV1 = 27;
+constexpr std::uint16_t kMapVersion = 2;  // MAP_VERSION (register 110) of this map
+using BlockWords = std::array<std::uint16_t, kBlockWords>;
+
 struct DecodedBlock {
   std::uint32_t seq = 0;
   std::uint32_t seq_copy = 0;
+  std::uint32_t seq_copy2 = 0;  // 0 in a version-1 read, which does not reach it
   PlcResult result;
 };
 
-// Addresses written out from DESIGN.md on purpose rather than taken from register_map.hpp.
-DecodedBlock decode_block(const std::uint16_t* regs) {
+// Addresses written out from the README's table on purpose rather than taken from register_map.hpp. A version-1 read
+// (27 words) leaves the version-2 fields at PlcResult's defaults.
+DecodedBlock decode_block(std::span<const std::uint16_t> words) {
   constexpr int kBase = 200;
+  const std::uint16_t* regs = words.data();
   DecodedBlock block;
   block.seq = u32_at(regs, 200, kBase);
   block.result.acq_id = u32_at(regs, 202, kBase);
@@ -95,12 +107,20 @@ DecodedBlock decode_block(const std::uint16_t* regs) {
   block.result.timestamp_us = (std::uint64_t{u32_at(regs, 220, kBase)} << 32) | u32_at(regs, 222, kBase);
   block.result.cycle_ms = regs[224 - kBase];
   block.seq_copy = u32_at(regs, 225, kBase);
+  if (words.size() < kBlockWords) return block;
+  block.result.sigma_x_um = regs[227 - kBase];
+  block.result.sigma_y_um = regs[228 - kBase];
+  block.result.sigma_z_um = regs[229 - kBase];
+  block.result.sigma_rx_mdeg = regs[230 - kBase];
+  block.result.sigma_ry_mdeg = regs[231 - kBase];
+  block.result.sigma_rz_mdeg = regs[232 - kBase];
+  block.seq_copy2 = u32_at(regs, 233, kBase);
   return block;
 }
 
-// The 27 words a PLC must see for `result`, written from the DESIGN.md table (high word first).
-std::array<std::uint16_t, 27> expected_words(const PlcResult& r, std::uint32_t seq) {
-  std::array<std::uint16_t, 27> w{};
+// The 35 words a PLC must see for `result`, written from the README's table (high word first).
+BlockWords expected_words(const PlcResult& r, std::uint32_t seq) {
+  BlockWords w{};
   auto put32 = [&w](int address, std::uint32_t v) {
     w[static_cast<std::size_t>(address - 200)] = static_cast<std::uint16_t>(v >> 16);
     w[static_cast<std::size_t>(address - 199)] = static_cast<std::uint16_t>(v & 0xFFFF);
@@ -121,6 +141,13 @@ std::array<std::uint16_t, 27> expected_words(const PlcResult& r, std::uint32_t s
   put32(222, static_cast<std::uint32_t>(r.timestamp_us & 0xFFFF'FFFFu));
   w[24] = r.cycle_ms;
   put32(225, seq);
+  w[27] = r.sigma_x_um;
+  w[28] = r.sigma_y_um;
+  w[29] = r.sigma_z_um;
+  w[30] = r.sigma_rx_mdeg;
+  w[31] = r.sigma_ry_mdeg;
+  w[32] = r.sigma_rz_mdeg;
+  put32(233, seq);
   return w;
 }
 
@@ -128,7 +155,9 @@ bool same_result(const PlcResult& a, const PlcResult& b) {
   return a.acq_id == b.acq_id && a.code == b.code && a.part_id == b.part_id &&
          a.confidence_permille == b.confidence_permille && a.source == b.source && a.x_um == b.x_um &&
          a.y_um == b.y_um && a.z_um == b.z_um && a.rx_mdeg == b.rx_mdeg && a.ry_mdeg == b.ry_mdeg &&
-         a.rz_mdeg == b.rz_mdeg && a.timestamp_us == b.timestamp_us && a.cycle_ms == b.cycle_ms;
+         a.rz_mdeg == b.rz_mdeg && a.timestamp_us == b.timestamp_us && a.cycle_ms == b.cycle_ms &&
+         a.sigma_x_um == b.sigma_x_um && a.sigma_y_um == b.sigma_y_um && a.sigma_z_um == b.sigma_z_um &&
+         a.sigma_rx_mdeg == b.sigma_rx_mdeg && a.sigma_ry_mdeg == b.sigma_ry_mdeg && a.sigma_rz_mdeg == b.sigma_rz_mdeg;
 }
 
 // Results that exercise every word: extremes first (sign, high word, 64-bit high half), then random values.
@@ -155,13 +184,22 @@ std::vector<PlcResult> make_results(std::size_t count, std::uint32_t seed) {
     r.rz_mdeg = s32(rng);
     r.timestamp_us = u64(rng);
     r.cycle_ms = static_cast<std::uint16_t>(u16(rng));
+    r.sigma_x_um = static_cast<std::uint16_t>(u16(rng));
+    r.sigma_y_um = static_cast<std::uint16_t>(u16(rng));
+    r.sigma_z_um = static_cast<std::uint16_t>(u16(rng));
+    r.sigma_rx_mdeg = static_cast<std::uint16_t>(u16(rng));
+    r.sigma_ry_mdeg = static_cast<std::uint16_t>(u16(rng));
+    r.sigma_rz_mdeg = static_cast<std::uint16_t>(u16(rng));
     results.push_back(r);
   }
   if (count >= 3) {
     results[0].acq_id = 0xFFFF'FFFFu;
     results[0].x_um = std::numeric_limits<std::int32_t>::max();
     results[0].y_um = -1;
-    results[0].z_um = map::kInvalidS32;  // "not estimated" travels as 0x80000000
+    results[0].z_um = map::kInvalidS32;  // "not estimated" travels as 0x80000000 ...
+    results[0].sigma_z_um = 0xFFFF;      // ... and its sigma as "not available"
+    results[0].sigma_x_um = 0xFFFE;      // the largest sigma, one below the marker
+    results[0].sigma_y_um = 0;
     results[0].timestamp_us = 0xFFFF'FFFF'FFFF'FFFEull;
     results[0].cycle_ms = 0xFFFF;
     results[1].acq_id = 0x0001'0000u;
@@ -249,9 +287,9 @@ class MbClient {
     return value;
   }
   DecodedBlock block() {
-    std::array<std::uint16_t, 27> regs{};
-    REQUIRE(read(200, regs.data(), 27) == 0);
-    return decode_block(regs.data());
+    BlockWords regs{};
+    REQUIRE(read(200, regs.data(), kBlockWords) == 0);
+    return decode_block(regs);
   }
 
  private:
@@ -547,6 +585,18 @@ std::uint64_t json_u64(const JsonLine& line, const std::string& key) {
   return std::strtoull(it->second.c_str(), nullptr, 10);
 }
 
+// The client prints a pose value of 0x80000000 and a sigma of 0xFFFF as null ("not available"): back to the markers.
+bool json_null(const JsonLine& line, const std::string& key) {
+  const auto it = line.find(key);
+  return it != line.end() && it->second == "null";
+}
+std::int32_t json_pose(const JsonLine& line, const std::string& key) {
+  return json_null(line, key) ? map::kInvalidS32 : static_cast<std::int32_t>(json_i64(line, key));
+}
+std::uint16_t json_sigma(const JsonLine& line, const std::string& key) {
+  return json_null(line, key) ? std::uint16_t{0xFFFF} : static_cast<std::uint16_t>(json_i64(line, key));
+}
+
 PlcResult result_from_json(const JsonLine& line) {
   PlcResult r;
   r.acq_id = static_cast<std::uint32_t>(json_u64(line, "acq_id"));
@@ -554,14 +604,20 @@ PlcResult result_from_json(const JsonLine& line) {
   r.part_id = static_cast<std::uint16_t>(json_i64(line, "part_id"));
   r.confidence_permille = static_cast<std::uint16_t>(json_i64(line, "confidence"));
   r.source = static_cast<ResultSource>(json_i64(line, "source"));
-  r.x_um = static_cast<std::int32_t>(json_i64(line, "x_um"));
-  r.y_um = static_cast<std::int32_t>(json_i64(line, "y_um"));
-  r.z_um = static_cast<std::int32_t>(json_i64(line, "z_um"));
-  r.rx_mdeg = static_cast<std::int32_t>(json_i64(line, "rx_mdeg"));
-  r.ry_mdeg = static_cast<std::int32_t>(json_i64(line, "ry_mdeg"));
-  r.rz_mdeg = static_cast<std::int32_t>(json_i64(line, "rz_mdeg"));
+  r.x_um = json_pose(line, "x_um");
+  r.y_um = json_pose(line, "y_um");
+  r.z_um = json_pose(line, "z_um");
+  r.rx_mdeg = json_pose(line, "rx_mdeg");
+  r.ry_mdeg = json_pose(line, "ry_mdeg");
+  r.rz_mdeg = json_pose(line, "rz_mdeg");
   r.timestamp_us = json_u64(line, "timestamp_us");
   r.cycle_ms = static_cast<std::uint16_t>(json_i64(line, "cycle_ms"));
+  r.sigma_x_um = json_sigma(line, "sigma_x_um");
+  r.sigma_y_um = json_sigma(line, "sigma_y_um");
+  r.sigma_z_um = json_sigma(line, "sigma_z_um");
+  r.sigma_rx_mdeg = json_sigma(line, "sigma_rx_mdeg");
+  r.sigma_ry_mdeg = json_sigma(line, "sigma_ry_mdeg");
+  r.sigma_rz_mdeg = json_sigma(line, "sigma_rz_mdeg");
   return r;
 }
 
@@ -596,9 +652,9 @@ struct SimPlc {
   }
   std::uint16_t status() { return reg(100); }
   DecodedBlock block() {
-    std::array<std::uint16_t, 27> regs{};
+    BlockWords regs{};
     REQUIRE(link.plc_read(200, regs) == 0);
-    return decode_block(regs.data());
+    return decode_block(regs);
   }
   void control(std::uint16_t value) { REQUIRE(link.plc_write_register(0, value) == 0); }
   void at_ms(std::int64_t ms) { link.advance_to(ms * kNsPerMs); }
@@ -613,10 +669,10 @@ PlcLinkConfig sim_config() {
 
 // Oracle of the map, register by register, from the DESIGN.md table.
 bool holding_mapped(std::uint32_t a) {
-  return a <= 9 || (a >= 100 && a <= 119) || (a >= 200 && a <= 226);
+  return a <= 9 || (a >= 100 && a <= 119) || (a >= 200 && a <= 234);
 }
 bool input_mapped(std::uint32_t a) {
-  return (a >= 100 && a <= 119) || (a >= 200 && a <= 226);
+  return (a >= 100 && a <= 119) || (a >= 200 && a <= 234);
 }
 bool plc_writable(std::uint32_t a) {
   return a <= 9;
@@ -819,6 +875,23 @@ TEST_CASE("wire units: metres and degrees become s32 um and millidegrees, unrepr
   CHECK(static_cast<std::uint32_t>(map::kInvalidS32) == 0x80000000u);
 }
 
+TEST_CASE("wire units: sigmas become u16 um and millidegrees, rounded, saturated at 65534, else 0xFFFF",
+          "[modbus][units]") {
+  CHECK(to_plc_sigma_micrometres(0.0) == 0);
+  CHECK(to_plc_sigma_micrometres(0.0000004) == 0);  // below the resolution: 0, still available
+  CHECK(to_plc_sigma_micrometres(0.0012346) == 1235);
+  CHECK(to_plc_sigma_micrometres(0.0655344) == 65534);
+  CHECK(to_plc_sigma_micrometres(0.0655346) == 65534);  // rounds to 65535, which is the marker: saturates
+  CHECK(to_plc_sigma_micrometres(1e300) == 65534);
+  CHECK(to_plc_sigma_micrometres(-0.000001) == 0xFFFF);  // no uncertainty is negative
+  CHECK(to_plc_sigma_micrometres(std::nan("")) == 0xFFFF);
+  CHECK(to_plc_sigma_micrometres(std::numeric_limits<double>::infinity()) == 0xFFFF);
+  CHECK(to_plc_sigma_millidegrees(0.0426) == 43);
+  CHECK(to_plc_sigma_millidegrees(90.0) == 65534);
+  CHECK(to_plc_sigma_millidegrees(-1.0) == 0xFFFF);
+  CHECK(map::kInvalidSigma == 0xFFFF);
+}
+
 // ================================================================== handshake on the simulated link
 
 TEST_CASE("sim link: each result is presented whole, once, in order, through the ack handshake", "[modbus][sim]") {
@@ -838,6 +911,7 @@ TEST_CASE("sim link: each result is presented whole, once, in order, through the
     const DecodedBlock block = plc.block();
     CHECK(block.seq == i + 1);
     CHECK(block.seq_copy == block.seq);
+    CHECK(block.seq_copy2 == block.seq);
     CHECK(same_result(block.result, results[i]));
     CHECK(plc.reg(109) == results.size() - i - 1);  // RESULT_QUEUE_DEPTH: waiting behind the presented one
     // When the PLC acks, then RESULT_VALID drops and the block does not change until the ack is cleared
@@ -1128,7 +1202,7 @@ TEST_CASE("sim link: CONTROL edges, commands and status reach their destinations
     CHECK(plc.reg(106) == 0x2345);
     CHECK(plc.reg(107) == 0xFFFF);
     CHECK(plc.reg(108) == 0xFFFE);
-    CHECK(plc.reg(110) == 1);  // MAP_VERSION
+    CHECK(plc.reg(110) == kMapVersion);
   }
 }
 
@@ -1160,7 +1234,7 @@ TEST_CASE("sim link: in poll-only mode a result stays at least the hold time, th
 TEST_CASE("sim link: the PLC side answers like the server: read-only blocks refuse writes, FC04 reads them",
           "[modbus][sim]") {
   SimPlcLink link(sim_config());
-  std::array<std::uint16_t, 27> regs{};
+  BlockWords regs{};
   CHECK(link.plc_read(200, regs) == SimPlcLink::kLinkDown);  // not started: no server
   REQUIRE(link.start().ok());
   CHECK(link.plc_write_register(100, 1) == 2);
@@ -1169,6 +1243,7 @@ TEST_CASE("sim link: the PLC side answers like the server: read-only blocks refu
   CHECK(link.plc_read(0, std::span<std::uint16_t>(regs.data(), 5), true) == 2);  // command block is not input
   CHECK(link.plc_read(200, regs, true) == 0);
   CHECK(link.plc_read(199, regs) == 2);
+  CHECK(link.plc_read(201, regs) == 2);  // one past 234
   std::vector<std::uint16_t> too_many(126);
   CHECK(link.plc_read(100, too_many) == 3);
 }
@@ -1180,7 +1255,7 @@ TEST_CASE("production side allocates nothing after start (simulated and real bac
   SECTION("simulated link, both sides") {
     SimPlcLink link(config);
     REQUIRE(link.start().ok());
-    std::array<std::uint16_t, 27> block{};
+    BlockWords block{};
     long allocations = 0;
     std::size_t accepted = 0;
     {
@@ -1208,8 +1283,8 @@ TEST_CASE("production side allocates nothing after start (simulated and real bac
     RunningServer running(server_config);
     MbClient client(running.port);
     REQUIRE(client.connected());
-    std::array<std::uint16_t, 27> block{};
-    REQUIRE(client.read(200, block.data(), 27) == 0);  // connection accepted and served once before counting
+    BlockWords block{};
+    REQUIRE(client.read(200, block.data(), kBlockWords) == 0);  // connection accepted and served once before counting
     long allocations = 0;
     int failures = 0;
     {
@@ -1219,7 +1294,7 @@ TEST_CASE("production side allocates nothing after start (simulated and real bac
         running.server.set_flag(StatusFlag::kBusy, true);
         running.server.heartbeat();
         (void)running.server.take_commands();
-        if (client.read(200, block.data(), 27) != 0) ++failures;
+        if (client.read(200, block.data(), kBlockWords) != 0) ++failures;
         if (client.write(0, map::kControlResultAck) != 0) ++failures;
         if (client.write(0, 0) != 0) ++failures;
       }
@@ -1267,11 +1342,11 @@ TEST_CASE("sim link: a producer thread and a PLC thread exchange 2000 results wi
       std::this_thread::yield();
       continue;
     }
-    std::array<std::uint16_t, 27> regs{};
+    BlockWords regs{};
     if (link.plc_read(200, regs) != 0) ++bad;
-    const DecodedBlock block = decode_block(regs.data());
-    if (block.seq != expected || block.seq_copy != expected || block.result.acq_id != expected ||
-        block.result.x_um != -static_cast<std::int32_t>(expected) ||
+    const DecodedBlock block = decode_block(regs);
+    if (block.seq != expected || block.seq_copy != expected || block.seq_copy2 != expected ||
+        block.result.acq_id != expected || block.result.x_um != -static_cast<std::int32_t>(expected) ||
         block.result.timestamp_us != (std::uint64_t{expected} << 33)) {
       ++bad;
     }
@@ -1290,7 +1365,7 @@ TEST_CASE("sim link: a producer thread and a PLC thread exchange 2000 results wi
 
 // ================================================================== real server, real clients
 
-TEST_CASE("server: a pymodbus PLC sees every published result once, in order, with exact values",
+TEST_CASE("server: a pymodbus PLC reading the whole block in one request sees every result once, exact, sigmas too",
           "[modbus][server][python]") {
   const std::string python = python_with_pymodbus();
   ModbusServerConfig config = loopback_config();
@@ -1309,7 +1384,7 @@ TEST_CASE("server: a pymodbus PLC sees every published result once, in order, wi
   INFO("first line: " << line << "\nstderr: " << client.stderr_text());
   REQUIRE(parse_json_line(line, json));
   REQUIRE(json["event"] == "connected");
-  CHECK(json_i64(json, "map_version") == 1);
+  CHECK(json_i64(json, "map_version") == kMapVersion);
 
   // Given a burst that fills the queue, then the rest as space frees up (never over capacity)
   const auto results = make_results(kResults, 21);
@@ -1344,6 +1419,11 @@ TEST_CASE("server: a pymodbus PLC sees every published result once, in order, wi
     CHECK((json_i64(received[i], "status") & map::kStatusResultValid) != 0);
     CHECK(same_result(result_from_json(received[i]), results[i]));
   }
+  // And the markers reached the PLC program as "not available", never as numbers it might use
+  CHECK(received[0]["z_um"] == "null");
+  CHECK(received[0]["sigma_z_um"] == "null");
+  CHECK(received[0]["sigma_x_um"] == "65534");
+  CHECK(received[0]["sigma_y_um"] == "0");
   CHECK(json_i64(done, "torn") == 0);
   CHECK(wait_until([&] { return running.server.stats().results_acked == kResults; }, 5000));
   CHECK(running.server.stats().results_rejected == 0);
@@ -1416,11 +1496,11 @@ TEST_CASE("server: mbpoll reads the result block word for word and 32-bit values
     return values;
   };
 
-  SECTION("27 holding registers, 16 bit, one request") {
-    const auto values = run_mbpoll({"-r", "201", "-c", "27", "-t", "4"}, "mbpoll16");
+  SECTION("35 holding registers, 16 bit, one request") {
+    const auto values = run_mbpoll({"-r", "201", "-c", "35", "-t", "4"}, "mbpoll16");
     const auto expected = expected_words(r, 1);
-    REQUIRE(values.size() == 27);
-    for (int i = 0; i < 27; ++i) {
+    REQUIRE(values.size() == kBlockWords);
+    for (int i = 0; i < kBlockWords; ++i) {
       INFO("address " << 200 + i);
       CHECK(values.at(201 + i) == expected[static_cast<std::size_t>(i)]);
     }
@@ -1440,6 +1520,32 @@ TEST_CASE("server: mbpoll reads the result block word for word and 32-bit values
     REQUIRE(values.size() == 2);
     CHECK(values.at(201) == 1);            // RESULT_SEQ
     CHECK(values.at(203) == 0x0102'0304);  // ACQ_ID
+  }
+}
+
+TEST_CASE("server: a PLC written for map version 1 reads 200-226 in one request and still gets a whole block",
+          "[modbus][server]") {
+  // Given a published result with every field set, the version-2 ones too
+  RunningServer running(loopback_config());
+  const PlcResult r = make_results(3, 28)[1];
+  REQUIRE(running.server.publish(r) == PublishStatus::kQueued);
+  MbClient plc(running.port);
+  REQUIRE(plc.connected());
+  REQUIRE(wait_until([&] { return (plc.status() & map::kStatusResultValid) != 0; }, 2000));
+  const BlockWords expected = expected_words(r, 1);
+  for (const bool input : {false, true}) {
+    INFO((input ? "FC04" : "FC03"));
+    // When a version-1 PLC reads its 27 registers
+    std::array<std::uint16_t, kBlockWordsV1> words{};
+    REQUIRE(plc.read(200, words.data(), kBlockWordsV1, input) == 0);
+    // Then they are the version-1 block word for word, and its sequence copy at 225-226 accepts it
+    CHECK(std::equal(words.begin(), words.end(), expected.begin()));
+    const DecodedBlock block = decode_block(words);
+    CHECK(block.seq == 1);
+    CHECK(block.seq_copy == block.seq);
+    CHECK(block.result.x_um == r.x_um);
+    CHECK(block.result.rz_mdeg == r.rz_mdeg);
+    CHECK(block.result.cycle_ms == r.cycle_ms);
   }
 }
 
@@ -1492,8 +1598,8 @@ TEST_CASE("server: malformed frames get exceptions or a closed connection while 
   REQUIRE(wait_until([&] { return (observer.status() & map::kStatusResultValid) != 0; }, 2000));
   const DecodedBlock before = observer.block();
   auto observer_fine = [&] {
-    std::array<std::uint16_t, 27> regs{};
-    return observer.read(200, regs.data(), 27) == 0 && decode_block(regs.data()).seq == before.seq;
+    BlockWords regs{};
+    return observer.read(200, regs.data(), kBlockWords) == 0 && decode_block(regs).seq == before.seq;
   };
 
   SECTION("unknown function codes: exception 01, connection still usable") {
@@ -1516,11 +1622,13 @@ TEST_CASE("server: malformed frames get exceptions or a closed connection while 
     REQUIRE(raw.connected());
     CHECK(raw.exception_for(adu(1, 1, pdu_read(3, 10, 1))) == 2);
     CHECK(raw.exception_for(adu(2, 1, pdu_read(3, 99, 2))) == 2);
-    CHECK(raw.exception_for(adu(3, 1, pdu_read(3, 220, 10))) == 2);
+    CHECK(raw.exception_for(adu(3, 1, pdu_read(3, 230, 10))) == 2);  // runs past 234
+    CHECK(raw.exception_for(adu(10, 1, pdu_read(4, 200, 36))) == 2);
     CHECK(raw.exception_for(adu(4, 1, pdu_read(4, 0, 1))) == 2);
     CHECK(raw.exception_for(adu(5, 1, pdu_read(3, 65535, 125))) == 2);
     CHECK(raw.exception_for(adu(6, 1, {0x06, 0, 100, 0xFF, 0xFF})) == 2);
     CHECK(raw.exception_for(adu(7, 1, {0x06, 0, 226, 0, 0})) == 2);
+    CHECK(raw.exception_for(adu(11, 1, {0x06, 0, 234, 0, 0})) == 2);
     CHECK(raw.exception_for(adu(8, 1, pdu_write_multiple(200, {0, 0}))) == 2);
     CHECK(raw.exception_for(adu(9, 1, pdu_write_multiple(8, {1, 2, 3}))) == 2);
     const DecodedBlock after = observer.block();
@@ -1577,7 +1685,7 @@ bool served(RawClient& client, std::uint16_t transaction) {
   std::vector<std::uint8_t> reply;
   if (client.receive(reply, 11, 2000) != RawClient::Outcome::kData) return false;
   return reply[0] == (transaction >> 8) && reply[1] == (transaction & 0xFF) && reply[7] == 3 && reply[8] == 2 &&
-         reply[9] == 0 && reply[10] == 1;
+         reply[9] == 0 && reply[10] == kMapVersion;
 }
 
 // Connects `count` raw clients that send nothing, one after the other, each accepted by the server before the
@@ -1613,7 +1721,7 @@ TEST_CASE("server: idle connections filling every slot cannot lock the PLC out: 
   std::uint16_t version = 0;
   REQUIRE(plc.read(110, &version, 1) == 0);
   CHECK(elapsed_ms(connecting) < 1000);
-  CHECK(version == 1);
+  CHECK(version == kMapVersion);
   // And the connection that was idle longest (the first) made room for it, the others keep their slots
   CHECK(idle[0]->closed_within(2000));
   LinkStats stats = running.server.stats();
@@ -1681,7 +1789,7 @@ TEST_CASE("server: a storm of new connections that send nothing does not push ou
   CHECK(running.server.stats().clients_evicted == 5);
   CHECK(plc.read(110, &version, 1) == 0);
   CHECK(hmi.read(110, &version, 1) == 0);
-  CHECK(version == 1);
+  CHECK(version == kMapVersion);
   for (std::size_t i = 0; i + 1 < storm.size(); ++i) CHECK(storm[i]->closed_within(2000));
   CHECK(served(*storm.back(), 11));
 }
@@ -1716,7 +1824,7 @@ TEST_CASE("server: a client in the middle of a request is not evicted in prefere
     REQUIRE(busy[0]->receive(reply, 11, 2000) == RawClient::Outcome::kData);
     CHECK(reply[0] == 0x01);
     CHECK(reply[1] == 0x02);
-    CHECK(reply[10] == 1);
+    CHECK(reply[10] == kMapVersion);
     CHECK(running.server.stats().clients_evicted == 1);
     CHECK(running.server.stats().clients_refused == 0);
   }
@@ -1734,7 +1842,7 @@ TEST_CASE("server: a client in the middle of a request is not evicted in prefere
     REQUIRE(busy[0]->send_bytes(second_half));
     std::vector<std::uint8_t> reply;
     REQUIRE(busy[0]->receive(reply, 11, 2000) == RawClient::Outcome::kData);
-    CHECK(reply[10] == 1);
+    CHECK(reply[10] == kMapVersion);
   }
 }
 
@@ -1834,5 +1942,5 @@ TEST_CASE("server: start() fails with a clear message on a taken port or a bad c
   REQUIRE(client.connected());
   std::uint16_t version = 0;
   CHECK(client.read(110, &version, 1) == 0);
-  CHECK(version == 1);
+  CHECK(version == kMapVersion);
 }

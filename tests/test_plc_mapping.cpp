@@ -1,10 +1,12 @@
 // Tests of runtime/plc_mapping: decision -> result block words, loop state -> STATUS bits, part -> WARNING_CODE.
-// The truth is the README's register table, worked out by hand in the comments (addresses 200-226, 32-bit values high
-// word first, 0x80000000 = invalid), not the code under test.
+// The truth is the README's register table, worked out by hand in the comments (addresses 200-234, 32-bit values high
+// word first, 0x80000000 = invalid pose value, 0xFFFF = sigma not available), not the code under test.
 #include <array>
 #include <catch2/catch.hpp>
 #include <cstdint>
 #include <limits>
+#include <numbers>
+#include <utility>
 
 #include "drivers/modbus/link_core.hpp"
 #include "drivers/modbus/register_map.hpp"
@@ -13,6 +15,7 @@
 namespace {
 
 using namespace cellsight;
+using algo::PoseAxis;
 using drivers::ResultCode;
 using drivers::StatusFlag;
 using drivers::WarningCode;
@@ -20,7 +23,7 @@ using runtime::LoopState;
 
 using Block = std::array<std::uint16_t, drivers::modbus_map::kResultBlockCount>;
 
-// The 27 words the PLC reads at 200-226 for `decision` published as RESULT_SEQ `seq`.
+// The 35 words the PLC reads at 200-234 for `decision` published as RESULT_SEQ `seq`.
 Block words_of(const algo::Decision& decision, std::uint32_t acq_id, std::uint64_t timestamp_us, double cycle_ms,
                std::uint32_t seq) {
   Block block{};
@@ -41,16 +44,37 @@ algo::Decision accepted(algo::DecisionSource source, int part_id, double p, doub
   return d;
 }
 
+void set_sigma(algo::Decision& d, PoseAxis axis, double sigma) {
+  d.pose_sigma[static_cast<std::size_t>(axis)] = sigma;
+}
+
 constexpr std::uint16_t kInvalidHi = 0x8000;  // 0x80000000, high word first
 constexpr std::uint16_t kInvalidLo = 0x0000;
+constexpr std::uint16_t kNoSigma = 0xFFFF;
+// Word indices (address - 200) of the README's table.
+constexpr std::size_t kZ = 12, kRx = 14, kRy = 16;
+constexpr std::size_t kSigmaX = 27, kSigmaY = 28, kSigmaZ = 29, kSigmaRx = 30, kSigmaRy = 31, kSigmaRz = 32;
 
-TEST_CASE("plc mapping: an SVM decision gives the documented result block, word by word", "[plc_mapping]") {
-  // Given part id 3 at p 0.875, x 12.345678 mm, y -4.5 mm, theta 0.05 rad, acquisition 42, published as seq 7
-  const algo::Decision d = accepted(algo::DecisionSource::kSvm, 3, 0.875, 0.012345678, -0.0045, 0.05);
+bool invalid_s32(const Block& words, std::size_t at) {
+  return words[at] == kInvalidHi && words[at + 1] == kInvalidLo;
+}
+
+TEST_CASE("plc mapping: an SVM decision with the full pose gives the documented result block, word by word",
+          "[plc_mapping]") {
+  // Given part id 3 at p 0.875, x 12.345678 mm, y -4.5 mm, z -32.1 mm, rx 0.01 rad, ry -0.002 rad, theta 0.05 rad,
+  // sigmas 0.4 mm, 12.6 um, 2.1 mm, 3 mrad, 1.5 mrad, 0.7 mrad; acquisition 42, published as seq 7
+  algo::Decision d = accepted(algo::DecisionSource::kSvm, 3, 0.875, 0.012345678, -0.0045, 0.05);
+  d.z_m = -0.0321;
+  d.rx_rad = 0.01;
+  d.ry_rad = -0.002;
+  d.pose_sigma = {0.0004, 0.0000126, 0.0021, 0.003, 0.0015, 0.0007};
   // When mapped and encoded
   const Block words = words_of(d, 42, 123456789, 17.4, 7);
-  // Then, by hand: x 12345.678 um -> 12346 = 0x0000'303A; y -4500 um = 0xFFFF'EE6C; theta 0.05 rad = 2.864789 deg
-  // -> 2865 mdeg = 0x0000'0B31; Z, RX, RY 0 (planar pose); timestamp 123456789 us = 0x0000'0000'075B'CD15.
+  // Then, by hand: x 12345.678 um -> 12346 = 0x0000'303A; y -4500 um = 0xFFFF'EE6C; z -32100 um = 0xFFFF'829C;
+  // rx 0.01 rad = 0.5729578 deg -> 573 mdeg = 0x0000'023D; ry -0.002 rad = -0.1145916 deg -> -115 mdeg =
+  // 0xFFFF'FF8D; theta 0.05 rad = 2.864789 deg -> 2865 mdeg = 0x0000'0B31; timestamp 123456789 us =
+  // 0x0000'0000'075B'CD15. Sigmas: 400 um; 12.6 -> 13 um; 2100 um; 3 mrad = 171.887 -> 172 mdeg;
+  // 1.5 mrad = 85.944 -> 86 mdeg; 0.7 mrad = 40.107 -> 40 mdeg.
   const Block expected = {
       0x0000, 0x0007,                  // 200-201 RESULT_SEQ
       0x0000, 0x002A,                  // 202-203 ACQ_ID 42
@@ -60,15 +84,106 @@ TEST_CASE("plc mapping: an SVM decision gives the documented result block, word 
       1,                               // 207 SOURCE svm
       0x0000, 0x303A,                  // 208-209 X um
       0xFFFF, 0xEE6C,                  // 210-211 Y um
-      0x0000, 0x0000,                  // 212-213 Z
-      0x0000, 0x0000,                  // 214-215 RX
-      0x0000, 0x0000,                  // 216-217 RY
+      0xFFFF, 0x829C,                  // 212-213 Z um
+      0x0000, 0x023D,                  // 214-215 RX mdeg
+      0xFFFF, 0xFF8D,                  // 216-217 RY mdeg
       0x0000, 0x0B31,                  // 218-219 RZ mdeg
       0x0000, 0x0000, 0x075B, 0xCD15,  // 220-223 TIMESTAMP
       17,                              // 224 CYCLE_MS (17.4 rounded)
-      0x0000, 0x0007,                  // 225-226 RESULT_SEQ copy
+      0x0000, 0x0007,                  // 225-226 RESULT_SEQ copy (the end of a version-1 read)
+      400,                             // 227 SIGMA_X_UM
+      13,                              // 228 SIGMA_Y_UM
+      2100,                            // 229 SIGMA_Z_UM
+      172,                             // 230 SIGMA_RX_MDEG
+      86,                              // 231 SIGMA_RY_MDEG
+      40,                              // 232 SIGMA_RZ_MDEG
+      0x0000, 0x0007,                  // 233-234 RESULT_SEQ copy 2
   };
   CHECK(words == expected);
+}
+
+TEST_CASE("plc mapping: an axis the geometry does not fix goes out as 0x80000000 with sigma 0xFFFF, the result ok",
+          "[plc_mapping]") {
+  // Given a planar pose with its sigmas and z, rx, ry NaN (a part too narrow to fix them), as the recogniser says
+  algo::Decision d = accepted(algo::DecisionSource::kPm, 5, 0.9, 0.001, 0.002, 0.003);
+  set_sigma(d, PoseAxis::kX, 0.0002);
+  set_sigma(d, PoseAxis::kY, 0.0003);
+  set_sigma(d, PoseAxis::kRz, 0.001);  // 57.296 mdeg
+  SECTION("all three out-of-plane axes missing") {
+    const Block words = words_of(d, 1, 0, 1.0, 1);
+    CHECK(words[4] == 0);  // still ok: the robot can correct x, y and theta
+    CHECK(invalid_s32(words, kZ));
+    CHECK(invalid_s32(words, kRx));
+    CHECK(invalid_s32(words, kRy));
+    CHECK(words[kSigmaX] == 200);
+    CHECK(words[kSigmaY] == 300);
+    CHECK(words[kSigmaZ] == kNoSigma);
+    CHECK(words[kSigmaRx] == kNoSigma);
+    CHECK(words[kSigmaRy] == kNoSigma);
+    CHECK(words[kSigmaRz] == 57);
+  }
+  SECTION("z fixed, tilt and swing not: each axis on its own") {
+    d.z_m = 0.0005;
+    set_sigma(d, PoseAxis::kZ, 0.0011);
+    const Block words = words_of(d, 1, 0, 1.0, 1);
+    CHECK(words[kZ] == 0x0000);
+    CHECK(words[kZ + 1] == 500);
+    CHECK(words[kSigmaZ] == 1100);
+    CHECK(invalid_s32(words, kRx));
+    CHECK(invalid_s32(words, kRy));
+    CHECK(words[kSigmaRx] == kNoSigma);
+  }
+  SECTION("a sigma without its value is not published (the value decides, not the estimate)") {
+    set_sigma(d, PoseAxis::kRx, 0.002);  // rx itself stays NaN
+    d.ry_rad = 1e5;                      // 5.7e9 millidegrees: beyond s32
+    set_sigma(d, PoseAxis::kRy, 0.002);
+    const Block words = words_of(d, 1, 0, 1.0, 1);
+    CHECK(words[4] == 0);
+    CHECK(invalid_s32(words, kRy));
+    CHECK(words[kSigmaRx] == kNoSigma);
+    CHECK(words[kSigmaRy] == kNoSigma);
+  }
+  SECTION("a value whose sigma was not estimated") {
+    d.z_m = 0.0;
+    const Block words = words_of(d, 1, 0, 1.0, 1);
+    CHECK(words[kZ] == 0x0000);  // 0 is a measurement here, not a placeholder
+    CHECK(words[kZ + 1] == 0x0000);
+    CHECK(words[kSigmaZ] == kNoSigma);
+  }
+}
+
+TEST_CASE("plc mapping: sigmas are rounded, saturate at 65534 and are 0xFFFF when not finite or negative",
+          "[plc_mapping]") {
+  algo::Decision d = accepted(algo::DecisionSource::kSvm, 1, 0.9, 0.0, 0.0, 0.0);
+  d.z_m = 0.0;
+  d.rx_rad = 0.0;
+  d.ry_rad = 0.0;
+  const auto sigma_words = [&d](double linear_m, double angular_rad) {
+    d.pose_sigma = {linear_m, linear_m, linear_m, angular_rad, angular_rad, angular_rad};
+    const Block words = words_of(d, 1, 0, 1.0, 1);
+    CHECK(words[kSigmaY] == words[kSigmaX]);  // each register follows its own axis: same input, same word
+    CHECK(words[kSigmaZ] == words[kSigmaX]);
+    CHECK(words[kSigmaRy] == words[kSigmaRx]);
+    CHECK(words[kSigmaRz] == words[kSigmaRx]);
+    return std::pair{words[kSigmaX], words[kSigmaRx]};
+  };
+  // 0.4 um -> 0; 0.0004 deg = 0.4 mdeg -> 0 (a sigma below the wire's resolution is 0, still "available")
+  CHECK(sigma_words(0.0000004, 0.0004 * std::numbers::pi / 180.0) == std::pair<std::uint16_t, std::uint16_t>{0, 0});
+  // 1.6 um -> 2; 1.4 mdeg -> 1
+  CHECK(sigma_words(0.0000016, 0.0014 * std::numbers::pi / 180.0) == std::pair<std::uint16_t, std::uint16_t>{2, 1});
+  // 65534.4 um -> 65534; 65.5344 deg -> 65534 mdeg
+  CHECK(sigma_words(0.0655344, 65.5344 * std::numbers::pi / 180.0) ==
+        std::pair<std::uint16_t, std::uint16_t>{65534, 65534});
+  // 65534.6 um rounds to 65535, which would read "not available": saturates at 65534 instead; 1 m, 1.2 rad too
+  CHECK(sigma_words(0.0655346, 65.5346 * std::numbers::pi / 180.0) ==
+        std::pair<std::uint16_t, std::uint16_t>{65534, 65534});
+  CHECK(sigma_words(1.0, 1.2) == std::pair<std::uint16_t, std::uint16_t>{65534, 65534});
+  // Not estimated, infinite, negative: not available
+  CHECK(sigma_words(std::numeric_limits<double>::quiet_NaN(), std::numeric_limits<double>::quiet_NaN()) ==
+        std::pair{kNoSigma, kNoSigma});
+  CHECK(sigma_words(std::numeric_limits<double>::infinity(), std::numeric_limits<double>::infinity()) ==
+        std::pair{kNoSigma, kNoSigma});
+  CHECK(sigma_words(-0.0001, -0.001) == std::pair{kNoSigma, kNoSigma});
 }
 
 TEST_CASE("plc mapping: a Perfect Match decision with negative pose values", "[plc_mapping]") {
@@ -97,11 +212,14 @@ TEST_CASE("plc mapping: a Perfect Match decision with negative pose values", "[p
   CHECK(words[24] == 3000);
 }
 
-TEST_CASE("plc mapping: results without a pose carry the invalid marker in every pose register", "[plc_mapping]") {
+TEST_CASE("plc mapping: results without a pose carry the invalid marker in every pose and sigma register",
+          "[plc_mapping]") {
   const auto pose_invalid = [](const Block& words) {
-    for (int i = 8; i < 20; i += 2) {
-      if (words[static_cast<std::size_t>(i)] != kInvalidHi || words[static_cast<std::size_t>(i) + 1] != kInvalidLo)
-        return false;
+    for (std::size_t i = 8; i < 20; i += 2) {
+      if (!invalid_s32(words, i)) return false;
+    }
+    for (std::size_t i = kSigmaX; i <= kSigmaRz; ++i) {
+      if (words[i] != kNoSigma) return false;
     }
     return true;
   };
@@ -109,6 +227,8 @@ TEST_CASE("plc mapping: results without a pose carry the invalid marker in every
     algo::Decision d;
     d.source = algo::DecisionSource::kUnknown;
     d.probability = 0.4126;
+    d.z_m = 0.01;  // the best class's pose, had anyone filled it in, is no instruction
+    d.pose_sigma = {0.001, 0.001, 0.001, 0.001, 0.001, 0.001};
     const Block words = words_of(d, 1, 0, 1.0, 1);
     CHECK(words[4] == 2);
     CHECK(words[5] == 0);
@@ -118,13 +238,22 @@ TEST_CASE("plc mapping: results without a pose carry the invalid marker in every
   }
   SECTION("a class without a usable pose: code 4 'pose out of range', part id kept, pose invalid") {
     algo::Decision d = accepted(algo::DecisionSource::kSvm, 9, 0.9, 0.01, 0.01, 0.01);
+    d.z_m = 0.01;  // whatever else the decision carries goes nowhere
+    d.pose_sigma = {0.001, 0.001, 0.001, 0.001, 0.001, 0.001};
     d.pose_valid = false;
     Block words = words_of(d, 1, 0, 1.0, 1);
     CHECK(words[4] == 4);
     CHECK(words[5] == 9);
     CHECK(pose_invalid(words));
     // A pose beyond s32 micrometres (2147 m) is not representable either.
-    d = accepted(algo::DecisionSource::kSvm, 9, 0.9, 3000.0, 0.0, 0.0);
+    d.pose_valid = true;
+    d.pose.x_m = 3000.0;
+    words = words_of(d, 1, 0, 1.0, 1);
+    CHECK(words[4] == 4);
+    CHECK(pose_invalid(words));
+    // Nor is a pose with theta missing.
+    d.pose.x_m = 0.01;
+    d.pose.theta_rad = std::numeric_limits<double>::quiet_NaN();
     words = words_of(d, 1, 0, 1.0, 1);
     CHECK(words[4] == 4);
     CHECK(pose_invalid(words));
@@ -137,6 +266,7 @@ TEST_CASE("plc mapping: results without a pose carry the invalid marker in every
       d.source = source;
       d.part_id = 7;
       d.probability = 0.9;
+      d.pose_sigma = {0.001, 0.001, 0.001, 0.001, 0.001, 0.001};
       const Block words = words_of(d, 1, 0, 1.0, 1);
       CHECK(words[4] == code);
       CHECK(words[5] == 0);

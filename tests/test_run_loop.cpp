@@ -24,6 +24,7 @@
 #include <filesystem>
 #include <fstream>
 #include <iterator>
+#include <limits>
 #include <mutex>
 #include <numbers>
 #include <optional>
@@ -64,6 +65,8 @@ using Clock = std::chrono::steady_clock;
 using std::chrono::milliseconds;
 
 constexpr std::int64_t kNsPerMs = 1'000'000;
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+constexpr std::uint16_t kNoSigma = 0xFFFF;  // README: a sigma register that is not available
 
 // Allocation counter (proves "no allocation"): operator new on every thread while the window is open, except inside
 // the simulated world (the simulator's renderer and scene building, the test's PLC): those stand for the camera,
@@ -132,6 +135,9 @@ struct Script {
   int part_id = 3;
   double probability = 0.875;
   double x_m = 0.012345678, y_m = -0.0045, theta_rad = 0.05;
+  // The out-of-plane axes and the sigmas: NaN = not fixed / not estimated, as a planar-only recogniser says.
+  double z_m = kNaN, rx_rad = kNaN, ry_rad = kNaN;
+  std::array<double, algo::kPoseAxes> pose_sigma = algo::Decision::nan_array();
   int delay_ms = 0;             // how long recognise() takes
   bool honour_deadline = true;  // false: a misbehaving recogniser that ignores the deadline
 };
@@ -160,6 +166,10 @@ class ScriptedRecogniser final : public runtime::Recogniser {
       d.probability = s.probability;
       d.pose_valid = d.accepted();
       d.pose = {s.x_m, s.y_m, s.theta_rad};
+      d.z_m = s.z_m;
+      d.rx_rad = s.rx_rad;
+      d.ry_rad = s.ry_rad;
+      d.pose_sigma = s.pose_sigma;
     }
     returned_.fetch_add(1);
     return d;
@@ -374,6 +384,8 @@ class SimPlc {
         if (link_.plc_read(map::kResultBlockFirst, s.block) != 0) ++link_errors_;
         const std::uint32_t seq = u32(&s.block[0]);
         const std::uint32_t copy = u32(&s.block[map::kResultSeqCopy - map::kResultBlockFirst]);
+        const std::uint32_t copy2 = u32(&s.block[map::kResultSeqCopy2 - map::kResultBlockFirst]);
+        if (copy2 != copy) ++violations_;      // both copies are written with the block: never one without the other
         if (seq == last_seq && seq == copy) {  // still the one already taken (a PLC that did not acknowledge)
           if (ack_.load()) phase = Phase::kWaitInvalid;
           std::this_thread::sleep_for(milliseconds(1));
@@ -432,9 +444,19 @@ struct Block {
   std::int32_t x_um() const { return s32(at(map::kPoseX)); }
   std::int32_t y_um() const { return s32(at(map::kPoseY)); }
   std::int32_t z_um() const { return s32(at(map::kPoseZ)); }
+  std::int32_t rx_mdeg() const { return s32(at(map::kPoseRx)); }
+  std::int32_t ry_mdeg() const { return s32(at(map::kPoseRy)); }
   std::int32_t rz_mdeg() const { return s32(at(map::kPoseRz)); }
   std::uint64_t timestamp_us() const { return u64(at(map::kTimestamp)); }
   std::uint16_t cycle_ms() const { return *at(map::kCycleMs); }
+  std::uint32_t seq_copy() const { return u32(at(map::kResultSeqCopy)); }
+  std::uint32_t seq_copy2() const { return u32(at(map::kResultSeqCopy2)); }
+  // The six sigma registers in PoseAxis order (x, y, z, rx, ry, rz).
+  std::array<std::uint16_t, algo::kPoseAxes> sigmas() const {
+    std::array<std::uint16_t, algo::kPoseAxes> out{};
+    std::copy_n(at(map::kSigmaX), out.size(), out.begin());
+    return out;
+  }
 };
 
 // The simulated cell with the loop on top: devices, link, PLC, recogniser.
@@ -503,8 +525,11 @@ TEST_CASE("mapping: each decision source becomes the documented result block", "
   d.probability = 0.8764;
   d.pose_valid = true;
   d.pose = {0.0123456, -0.0204999, 2.0 * std::numbers::pi / 180.0};
+  d.z_m = 0.0031;
+  d.rx_rad = -0.5 * std::numbers::pi / 180.0;
+  d.pose_sigma = {0.0004, 0.0005, 0.0021, 0.1 * std::numbers::pi / 180.0, kNaN, 0.05 * std::numbers::pi / 180.0};
 
-  SECTION("svm and perfect match: ok, part id, per mille, um and millidegrees, Z/RX/RY 0") {
+  SECTION("svm and perfect match: ok, part id, per mille, um and millidegrees, sigmas; RY unfixed -> invalid") {
     for (const auto source : {algo::DecisionSource::kSvm, algo::DecisionSource::kPm}) {
       d.source = source;
       const drivers::PlcResult r = runtime::to_plc_result(d, 42, 123456789, 17.4);
@@ -516,12 +541,18 @@ TEST_CASE("mapping: each decision source becomes the documented result block", "
       CHECK(r.confidence_permille == 876);
       CHECK(r.x_um == 12346);   // 12345.6 um rounded
       CHECK(r.y_um == -20500);  // -20499.9 um rounded
-      CHECK(r.z_um == 0);
-      CHECK(r.rx_mdeg == 0);
-      CHECK(r.ry_mdeg == 0);
+      CHECK(r.z_um == 3100);
+      CHECK(r.rx_mdeg == -500);
+      CHECK(r.ry_mdeg == map::kInvalidS32);  // NaN: the geometry did not fix it, never 0
       CHECK(r.rz_mdeg == 2000);
       CHECK(r.timestamp_us == 123456789);
       CHECK(r.cycle_ms == 17);
+      CHECK(r.sigma_x_um == 400);
+      CHECK(r.sigma_y_um == 500);
+      CHECK(r.sigma_z_um == 2100);
+      CHECK(r.sigma_rx_mdeg == 100);
+      CHECK(r.sigma_ry_mdeg == kNoSigma);
+      CHECK(r.sigma_rz_mdeg == 50);
     }
   }
   SECTION("an accepted class without a usable pose is 'pose out of range', never a pose") {
@@ -531,7 +562,10 @@ TEST_CASE("mapping: each decision source becomes the documented result block", "
     CHECK(r.code == ResultCode::kPoseOutOfRange);
     CHECK(r.part_id == 7);
     CHECK(r.x_um == map::kInvalidS32);
+    CHECK(r.z_um == map::kInvalidS32);
     CHECK(r.rz_mdeg == map::kInvalidS32);
+    CHECK(r.sigma_x_um == kNoSigma);
+    CHECK(r.sigma_z_um == kNoSigma);
     d.pose_valid = true;
     d.pose.x_m = std::numeric_limits<double>::quiet_NaN();
     r = runtime::to_plc_result(d, 1, 0, 1.0);
@@ -555,7 +589,11 @@ TEST_CASE("mapping: each decision source becomes the documented result block", "
       CHECK(r.x_um == map::kInvalidS32);
       CHECK(r.y_um == map::kInvalidS32);
       CHECK(r.z_um == map::kInvalidS32);
+      CHECK(r.rx_mdeg == map::kInvalidS32);
       CHECK(r.rz_mdeg == map::kInvalidS32);
+      CHECK(r.sigma_x_um == kNoSigma);
+      CHECK(r.sigma_z_um == kNoSigma);
+      CHECK(r.sigma_rz_mdeg == kNoSigma);
       // The best class's probability stays visible for "unknown" only (a diagnostic, not a decision).
       CHECK(r.confidence_permille == (source == algo::DecisionSource::kUnknown ? 876 : 0));
     }
@@ -602,6 +640,10 @@ TEST_CASE(
   second.x_m = -0.03;
   second.y_m = 0.02;
   second.theta_rad = -0.07;
+  second.z_m = 0.0042;
+  second.rx_rad = 0.002;
+  second.ry_rad = -0.001;
+  second.pose_sigma = {0.0003, 0.0002, 0.0015, 0.004, 0.003, 0.001};
   Script third;
   third.source = algo::DecisionSource::kUnknown;
   third.probability = 0.4;
@@ -650,8 +692,11 @@ TEST_CASE(
   CHECK(b0.confidence() == 875);
   CHECK(b0.x_um() == 12346);
   CHECK(b0.y_um() == -4500);
-  CHECK(b0.z_um() == 0);
+  CHECK(b0.z_um() == map::kInvalidS32);  // a planar decision: z, rx, ry not fixed, sent invalid, never 0
+  CHECK(b0.rx_mdeg() == map::kInvalidS32);
+  CHECK(b0.ry_mdeg() == map::kInvalidS32);
   CHECK(b0.rz_mdeg() == mdeg(0.05));
+  CHECK(b0.sigmas() == std::array<std::uint16_t, 6>{kNoSigma, kNoSigma, kNoSigma, kNoSigma, kNoSigma, kNoSigma});
   CHECK(b1.code() == 0);
   CHECK(b1.source() == 2);
   CHECK(b1.part_id() == 2);
@@ -659,11 +704,19 @@ TEST_CASE(
   CHECK(b1.x_um() == -30000);
   CHECK(b1.y_um() == 20000);
   CHECK(b1.rz_mdeg() == mdeg(-0.07));
+  CHECK(b1.z_um() == 4200);
+  CHECK(b1.rx_mdeg() == mdeg(0.002));
+  CHECK(b1.ry_mdeg() == mdeg(-0.001));
+  // 0.3, 0.2, 1.5 mm; 4, 3, 1 mrad = 229.18, 171.89, 57.30 mdeg
+  CHECK(b1.sigmas() == std::array<std::uint16_t, 6>{300, 200, 1500, 229, 172, 57});
   CHECK(b2.code() == 2);  // unknown part
   CHECK(b2.part_id() == 0);
   CHECK(b2.confidence() == 400);
   CHECK(b2.x_um() == map::kInvalidS32);
+  CHECK(b2.sigmas() == b0.sigmas());
   for (const Block* b : {&b0, &b1, &b2}) {
+    CHECK(b->seq_copy() == b->seq());
+    CHECK(b->seq_copy2() == b->seq());
     CHECK(b->timestamp_us() >= started_us);
     CHECK(b->timestamp_us() <= finished_us);
     CHECK(b->cycle_ms() < config.runtime.deadline_ms);
@@ -1181,6 +1234,8 @@ TEST_CASE("loop: through a real Modbus server on 127.0.0.1 a libmodbus PLC takes
   second.part_id = 4;
   second.x_m = 0.0271;
   second.theta_rad = -0.031;
+  second.z_m = -0.0015;
+  second.pose_sigma = {0.0001, 0.0002, 0.0009, kNaN, kNaN, 0.0005};
   Cell cell(config, {Script{}, second, Script{}, second});
   constexpr int kParts = 4;
   cell.enqueue(kParts);
@@ -1263,13 +1318,19 @@ TEST_CASE("loop: through a real Modbus server on 127.0.0.1 a libmodbus PLC takes
     const Block b(results[i].block);
     const Script& expected = i % 2 == 0 ? Script{} : second;
     CHECK(b.seq() == i + 1);
-    CHECK(u32(b.at(map::kResultSeqCopy)) == i + 1);
+    CHECK(b.seq_copy() == i + 1);
+    CHECK(b.seq_copy2() == i + 1);  // the whole version-2 block came in the one read
     CHECK(b.acq_id() == i + 1);
     CHECK(b.code() == 0);
     CHECK(b.part_id() == expected.part_id);
     CHECK(b.x_um() == static_cast<std::int32_t>(std::lround(expected.x_m * 1e6)));
     CHECK(b.y_um() == static_cast<std::int32_t>(std::lround(expected.y_m * 1e6)));
     CHECK(b.rz_mdeg() == mdeg(expected.theta_rad));
+    CHECK(b.z_um() == (i % 2 == 0 ? map::kInvalidS32 : -1500));
+    // 0.1, 0.2, 0.9 mm; rx, ry unfixed; 0.5 mrad = 28.65 mdeg
+    CHECK(b.sigmas() == (i % 2 == 0
+                             ? std::array<std::uint16_t, 6>{kNoSigma, kNoSigma, kNoSigma, kNoSigma, kNoSigma, kNoSigma}
+                             : std::array<std::uint16_t, 6>{100, 200, 900, kNoSigma, kNoSigma, 29}));
   }
   // Sampled at least heartbeat_window_ms apart: that many whole periods were crossed, unless HEARTBEAT was frozen.
   INFO("HEARTBEAT " << heartbeat_first << " -> " << heartbeat_last << " over at least " << heartbeat_window_ms

@@ -2,18 +2,23 @@
 """Integration test of `cellsight run --sim` with real Modbus clients playing the PLC (pymodbus 3.0, Debian).
 
 Starts `cellsight run --sim --parts N --wait-plc --truth-log FILE --port P`, then, all at the same time:
-  PLC A   the handshake of DESIGN.md: TRIGGER_ENABLE, waits for RESULT_VALID, reads the 27-register result block in
-          one FC03, checks both sequence copies and that the sequence is new, sets RESULT_ACK, waits for RESULT_VALID
-          to drop, clears RESULT_ACK. Once it drops its connection in the middle of a result (read, not yet
-          acknowledged) and reconnects: the same result must still be there, unchanged, and is taken once.
+  PLC A   the handshake of DESIGN.md, written for register map version 2 (checks MAP_VERSION = 2): TRIGGER_ENABLE,
+          waits for RESULT_VALID, reads the 35-register result block (200-234, pose uncertainties included) in one
+          FC03, checks that both sequence copies equal RESULT_SEQ and that the sequence is new, sets RESULT_ACK,
+          waits for RESULT_VALID to drop, clears RESULT_ACK. Once it drops its connection in the middle of a result
+          (read, not yet acknowledged) and reconnects: the same result must still be there, unchanged, and is taken
+          once.
   PLC B   a second client polling the result block with FC04 (input registers) without acknowledging; A does not
           acknowledge a result before B has seen it, so B must see exactly the same results.
   abuser  malformed frames, illegal functions and addresses, writes into read-only blocks: each must get its
           exception reply (or, for broken framing, a closed connection), while A and B keep being served.
 Then checks: sequence numbers 1..N without gaps, each result taken exactly once by A and seen once by B with the
-same contents, acquisition ids and result codes plausible, the decided part ids and poses against the simulator's
-truth (from --truth-log) within the given tolerances (a catalogue part that was never taught must come out
-"unknown part"), and cellsight's clean exit (0) once the PLC has all results.
+same contents, acquisition ids and result codes plausible, the pose and sigma registers consistent (a result that is
+not ok has every pose value 0x80000000 and every sigma 0xFFFF; an ok one has X, Y, RZ; an axis whose value is
+0x80000000 has sigma 0xFFFF; Z, RX, RY and the sigmas may be invalid where the recogniser does not estimate them),
+the decided part ids and poses against the simulator's truth (from --truth-log) within the given tolerances (a
+catalogue part that was never taught must come out "unknown part"), and cellsight's clean exit (0) once the PLC has
+all results.
 
 Truth: with --sim-oracle the run decides from the simulator's truth (ids = catalogue index + 1): the check is then
 exact and tests the runtime, not recognition. With --models DIR the production recogniser decides; the PLC id of
@@ -55,13 +60,18 @@ CONTROL = 0
 PLC_HEARTBEAT = 4
 STATUS = 100
 RESULT = 200
-RESULT_COUNT = 27
+RESULT_COUNT = 35  # 200-234, map version 2: one read
+MAP_VERSION_INDEX = 10  # register 110 in a status read from 100
+MAP_VERSION = 2
 TRIGGER_ENABLE = 1 << 0
 RESULT_ACK = 1 << 2
 READY = 1 << 0
 RESULT_VALID = 1 << 4
 ERROR = 1 << 6
 INVALID_S32 = -0x80000000
+INVALID_SIGMA = 0xFFFF
+AXES = (("x_um", "sigma_x_um"), ("y_um", "sigma_y_um"), ("z_um", "sigma_z_um"), ("rx_mdeg", "sigma_rx_mdeg"),
+        ("ry_mdeg", "sigma_ry_mdeg"), ("rz_mdeg", "sigma_rz_mdeg"))
 CODE_OK = 0
 CODE_UNKNOWN = 2
 UNIT = 1
@@ -77,13 +87,37 @@ def s32(regs, i):
 
 
 def decode(regs):
-    """Result block, high word first (DESIGN.md)."""
+    """Result block 200-234 (map version 2), high word first (README "Register table"); markers kept as read."""
     return {
         "seq": u32(regs, 0), "acq_id": u32(regs, 2), "code": regs[4], "part_id": regs[5], "confidence": regs[6],
         "source": regs[7], "x_um": s32(regs, 8), "y_um": s32(regs, 10), "z_um": s32(regs, 12),
         "rx_mdeg": s32(regs, 14), "ry_mdeg": s32(regs, 16), "rz_mdeg": s32(regs, 18),
         "timestamp_us": (u32(regs, 20) << 32) | u32(regs, 22), "cycle_ms": regs[24], "seq_copy": u32(regs, 25),
+        "sigma_x_um": regs[27], "sigma_y_um": regs[28], "sigma_z_um": regs[29], "sigma_rx_mdeg": regs[30],
+        "sigma_ry_mdeg": regs[31], "sigma_rz_mdeg": regs[32], "seq_copy2": u32(regs, 33),
     }
+
+
+def whole(block):
+    """A PLC accepts the block only when both sequence copies equal RESULT_SEQ."""
+    return block["seq"] == block["seq_copy"] == block["seq_copy2"]
+
+
+def pose_format_problems(block):
+    """What is wrong with the pose and sigma registers of one result, judged by the README's rules alone."""
+    found = []
+    if block["code"] != CODE_OK:
+        if any(block[value] != INVALID_S32 for value, _ in AXES) or any(
+                block[sigma] != INVALID_SIGMA for _, sigma in AXES):
+            found.append(f"code {block['code']} carries a pose or a sigma")
+        return found
+    for value in ("x_um", "y_um", "rz_mdeg"):
+        if block[value] == INVALID_S32:
+            found.append(f"ok without {value}")
+    for value, sigma in AXES:
+        if block[value] == INVALID_S32 and block[sigma] != INVALID_SIGMA:
+            found.append(f"{sigma} {block[sigma]} for an invalid {value}")
+    return found
 
 
 class Problems:
@@ -144,6 +178,9 @@ def plc_a(port, shared, problems, deadline, reconnect_at):
         return rr.registers
 
     try:
+        version = status()[MAP_VERSION_INDEX]
+        if version != MAP_VERSION:
+            raise RuntimeError(f"MAP_VERSION is {version}, PLC A is written for {MAP_VERSION}")
         write(CONTROL, TRIGGER_ENABLE)
         while len(shared.taken_by_a) < shared.parts and time.monotonic() < deadline and not shared.stop:
             st = status()
@@ -154,8 +191,8 @@ def plc_a(port, shared, problems, deadline, reconnect_at):
             if not ok(rr):
                 raise RuntimeError(f"result read failed: {rr}")
             block = decode(rr.registers)
-            if block["seq"] != block["seq_copy"]:
-                problems.add(f"PLC A: torn block {block['seq']} / {block['seq_copy']}")
+            if not whole(block):
+                problems.add(f"PLC A: torn block {block['seq']} / {block['seq_copy']} / {block['seq_copy2']}")
                 continue
             if block["seq"] == last_seq:
                 re_presented += 1  # already taken (after the reconnect): a PLC checks the sequence is new
@@ -215,7 +252,7 @@ def plc_b(port, shared, problems, deadline):
             if not ok(rr):
                 raise RuntimeError(f"FC04 read failed: {rr}")
             block = decode(rr.registers)
-            if block["seq"] == 0 or block["seq"] == last or block["seq"] != block["seq_copy"]:
+            if block["seq"] == 0 or block["seq"] == last or not whole(block):
                 time.sleep(0.001)
                 continue
             last = block["seq"]
@@ -259,7 +296,8 @@ def abuser(port, shared, problems, rounds):
         ("FC43 device id", struct.pack(">BBB", 0x2B, 0x0E, 0x01), 0x01),
         ("read holding 150 (gap)", struct.pack(">BHH", 0x03, 150, 1), 0x02),
         ("read input 0 (command block is holding only)", struct.pack(">BHH", 0x04, 0, 1), 0x02),
-        ("read past the result block", struct.pack(">BHH", 0x03, 220, 10), 0x02),
+        ("read past the result block", struct.pack(">BHH", 0x03, 230, 10), 0x02),
+        ("read one more than the result block", struct.pack(">BHH", 0x04, 200, 36), 0x02),
         ("write RESULT_SEQ (read-only)", struct.pack(">BHH", 0x06, 200, 1), 0x02),
         ("write STATUS with FC16 (read-only)", struct.pack(">BHHBH", 0x10, 100, 1, 2, 0xFFFF), 0x02),
         ("read 126 registers", struct.pack(">BHH", 0x03, 0, 126), 0x03),
@@ -476,6 +514,17 @@ def main():
     if shared.abuse_answered == 0:
         problems.add("the abuser got no exception reply at all")
 
+    # ---- the pose and sigma registers (map version 2) ----
+    # Values and sigmas need not be valid yet (the recogniser may not estimate every axis); their format must hold.
+    published = {value: 0 for value, _ in AXES}
+    published.update({sigma: 0 for _, sigma in AXES})
+    for seq in sorted(taken):
+        for what in pose_format_problems(taken[seq]):
+            problems.add(f"result {seq}: {what}")
+        for value, sigma in AXES:
+            published[value] += taken[seq][value] != INVALID_S32
+            published[sigma] += taken[seq][sigma] != INVALID_SIGMA
+
     # ---- against the simulator's truth ----
     truth, templates = {}, {}
     try:
@@ -533,7 +582,7 @@ def main():
     summary = {
         "parts": args.parts, "taken_by_a": len(taken), "seen_by_b": len(shared.seen_by_b),
         "re_presented_after_reconnect": shared.a_re_presented, "exceptions_answered": shared.abuse_answered,
-        "codes": counts, "correct": correct, "untaught": untaught,
+        "codes": counts, "correct": correct, "untaught": untaught, "valid_pose_registers": published,
         "max_pose_error": {"x_mm": max((e[0] for e in pose_errors), default=None),
                            "y_mm": max((e[1] for e in pose_errors), default=None),
                            "theta_deg": max((e[2] for e in pose_errors), default=None)},

@@ -67,7 +67,16 @@ void encode_result_block(const PlcResult& result, std::uint32_t seq,
   put_s32(at(map::kPoseRz), result.rz_mdeg);
   put_u64(at(map::kTimestamp), result.timestamp_us);
   *at(map::kCycleMs) = result.cycle_ms;
-  put_u32(at(map::kResultSeqCopy), seq);  // last: the PLC trusts the block only when both copies agree
+  *at(map::kSigmaX) = result.sigma_x_um;
+  *at(map::kSigmaY) = result.sigma_y_um;
+  *at(map::kSigmaZ) = result.sigma_z_um;
+  *at(map::kSigmaRx) = result.sigma_rx_mdeg;
+  *at(map::kSigmaRy) = result.sigma_ry_mdeg;
+  *at(map::kSigmaRz) = result.sigma_rz_mdeg;
+  // The copies last: a PLC trusts what it read only when its copy agrees with 200-201 (a version-1 PLC reads up to
+  // the first, a version-2 PLC checks both).
+  put_u32(at(map::kResultSeqCopy), seq);
+  put_u32(at(map::kResultSeqCopy2), seq);
 }
 
 LinkCore::LinkCore(const PlcLinkConfig& config)

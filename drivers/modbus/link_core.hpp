@@ -13,7 +13,7 @@
 
 namespace cellsight::drivers {
 
-// Writes one result into the 27 registers of the result block (200-226), high word first, sequence copy last.
+// Writes one result into the 35 registers of the result block (200-234), high word first, sequence copies last.
 void encode_result_block(const PlcResult& result, std::uint32_t seq,
                          std::span<std::uint16_t, modbus_map::kResultBlockCount> block);
 

@@ -11,7 +11,7 @@
 
 namespace cellsight::drivers {
 
-// One recognition result as the PLC sees it (result block 200-226). Integers with units, as on the wire.
+// One recognition result as the PLC sees it (result block 200-234). Integers with units, as on the wire.
 struct PlcResult {
   std::uint32_t acq_id = 0;  // the part pass that produced it
   ResultCode code = ResultCode::kNoPart;
@@ -26,6 +26,13 @@ struct PlcResult {
   std::int32_t rz_mdeg = modbus_map::kInvalidS32;  // theta of DESIGN.md "Pose"
   std::uint64_t timestamp_us = 0;                  // CLOCK_MONOTONIC when the result was made
   std::uint16_t cycle_ms = 0;                      // part-present falling edge -> result ready, saturated
+  // 1-sigma uncertainty of each pose axis; kInvalidSigma where the axis or its uncertainty is not available.
+  std::uint16_t sigma_x_um = modbus_map::kInvalidSigma;
+  std::uint16_t sigma_y_um = modbus_map::kInvalidSigma;
+  std::uint16_t sigma_z_um = modbus_map::kInvalidSigma;
+  std::uint16_t sigma_rx_mdeg = modbus_map::kInvalidSigma;
+  std::uint16_t sigma_ry_mdeg = modbus_map::kInvalidSigma;
+  std::uint16_t sigma_rz_mdeg = modbus_map::kInvalidSigma;
 };
 
 // Metres -> s32 micrometres on the wire; not finite or not representable -> the invalid marker, never a wrapped value.
@@ -45,6 +52,27 @@ struct PlcResult {
   constexpr double kLimit = static_cast<double>(std::numeric_limits<std::int32_t>::max());
   if (!std::isfinite(value) || value > kLimit || value < -kLimit) return modbus_map::kInvalidS32;
   return static_cast<std::int32_t>(value);
+}
+
+// A 1-sigma uncertainty already in wire units (um or millidegrees) -> its u16 register: rounded; a finite value above
+// kMaxSigma saturates there (a large uncertainty stays large, never "not available"); not finite or negative ->
+// kInvalidSigma (no uncertainty is negative: such a value is a fault of the estimate, not a small sigma).
+[[nodiscard]] inline std::uint16_t to_plc_sigma(double wire_units) {
+  if (!std::isfinite(wire_units) || wire_units < 0.0) return modbus_map::kInvalidSigma;
+  const double value = std::round(wire_units);
+  return value >= modbus_map::kMaxSigma ? modbus_map::kMaxSigma : static_cast<std::uint16_t>(value);
+}
+
+// Metres -> u16 micrometres of a sigma register (to_plc_sigma's rules).
+[[nodiscard]] inline std::uint16_t to_plc_sigma_micrometres(double metres) {
+  constexpr double kMicrometresPerMetre = 1e6;
+  return to_plc_sigma(metres * kMicrometresPerMetre);
+}
+
+// Degrees -> u16 millidegrees of a sigma register (to_plc_sigma's rules).
+[[nodiscard]] inline std::uint16_t to_plc_sigma_millidegrees(double degrees) {
+  constexpr double kMillidegreesPerDegree = 1e3;
+  return to_plc_sigma(degrees * kMillidegreesPerDegree);
 }
 
 // STATUS bits the production loop owns. The link owns RESULT_VALID, RESULT_OVERRUN and PLC_HB_LOST; ERROR, WARNING,

@@ -9,8 +9,10 @@
 // README.md "PLC interface": PLC programs are written against these numbers.
 namespace cellsight::drivers::modbus_map {
 
-// Bumped on any incompatible change of this file; the PLC can read it at kMapVersionRegister.
-inline constexpr std::uint16_t kMapVersion = 1;
+// Bumped on any change of this file a PLC program must know of; the PLC can read it at kMapVersionRegister.
+// Version 2 appended the pose uncertainties and a second sequence copy (227-234) to the result block and left every
+// version-1 address as it was, so a version-1 program that reads 200-226 still works.
+inline constexpr std::uint16_t kMapVersion = 2;
 
 // ---- blocks ----
 // Command block: the PLC writes (FC06/FC16) and may read back (FC03). 5-9 are reserved and read back what was written.
@@ -21,8 +23,8 @@ inline constexpr std::uint16_t kStatusBlockFirst = 100;
 inline constexpr std::uint16_t kStatusBlockCount = 20;
 // Result block: read-only (FC03 or FC04), meant to be read whole in one request.
 inline constexpr std::uint16_t kResultBlockFirst = 200;
-inline constexpr std::uint16_t kResultBlockCount = 27;
-// One array backs addresses 0..226; the gaps (10-99, 120-199) are never served.
+inline constexpr std::uint16_t kResultBlockCount = 35;
+// One array backs addresses 0..234; the gaps (10-99, 120-199) are never served.
 inline constexpr std::uint16_t kRegisterSpan = kResultBlockFirst + kResultBlockCount;
 
 // ---- command block (PLC writes) ----
@@ -81,11 +83,24 @@ inline constexpr std::uint16_t kPoseRy = 216;     // s32 millidegrees, 216-217
 inline constexpr std::uint16_t kPoseRz = 218;     // s32 millidegrees, 218-219 (theta)
 inline constexpr std::uint16_t kTimestamp = 220;  // u64 us CLOCK_MONOTONIC, 220-223
 inline constexpr std::uint16_t kCycleMs = 224;
-inline constexpr std::uint16_t kResultSeqCopy = 225;  // u32, 225-226; equal to 200-201 when the block is whole
+inline constexpr std::uint16_t kResultSeqCopy = 225;  // u32, 225-226; equal to 200-201 when 200-226 is whole
+// 1-sigma uncertainty of each pose axis (version 2), u16; kInvalidSigma where the axis or its estimate is missing.
+inline constexpr std::uint16_t kSigmaX = 227;   // um
+inline constexpr std::uint16_t kSigmaY = 228;   // um
+inline constexpr std::uint16_t kSigmaZ = 229;   // um
+inline constexpr std::uint16_t kSigmaRx = 230;  // millidegrees
+inline constexpr std::uint16_t kSigmaRy = 231;  // millidegrees
+inline constexpr std::uint16_t kSigmaRz = 232;  // millidegrees (theta)
+// u32, 233-234; written last, equal to 200-201 when the whole version-2 block 200-234 is whole.
+inline constexpr std::uint16_t kResultSeqCopy2 = 233;
 
 // A 32-bit value that is not available (pose not estimated, result without a pose).
 inline constexpr std::int32_t kInvalidS32 = std::numeric_limits<std::int32_t>::min();  // 0x80000000
 inline constexpr std::uint32_t kInvalidU32 = 0x80000000u;
+// A sigma register that is not available (axis invalid, uncertainty not estimated, result without a pose).
+inline constexpr std::uint16_t kInvalidSigma = 0xFFFF;
+// The largest sigma on the wire: a larger finite one saturates here, so it never reads as "not available".
+inline constexpr std::uint16_t kMaxSigma = 0xFFFE;
 
 // ---- protocol limits (Modbus Application Protocol V1.1b3) ----
 inline constexpr std::uint8_t kFcReadHoldingRegisters = 0x03;

@@ -27,10 +27,10 @@ std::uint16_t be16(const std::uint8_t* p) {
 
 // The map written out register by register from DESIGN.md, independent of register_map.hpp and the screen.
 bool readable_holding(std::uint32_t a) {
-  return a <= 9 || (a >= 100 && a <= 119) || (a >= 200 && a <= 226);
+  return a <= 9 || (a >= 100 && a <= 119) || (a >= 200 && a <= 234);
 }
 bool readable_input(std::uint32_t a) {
-  return (a >= 100 && a <= 119) || (a >= 200 && a <= 226);
+  return (a >= 100 && a <= 119) || (a >= 200 && a <= 234);
 }
 bool writable(std::uint32_t a) {
   return a <= 9;

@@ -118,14 +118,16 @@ std::string frame(std::initializer_list<int> bytes) {
 }
 
 bool modbus_seeds(const fs::path& dir) {
-  // MBAP (transaction, protocol 0, length, unit 1), then the PDU; as a PLC sends them (DESIGN.md register map).
-  const std::string read_result = frame({0, 1, 0, 0, 0, 6, 1, 3, 0, 200, 0, 27});
+  // MBAP (transaction, protocol 0, length, unit 1), then the PDU; as a PLC sends them (README register map): the
+  // whole result block 200-234 of map version 2, and 200-226 as a PLC written for version 1 still reads it.
+  const std::string read_result = frame({0, 1, 0, 0, 0, 6, 1, 3, 0, 200, 0, 35});
+  const std::string read_result_v1 = frame({0, 5, 0, 0, 0, 6, 1, 3, 0, 200, 0, 27});
   const std::string read_status = frame({0, 2, 0, 0, 0, 6, 1, 4, 0, 100, 0, 20});
   const std::string write_control = frame({0, 3, 0, 0, 0, 6, 1, 6, 0, 0, 0, 4});
   const std::string write_command = frame({0, 4, 0, 0, 0, 13, 1, 16, 0, 1, 0, 3, 6, 0, 1, 0, 0, 0, 2});
-  return put(dir / "read_result", read_result) && put(dir / "read_status", read_status) &&
-         put(dir / "write_control", write_control) && put(dir / "write_command", write_command) &&
-         put(dir / "pipelined", read_status + write_control + read_result);
+  return put(dir / "read_result", read_result) && put(dir / "read_result_v1", read_result_v1) &&
+         put(dir / "read_status", read_status) && put(dir / "write_control", write_control) &&
+         put(dir / "write_command", write_command) && put(dir / "pipelined", read_status + write_control + read_result);
 }
 
 }  // namespace
