@@ -136,10 +136,11 @@ class TruthLog final : public LoopObserver {
     const sim::PassSpec& pass = feed_.passes[k];
     std::fprintf(file_,
                  "{\"acq_id\": %" PRIu32 ", \"pass\": %" PRId64 ", \"part\": \"%s\", \"seed\": %" PRIu64
-                 ", \"pose\": {\"x_m\": %.9f, \"y_m\": %.9f, \"theta_deg\": %.9f, \"swing_deg\": %.9f}, "
-                 "\"coating\": \"%s\"",
+                 ", \"pose\": {\"x_m\": %.9f, \"y_m\": %.9f, \"theta_deg\": %.9f, \"swing_deg\": %.9f, "
+                 "\"tilt_deg\": %.9f, \"z_m\": %.9f}, \"coating\": \"%s\"",
                  record.acq_id, pass_index, pass.part.c_str(), pass.seed, pass.pose.x_m, pass.pose.y_m,
-                 pass.pose.theta_rad * kDegPerRad, pass.pose.swing_rad * kDegPerRad, pass.coating_a.name.c_str());
+                 pass.pose.theta_rad * kDegPerRad, pass.pose.swing_rad * kDegPerRad, pass.pose.tilt_rad * kDegPerRad,
+                 pass.pose.z_m, pass.coating_a.name.c_str());
     if (with_oracle_ids_) std::fprintf(file_, ", \"oracle_part_id\": %d", feed_.part_index[k] + 1);
     const std::string_view fault = faults_.kind_of(static_cast<std::uint64_t>(pass_index));
     if (!fault.empty()) std::fprintf(file_, ", \"fault\": \"%.*s\"", static_cast<int>(fault.size()), fault.data());
@@ -183,9 +184,11 @@ void write_template_truth(std::FILE* file, const Config& config, const sim::SimC
       std::fprintf(file,
                    ", \"seed\": %" PRIu64
                    ", \"pose\": {\"x_m\": %.9f, \"y_m\": %.9f, \"theta_deg\": %.9f, "
-                   "\"swing_deg\": %.9f}, \"nominal_centre_m\": [%.9f, %.9f], \"centroid_m\": [%.9f, %.9f]}\n",
+                   "\"swing_deg\": %.9f, \"tilt_deg\": %.9f, \"z_m\": %.9f}, \"nominal_centre_m\": [%.9f, %.9f], "
+                   "\"centroid_m\": [%.9f, %.9f]}\n",
                    seed, pass->pose.x_m, pass->pose.y_m, pass->pose.theta_rad * kDegPerRad,
-                   pass->pose.swing_rad * kDegPerRad, c0.x(), c0.y(), info->centroid_m.x(), info->centroid_m.y());
+                   pass->pose.swing_rad * kDegPerRad, pass->pose.tilt_rad * kDegPerRad, pass->pose.z_m, c0.x(), c0.y(),
+                   info->centroid_m.x(), info->centroid_m.y());
     } else {
       std::fputs(", \"seed\": null}\n", file);
     }

@@ -26,19 +26,23 @@ Status check_catalogue_fits_grid(const Config& config, const std::vector<sim::Pa
   const double xy = config.sim.pose_xy_range_m;
   const double theta = config.sim.pose_theta_range_deg / kRadToDeg;
   const double swing = config.sim.swing_range_deg / kRadToDeg;
-  constexpr int kPoseCorners = 16;  // x, y, theta, swing each at - or + its range
+  const double tilt = config.sim.tilt_range_deg / kRadToDeg;
+  const double z = config.sim.pose_z_range_m;
+  constexpr int kPoseCorners = 64;  // x, y, theta, swing, tilt, z each at - or + its range
   for (const auto& part : parts) {
     const std::vector<sim::Facet> facets = sim::build_part(part);
     for (int corner = 0; corner < kPoseCorners; ++corner) {
-      const sim::PartPose pose{(corner & 1 ? xy : -xy), (corner & 2 ? xy : -xy), (corner & 4 ? theta : -theta),
-                               (corner & 8 ? swing : -swing)};
+      const sim::PartPose pose{(corner & 1 ? xy : -xy),       (corner & 2 ? xy : -xy),
+                               (corner & 4 ? theta : -theta), (corner & 8 ? swing : -swing),
+                               (corner & 16 ? tilt : -tilt),  (corner & 32 ? z : -z)};
       const Eigen::Isometry3d placement = sim::placement(config.rig.carrier, part, pose);
       for (sim::Facet f : facets) {
         f.transform(placement);
         if ((f.bounds.min().array() < lo.array()).any() || (f.bounds.max().array() > hi.array()).any()) {
           std::ostringstream why;
           why << "part " << part.name << " leaves the grid at the pose x " << pose.x_m << " m, y " << pose.y_m
-              << " m, theta " << pose.theta_rad * kRadToDeg << " deg, swing " << pose.swing_rad * kRadToDeg << " deg";
+              << " m, z " << pose.z_m << " m, theta " << pose.theta_rad * kRadToDeg << " deg, swing "
+              << pose.swing_rad * kRadToDeg << " deg, tilt " << pose.tilt_rad * kRadToDeg << " deg";
           return make_error(why.str());
         }
       }

@@ -14,7 +14,8 @@ namespace cellsight::app {
 [[nodiscard]] Expected<sim::SimCell> make_sim_cell(const Config& config);
 
 // Fails, naming the first part and pose corner, unless every part lies inside the configured occupancy grid at all
-// 16 extremes of the random pose (x, y, theta and swing each at +- their configured range) on the configured carrier.
+// 64 extremes of the random pose (x, y, z, theta, swing and tilt each at +- their configured range) on the configured
+// carrier.
 [[nodiscard]] Status check_catalogue_fits_grid(const Config& config, const std::vector<sim::PartSpec>& parts);
 
 }  // namespace cellsight::app

@@ -34,7 +34,7 @@ constexpr const char* kUsage =
     "usage: cellsight [--config FILE] [--log-level LEVEL] MODE [options]\n"
     "\n"
     "modes:\n"
-    "  sim --part NAME [--seed S] [--pose x_m,y_m,theta_deg[,swing_deg]] --out DIR\n"
+    "  sim --part NAME [--seed S] [--pose x_m,y_m,theta_deg[,swing_deg[,tilt_deg[,z_m]]]] --out DIR\n"
     "        render one simulated pass: DIR/frames/NNNNNN.png (mono8) and DIR/truth.yaml\n"
     "  sim --list\n"
     "        list the simulated cell's part catalogue (with role and family when the catalogue has them)\n"

@@ -37,25 +37,31 @@ Expected<sim::PartPose> parse_pose(const std::string& text) {
     const double v = std::strtod(item.c_str(), &end);
     if (item.empty() || end == item.c_str() || *end != '\0' || !std::isfinite(v)) {
       return make_error("--pose '" + text + "': '" + item +
-                        "' is not a number; expected x_m,y_m,theta_deg[,swing_deg]");
+                        "' is not a number; expected x_m,y_m,theta_deg[,swing_deg[,tilt_deg[,z_m]]]");
     }
     values.push_back(v);
   }
-  if (values.size() < 3 || values.size() > 4) {
-    return make_error("--pose '" + text + "': expected 3 or 4 comma-separated numbers x_m,y_m,theta_deg[,swing_deg]");
+  if (values.size() < 3 || values.size() > 6) {
+    return make_error("--pose '" + text +
+                      "': expected 3 to 6 comma-separated numbers x_m,y_m,theta_deg[,swing_deg[,tilt_deg[,z_m]]]");
   }
   constexpr double kMaxShiftM = 0.3, kMaxAngleDeg = 45.0;
   if (std::abs(values[0]) > kMaxShiftM || std::abs(values[1]) > kMaxShiftM) {
     return make_error("--pose '" + text + "': x and y are metres and must be within +-0.3");
   }
-  if (std::abs(values[2]) > kMaxAngleDeg || (values.size() == 4 && std::abs(values[3]) > kMaxAngleDeg)) {
+  values.resize(6, 0.0);  // what is not given is 0
+  if (std::abs(values[2]) > kMaxAngleDeg || std::abs(values[3]) > kMaxAngleDeg || std::abs(values[4]) > kMaxAngleDeg) {
     return make_error("--pose '" + text + "': angles are degrees and must be within +-45");
   }
+  if (std::abs(values[5]) > kMaxShiftM)
+    return make_error("--pose '" + text + "': z is metres and must be within +-0.3");
   sim::PartPose pose;
   pose.x_m = values[0];
   pose.y_m = values[1];
   pose.theta_rad = values[2] / kRadToDeg;
-  pose.swing_rad = values.size() == 4 ? values[3] / kRadToDeg : 0.0;
+  pose.swing_rad = values[3] / kRadToDeg;
+  pose.tilt_rad = values[4] / kRadToDeg;
+  pose.z_m = values[5];
   return pose;
 }
 
@@ -109,6 +115,8 @@ std::string truth_yaml(const app::Config& config, const sim::SimCell& cell, cons
   out << YAML::Key << "y_m" << YAML::Value << pass.pose.y_m;
   out << YAML::Key << "theta_deg" << YAML::Value << pass.pose.theta_rad * kRadToDeg;
   out << YAML::Key << "swing_deg" << YAML::Value << pass.pose.swing_rad * kRadToDeg;
+  out << YAML::Key << "tilt_deg" << YAML::Value << pass.pose.tilt_rad * kRadToDeg;
+  out << YAML::Key << "z_m" << YAML::Value << pass.pose.z_m;
   out << YAML::EndMap;
   if (const sim::PartSpec* part = cell.find_part(pass.part)) {
     out << YAML::Key << "nominal_centre_m" << YAML::Value;

@@ -362,6 +362,13 @@ class SimDepth {
   SimDepth() {
     auto cfg = app::load_config(CELLSIGHT_SOURCE_DIR "/config/cellsight.yaml");
     REQUIRE(cfg.ok());
+    // These raw features see the carrier frame's depth: a tilt or a depth offset shades the depth image and moves
+    // the depth-weighted moments. The recogniser computes them after levelling the part into its own frame
+    // (algo/canonical, tests/test_canonical.cpp), so this test keeps the pose range it was written for: in-plane
+    // shift and turn, swing +-2 deg, no tilt, no depth offset (the seeds below are its extremes).
+    cfg->sim.swing_range_deg = 2.0;
+    cfg->sim.tilt_range_deg = 0.0;
+    cfg->sim.pose_z_range_m = 0.0;
     auto cell = app::make_sim_cell(*cfg);
     REQUIRE(cell.ok());
     cell_ = std::make_unique<sim::SimCell>(std::move(*cell));

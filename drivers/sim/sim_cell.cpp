@@ -74,6 +74,9 @@ Expected<PassSpec> SimCell::random_pass(const std::string& part, std::uint64_t s
   } else {
     pass.coating_b = pass.coating_a;
   }
+  // Drawn last, so that a seed's x, y, theta, coating and split stay what they were before tilt and depth existed.
+  pass.pose.tilt_rad = rng.uniform(-1.0, 1.0) * sim_.tilt_range_deg * kDeg;
+  pass.pose.z_m = rng.uniform(-1.0, 1.0) * sim_.pose_z_range_m;
   return pass;
 }
 
@@ -91,10 +94,11 @@ Eigen::Vector3d SimCell::nominal_centre(const PartSpec& part) const {
 
 Eigen::Isometry3d placement(const CarrierParams& carrier, const PartSpec& part, const PartPose& pose) {
   const Eigen::Vector3d c = nominal_centre_on(carrier, part);
-  // p_C = c + R_z(theta) R_y(swing) p_part + (x, y, 0): DESIGN.md's pose with the part frame centred on c.
-  return Eigen::Translation3d(c + Eigen::Vector3d(pose.x_m, pose.y_m, 0.0)) *
+  // p_C = c + R_z(theta) R_y(swing) R_x(tilt) p_part + (x, y, z): DESIGN.md's pose with the part frame centred on c.
+  return Eigen::Translation3d(c + Eigen::Vector3d(pose.x_m, pose.y_m, pose.z_m)) *
          Eigen::AngleAxisd(pose.theta_rad, Eigen::Vector3d::UnitZ()) *
-         Eigen::AngleAxisd(pose.swing_rad, Eigen::Vector3d::UnitY());
+         Eigen::AngleAxisd(pose.swing_rad, Eigen::Vector3d::UnitY()) *
+         Eigen::AngleAxisd(pose.tilt_rad, Eigen::Vector3d::UnitX());
 }
 
 Status SimCell::begin_pass(const PassSpec& pass) {

@@ -23,17 +23,22 @@ struct Coating {
 struct SimParams {
   double pose_xy_range_m = 0.05;      // uniform in +- range
   double pose_theta_range_deg = 5.0;  // in-plane rotation, about z
-  double swing_range_deg = 2.0;       // about the hook's vertical axis
+  double swing_range_deg = 3.0;       // about the hook's vertical axis
+  double tilt_range_deg = 1.5;        // about the horizontal x axis (the part's bottom toward or away from the camera)
+  double pose_z_range_m = 0.005;      // depth of the hook (the carrier's distance from the sensor), uniform in +-
   double reflectivity_jitter = 0.15;  // relative, per pass
   double split_probability = 0.0;     // chance of a coating boundary across the part in a pass
   std::vector<Coating> coatings;
   std::uint64_t camera_noise_seed = 1;  // the simulated sensor's fixed pattern (hot pixels, noise texture)
 };
 
-// Pose of the part on the carrier for one pass, relative to its nominal hanging position (DESIGN.md "Pose").
+// Pose of the part on the carrier for one pass, relative to its nominal hanging position (DESIGN.md "Pose"):
+// p = c0 + R_z(theta) R_y(swing) R_x(tilt) p_part + (x, y, z), c0 the nominal centre (see placement()).
 struct PartPose {
   double x_m = 0, y_m = 0, theta_rad = 0;  // theta counter-clockwise seen from the camera (+z)
-  double swing_rad = 0;                    // about the vertical axis through the hook
+  double swing_rad = 0;                    // about the vertical axis y
+  double tilt_rad = 0;                     // about the horizontal axis x
+  double z_m = 0;                          // depth, toward the camera positive
 };
 
 struct PassSpec {
