@@ -589,6 +589,27 @@ bool Cascade::clear_of_near_misses(const DecideState& s, const Candidate& best) 
   return true;
 }
 
+void Cascade::publish_full_pose(const TemplateModel& t, const PerfectMatchResult& planar, Decision& d) const {
+  if (!std::isfinite(t.centroid_z_m)) return;
+  const Eigen::Vector3d c(t.centroid_m.x(), t.centroid_m.y(), t.centroid_z_m);
+  const FullPoseFit fit = matcher_.refine(t.map, c, planar);
+  if (!fit.ok) return;
+  const FullPose& p = fit.pose;
+  d.pose = {p[PoseAxis::kX], p[PoseAxis::kY], p[PoseAxis::kRz]};
+  for (std::size_t a = 0; a < kPoseAxes; ++a) {
+    const double sigma = std::hypot(fit.sigma[a] * params_.pose_sigma_scale[a], params_.pose_sigma_floor[a]);
+    const auto axis = static_cast<PoseAxis>(a);
+    if (axis == PoseAxis::kX || axis == PoseAxis::kY || axis == PoseAxis::kRz) {
+      d.pose_sigma[a] = sigma;
+      continue;
+    }
+    const bool angle = axis == PoseAxis::kRx || axis == PoseAxis::kRy;
+    if (!(sigma <= (angle ? params_.max_sigma_rad : params_.max_sigma_m))) continue;  // not fixed: stays NaN
+    d.pose_sigma[a] = sigma;
+    (axis == PoseAxis::kZ ? d.z_m : axis == PoseAxis::kRx ? d.rx_rad : d.ry_rad) = p.axis[a];
+  }
+}
+
 void Cascade::accept_winner(DecideState& s, const Candidate& best) {
   Decision& d = s.d;
   const double p1 = s.svm_best_first[0].probability;
@@ -603,6 +624,7 @@ void Cascade::accept_winner(DecideState& s, const Candidate& best) {
   d.pm_error = best.report.pm.error;
   d.pose_valid = true;
   d.pose = params_.decision_pose_from_outline ? best.report.check_pose : best.report.pm.pose;
+  if (params_.full_pose) publish_full_pose(t, best.report.pm, d);
   d.template_coverage = best.report.coverage;
   d.scan_outliers = best.report.scan_outliers;
   d.missing_area_m2 = best.report.missing_area_m2;
@@ -656,6 +678,8 @@ void Cascade::report_timeout(DecideState& s) {
   s.d.class_index = -1;
   s.d.part_id = 0;
   s.d.pose_valid = false;
+  s.d.z_m = s.d.rx_rad = s.d.ry_rad = std::numeric_limits<double>::quiet_NaN();
+  s.d.pose_sigma = Decision::nan_array();
 }
 
 void Cascade::report_candidates(DecideState& s, const Candidate* winner, bool ambiguous) const {

@@ -4,7 +4,9 @@
 #include <arpa/inet.h>
 #include <unistd.h>
 
+#include <array>
 #include <filesystem>
+#include <numbers>
 
 #include "formats/yaml_reader.hpp"
 
@@ -12,6 +14,7 @@ namespace cellsight::app {
 namespace {
 
 namespace fs = std::filesystem;
+constexpr double kRadToDeg = 180.0 / std::numbers::pi;
 
 void read_rig(formats::YamlSection s, sim::RigParams& rig) {
   formats::YamlSection cam = s.section("camera");
@@ -69,6 +72,8 @@ void read_sim(formats::YamlSection s, Config& cfg) {
   s.number("pose_xy_range_m", p.pose_xy_range_m, 0.0, 0.3, "m");
   s.number("pose_theta_range_deg", p.pose_theta_range_deg, 0.0, 45.0, "deg");
   s.number("swing_range_deg", p.swing_range_deg, 0.0, 20.0, "deg");
+  s.number("tilt_range_deg", p.tilt_range_deg, 0.0, 20.0, "deg");
+  s.number("pose_z_range_m", p.pose_z_range_m, 0.0, 0.1, "m");
   s.number("reflectivity_jitter", p.reflectivity_jitter, 0.0, 0.9, "");
   s.number("split_probability", p.split_probability, 0.0, 1.0, "");
   std::int64_t seed = static_cast<std::int64_t>(p.camera_noise_seed);
@@ -255,6 +260,33 @@ void read_cascade_section(formats::YamlSection s, Config& cfg) {
   s.number("size_factor", cfg.cascade.size_factor, 1.0, 100.0, "");
   s.number("size_floor_m", cfg.cascade.size_floor_m, 0.0, 1.0, "m");
   s.number("robust_k", cfg.cascade.robust_k, 1.0, 100.0, "");
+  s.boolean("full_pose", cfg.cascade.full_pose);
+  double max_sigma_mm = cfg.cascade.max_sigma_m * 1e3;
+  double max_sigma_deg = cfg.cascade.max_sigma_rad * kRadToDeg;
+  s.number("pose_max_sigma_mm", max_sigma_mm, 0.0, 100.0, "mm");
+  s.number("pose_max_sigma_deg", max_sigma_deg, 0.0, 45.0, "deg");
+  cfg.cascade.max_sigma_m = max_sigma_mm * 1e-3;
+  cfg.cascade.max_sigma_rad = max_sigma_deg / kRadToDeg;
+  if (s.has("pose_sigma_scale")) {
+    formats::YamlSection scale = s.section("pose_sigma_scale");
+    constexpr std::array<const char*, algo::kPoseAxes> kAxes = {"x", "y", "z", "rx", "ry", "rz"};
+    for (std::size_t a = 0; a < algo::kPoseAxes; ++a) {
+      scale.number(kAxes[a], cfg.cascade.pose_sigma_scale[a], 0.01, 1000.0, "");
+    }
+    scale.finish();
+  }
+  if (s.has("pose_sigma_floor")) {
+    // Millimetres and degrees in the file, metres and radians inside.
+    formats::YamlSection floor = s.section("pose_sigma_floor");
+    constexpr std::array<const char*, algo::kPoseAxes> kAxes = {"x_mm", "y_mm", "z_mm", "rx_deg", "ry_deg", "rz_deg"};
+    for (std::size_t a = 0; a < algo::kPoseAxes; ++a) {
+      const bool angle = a >= 3;
+      double v = cfg.cascade.pose_sigma_floor[a] * (angle ? kRadToDeg : 1e3);
+      floor.number(kAxes[a], v, 0.0, 10.0, angle ? "deg" : "mm");
+      cfg.cascade.pose_sigma_floor[a] = angle ? v / kRadToDeg : v * 1e-3;
+    }
+    floor.finish();
+  }
   s.finish();
 }
 

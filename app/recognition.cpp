@@ -192,6 +192,7 @@ LoadedTemplates open_templates(const Config& config, const ModelDb& db) {
       const formats::TemplateFile& t = *out.files.back();
       model.map = t.view();
       model.centroid_m = t.centroid_m();
+      model.centroid_z_m = t.centroid_z_m();
       model.surface_cells = t.surface_cells();
     }
     out.models.push_back(model);

@@ -3,12 +3,14 @@
 
 #include <Eigen/Geometry>
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <functional>
+#include <limits>
 #include <map>
 #include <numbers>
 #include <optional>
@@ -20,6 +22,7 @@
 #include "app/sim_setup.hpp"
 #include "base/atomic_file.hpp"
 #include "cli/cli.hpp"
+#include "cli/eval_set.hpp"
 #include "cli/mode_args.hpp"
 #include "cli/perturb_mode.hpp"
 #include "drivers/sim/sim_cell.hpp"
@@ -75,11 +78,20 @@ std::string decision_json(const std::string& scan, const algo::Decision& d, std:
     << ", \"id\": " << d.part_id << ", \"status\": \"" << algo::to_string(d.source)
     << "\", \"probability\": " << json_number(d.probability) << ", \"pm_error\": " << json_number(d.pm_error)
     << ", \"pose\": ";
+  // Added keys (issue 13): z, rx_deg, ry_deg (null where the geometry does not fix them) and their 1-sigma.
+  const auto pose_object = [&o](double x, double y, double theta, double z, double rx, double ry) {
+    o << "{\"x\": " << json_number(x) << ", \"y\": " << json_number(y)
+      << ", \"theta_deg\": " << json_number(theta * kRadToDeg) << ", \"z\": " << json_number(z)
+      << ", \"rx_deg\": " << json_number(rx * kRadToDeg) << ", \"ry_deg\": " << json_number(ry * kRadToDeg) << "}";
+  };
+  const auto sigma = [&d](algo::PoseAxis a) { return d.pose_sigma[static_cast<std::size_t>(a)]; };
   if (d.pose_valid) {
-    o << "{\"x\": " << json_number(d.pose.x_m) << ", \"y\": " << json_number(d.pose.y_m)
-      << ", \"theta_deg\": " << json_number(d.pose.theta_rad * kRadToDeg) << "}";
+    pose_object(d.pose.x_m, d.pose.y_m, d.pose.theta_rad, d.z_m, d.rx_rad, d.ry_rad);
+    o << ", \"sigma\": ";
+    pose_object(sigma(algo::PoseAxis::kX), sigma(algo::PoseAxis::kY), sigma(algo::PoseAxis::kRz),
+                sigma(algo::PoseAxis::kZ), sigma(algo::PoseAxis::kRx), sigma(algo::PoseAxis::kRy));
   } else {
-    o << "null";
+    o << "null, \"sigma\": null";
   }
   // The two-way check of the chosen class (of the closest candidate when unknown), for diagnosis.
   o << ", \"coverage\": " << json_number(d.template_coverage) << ", \"outliers\": " << json_number(d.scan_outliers)
@@ -152,44 +164,15 @@ Expected<Options> common_options(const ModeArgs& args, const app::Config& config
   return o;
 }
 
+using TruthPose = algo::FullPose;  // cli/eval_set.hpp
+
 struct LabelledScan {
   std::string path;
   std::string truth_class;  // folder name
   bool has_pose = false;
-  algo::PlanarPose pose{};
+  TruthPose pose{};
   std::vector<algo::ScanPoint> points;  // filled for generated scans only
 };
-
-// DIR/truth.csv: file,x_m,y_m,theta_deg (file relative to DIR); '#' comments and a header line allowed.
-Expected<std::map<std::string, algo::PlanarPose>> read_truth(const std::string& dir) {
-  std::map<std::string, algo::PlanarPose> truth;
-  const std::string path = dir + "/truth.csv";
-  if (!fs::exists(path)) return truth;
-  std::ifstream in(path);
-  std::string line;
-  int number = 0;
-  while (std::getline(in, line)) {
-    ++number;
-    if (line.empty() || line[0] == '#' || line.rfind("file,", 0) == 0) continue;
-    std::istringstream fields(line);
-    std::string file, xs, ys, ts;
-    if (!std::getline(fields, file, ',') || !std::getline(fields, xs, ',') || !std::getline(fields, ys, ',') ||
-        !std::getline(fields, ts, ',')) {
-      return make_error(path + ":" + std::to_string(number) + ": expected file,x_m,y_m,theta_deg");
-    }
-    char* e1 = nullptr;
-    char* e2 = nullptr;
-    char* e3 = nullptr;
-    const double x = std::strtod(xs.c_str(), &e1);
-    const double y = std::strtod(ys.c_str(), &e2);
-    const double t = std::strtod(ts.c_str(), &e3);
-    if (*e1 != '\0' || *e2 != '\0' || (*e3 != '\0' && *e3 != '\r') || !std::isfinite(x + y + t)) {
-      return make_error(path + ":" + std::to_string(number) + ": numbers expected in '" + line + "'");
-    }
-    truth[file] = {x, y, t / kRadToDeg};
-  }
-  return truth;
-}
 
 struct EvalTotals {
   std::vector<std::string> names;  // truth classes seen (taught or not) + "unknown"
@@ -198,6 +181,10 @@ struct EvalTotals {
   int svm_ranked = 0, svm_top1 = 0, svm_top2 = 0, decided = 0, decided_within_two = 0;
   std::vector<std::string> reasons;  // one line per unknown taught scan or wrong id
   std::vector<double> pose_mm, pose_deg, ms;
+  // Per PoseAxis: |error| of every published value with a true one, and how many of them lay within 1 and 2 sigma;
+  // published counts the accepted scans with a truth where the axis was published (the rest: invalid).
+  std::array<std::vector<double>, algo::kPoseAxes> axis_error;
+  std::array<int, algo::kPoseAxes> within_1s{}, within_2s{}, published{}, with_truth{};
   std::vector<double> features_ms, svm_ms, cascade_ms;  // the decision's stages (ms = their sum)
   std::map<std::string, int> sources;
 };
@@ -215,72 +202,6 @@ void print_stats(const char* name, const std::vector<double>& v, const char* uni
   for (double x : v) sum += x;
   std::printf("  %-12s mean %.3f  p95 %.3f  max %.3f %s  (%zu; median %.3f)\n", name, sum / v.size(),
               percentile(v, 0.95), *std::max_element(v.begin(), v.end()), unit, v.size(), percentile(v, 0.5));
-}
-
-// The simulated pose of a pass -> the pose relative to the part's template (DESIGN.md "Pose"). Both passes place
-// the part as p = c0 + R(theta) p_part + t (drivers/sim/sim_cell.cpp), so
-// p_scan = c0 + t_s + R(theta_s - theta_t)(p_tmpl - c0 - t_t); written as c + R(theta)(p_tmpl - c) + d with the
-// template centroid c this gives theta = theta_s - theta_t and d = (c0 + t_s) - c - R(theta)(c0 + t_t - c).
-// (The swing about the hook is outside the x, y, theta pose and is left out.)
-algo::PlanarPose relative_pose(const sim::PartPose& scan, const sim::PartPose& tmpl, const Eigen::Vector2d& c0,
-                               const Eigen::Vector2d& c) {
-  const double theta = scan.theta_rad - tmpl.theta_rad;
-  const Eigen::Rotation2Dd r(theta);
-  const Eigen::Vector2d d =
-      (c0 + Eigen::Vector2d(scan.x_m, scan.y_m)) - c - (r * (c0 + Eigen::Vector2d(tmpl.x_m, tmpl.y_m) - c));
-  return {d.x(), d.y(), theta};
-}
-
-// eval --sim: K simulated passes of each listed part (seeds S..S+K-1) written as DIR/<part>/sSEED.ply with
-// DIR/truth.csv; passes of taught parts get their pose relative to the template (whose seed the manifest records).
-// With `perturb` every pass is perturbed before it is written (the truth stays the simulator's).
-Status generate_sim_scans(const app::Config& config, const app::ModelDb& db, const std::vector<std::string>& parts,
-                          int count, std::uint64_t first_seed, const std::string& calibration_path,
-                          const std::string& dir, const app::PassPerturbation* perturb) {
-  auto cell = app::make_sim_cell(config);
-  if (!cell) return cell.error();
-  std::error_code ec;
-  fs::create_directories(dir, ec);
-  if (ec) return make_error(dir + ": cannot create: " + ec.message());
-  std::string truth = "file,x_m,y_m,theta_deg\n";
-  for (const std::string& part : parts) {
-    const sim::PartSpec* spec = cell->find_part(part);
-    if (spec == nullptr) return make_error("eval --sim: no part '" + part + "' in the simulated catalogue");
-    std::optional<sim::PartPose> template_pose;
-    Eigen::Vector2d centroid = Eigen::Vector2d::Zero();
-    if (const formats::PartEntry* taught = db.find(part); taught != nullptr && !taught->scans.empty()) {
-      const std::string& source = taught->template_scan_entry()->source;
-      std::int64_t seed = 0;
-      auto info = formats::read_template_info(db.path_of(taught->template_file));
-      if (source.rfind("sim seed ", 0) == 0 && parse_whole(source.substr(9), 0, INT64_MAX, seed) && info) {
-        template_pose = cell->random_pass(part, static_cast<std::uint64_t>(seed))->pose;
-        centroid = info->centroid_m;
-      }
-    }
-    const Eigen::Vector3d c0 = cell->nominal_centre(*spec);
-    fs::create_directories(fs::path(dir) / part, ec);
-    // The passes of one part on all cores (each an independent acquisition); truth lines kept in seed order.
-    std::vector<std::string> lines(static_cast<std::size_t>(count));
-    auto ok = app::acquire_sim_passes(
-        config, part, count, first_seed, calibration_path, "generated " + part,
-        [&](int index, std::uint64_t seed, std::vector<algo::ScanPoint>&& points) -> Status {
-          const std::string rel = part + "/s" + std::to_string(seed) + ".ply";
-          if (auto written = base::write_file_atomic(dir + "/" + rel, formats::write_ply_binary(points)); !written)
-            return written;
-          if (template_pose) {
-            const algo::PlanarPose p =
-                relative_pose(cell->random_pass(part, seed)->pose, *template_pose, c0.head<2>(), centroid);
-            char line[256];
-            std::snprintf(line, sizeof line, "%s,%.9f,%.9f,%.9f\n", rel.c_str(), p.x_m, p.y_m, p.theta_rad * kRadToDeg);
-            lines[static_cast<std::size_t>(index)] = line;
-          }
-          return {};
-        },
-        perturb);
-    if (!ok) return ok;
-    for (const std::string& line : lines) truth += line;
-  }
-  return base::write_file_atomic(dir + "/truth.csv", truth);
 }
 
 }  // namespace
@@ -369,7 +290,7 @@ std::optional<int> generate_eval_set(const ModeArgs& args, const app::Config& co
 }
 
 // DIR/<part>/*.ply, labelled with the folder's name and, when DIR/truth.csv lists it, the true pose; sorted by path.
-std::vector<LabelledScan> labelled_scans(const std::string& dir, const std::map<std::string, algo::PlanarPose>& truth) {
+std::vector<LabelledScan> labelled_scans(const std::string& dir, const std::map<std::string, TruthPose>& truth) {
   std::vector<LabelledScan> scans;
   for (const auto& entry : fs::directory_iterator(dir)) {
     if (!entry.is_directory()) continue;
@@ -388,6 +309,24 @@ std::vector<LabelledScan> labelled_scans(const std::string& dir, const std::map<
   }
   std::sort(scans.begin(), scans.end(), [](const auto& a, const auto& b) { return a.path < b.path; });
   return scans;
+}
+
+// Error and sigma coverage per axis of an accepted scan with a true pose.
+void count_pose_axes(const TruthPose& truth, const algo::Decision& d, EvalTotals& t) {
+  using algo::PoseAxis;
+  const std::array<double, algo::kPoseAxes> value = {d.pose.x_m, d.pose.y_m, d.z_m,
+                                                     d.rx_rad,   d.ry_rad,   d.pose.theta_rad};
+  for (std::size_t a = 0; a < algo::kPoseAxes; ++a) {
+    if (!std::isfinite(truth.axis[a])) continue;
+    ++t.with_truth[a];
+    if (!std::isfinite(value[a])) continue;
+    ++t.published[a];
+    const double error = std::abs(value[a] - truth.axis[a]);
+    t.axis_error[a].push_back(error * (a < 3 ? 1e3 : kRadToDeg));
+    const double sigma = d.pose_sigma[a];
+    if (error <= sigma) ++t.within_1s[a];
+    if (error <= 2.0 * sigma) ++t.within_2s[a];
+  }
 }
 
 // Counts one decision on a labelled scan: right, wrong or unknown, pose error, source, time, what the SVM alone
@@ -411,8 +350,10 @@ void count_decision(const LabelledScan& s, const algo::Decision& d, const runtim
   } else if (decided == s.truth_class) {
     ++t.correct;
     if (s.has_pose && d.pose_valid) {
-      t.pose_mm.push_back(std::hypot(d.pose.x_m - s.pose.x_m, d.pose.y_m - s.pose.y_m) * 1e3);
-      t.pose_deg.push_back(std::abs(d.pose.theta_rad - s.pose.theta_rad) * kRadToDeg);
+      using algo::PoseAxis;
+      t.pose_mm.push_back(std::hypot(d.pose.x_m - s.pose[PoseAxis::kX], d.pose.y_m - s.pose[PoseAxis::kY]) * 1e3);
+      t.pose_deg.push_back(std::abs(d.pose.theta_rad - s.pose[PoseAxis::kRz]) * kRadToDeg);
+      count_pose_axes(s.pose, d, t);
     }
   } else if (d.class_index < 0) {
     ++t.unknown;
@@ -464,6 +405,23 @@ void print_eval_totals(const EvalTotals& t, const std::string& dir) {
   for (const std::string& r : t.reasons) std::printf("  unknown/wrong %s\n", r.c_str());
   print_stats("pose xy", t.pose_mm, "mm");
   print_stats("pose theta", t.pose_deg, "deg");
+  constexpr std::array<const char*, algo::kPoseAxes> kAxes = {"x", "y", "z", "rx", "ry", "theta"};
+  for (std::size_t a = 0; a < algo::kPoseAxes; ++a) {
+    if (t.with_truth[a] == 0) continue;
+    const std::vector<double>& e = t.axis_error[a];
+    const char* unit = a < 3 ? "mm" : "deg";
+    if (e.empty()) {
+      std::printf("  pose %-5s   published for 0 of %d (invalid: not fixed by the geometry)\n", kAxes[a],
+                  t.with_truth[a]);
+      continue;
+    }
+    const double n = static_cast<double>(e.size());
+    std::printf(
+        "  pose %-5s   |error| median %.3f  p95 %.3f  max %.3f %s; within 1 sigma %.1f %%, 2 sigma %.1f %% "
+        "(published for %d of %d)\n",
+        kAxes[a], percentile(e, 0.5), percentile(e, 0.95), *std::max_element(e.begin(), e.end()), unit,
+        100.0 * t.within_1s[a] / n, 100.0 * t.within_2s[a] / n, t.published[a], t.with_truth[a]);
+  }
   print_stats("time", t.ms, "ms");
   print_stats(" features", t.features_ms, "ms");  // scan -> part points -> grid -> 74 features
   print_stats(" svm", t.svm_ms, "ms");

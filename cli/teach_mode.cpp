@@ -82,6 +82,7 @@ algo::TemplateModel view_of(const formats::TemplateModel& model) {
   view.class_index = 0;
   view.map = model.map.view();
   view.centroid_m = model.centroid_m;
+  view.centroid_z_m = model.centroid_z_m;
   view.surface_cells = model.surface_cells;
   return view;
 }

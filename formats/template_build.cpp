@@ -119,6 +119,7 @@ Expected<TemplateModel> build_template(std::span<const algo::ScanPoint> points, 
   const std::uint8_t* cells = occupancy.data();
   double sum_x = 0.0;
   double sum_y = 0.0;
+  double sum_z = 0.0;
   for (int z = 0; z < grid.nz; ++z) {
     for (int y = 0; y < grid.ny; ++y) {
       const std::uint8_t* row = cells + grid.index(0, y, z);
@@ -128,6 +129,7 @@ Expected<TemplateModel> build_template(std::span<const algo::ScanPoint> points, 
                             static_cast<std::uint32_t>(z)});
         sum_x += x + 0.5;
         sum_y += y + 0.5;
+        sum_z += z + 0.5;
       }
     }
   }
@@ -135,6 +137,7 @@ Expected<TemplateModel> build_template(std::span<const algo::ScanPoint> points, 
   model.occupied_cells = n;
   model.centroid_m =
       grid.origin_m.head<2>() + grid.resolution_m * Eigen::Vector2d(sum_x, sum_y) / static_cast<double>(n);
+  model.centroid_z_m = grid.origin_m.z() + grid.resolution_m * sum_z / static_cast<double>(n);
 
   std::sort(occupied.begin(), occupied.end(), [](const KeyedCell& a, const KeyedCell& b) { return a.key < b.key; });
   const std::size_t m = std::min(n, params.max_surface_points);

@@ -442,6 +442,7 @@ TemplateFile::TemplateFile(TemplateFile&& other) noexcept
       memory_(std::exchange(other.memory_, nullptr)),
       memory_bytes_(std::exchange(other.memory_bytes_, 0)),
       info_(std::move(other.info_)),
+      centroid_z_m_(other.centroid_z_m_),
       view_(std::exchange(other.view_, {})),
       surface_cells_(std::exchange(other.surface_cells_, {})),
       timing_(other.timing_) {}
@@ -453,6 +454,7 @@ TemplateFile& TemplateFile::operator=(TemplateFile&& other) noexcept {
     memory_ = std::exchange(other.memory_, nullptr);
     memory_bytes_ = std::exchange(other.memory_bytes_, 0);
     info_ = std::move(other.info_);
+    centroid_z_m_ = other.centroid_z_m_;
     view_ = std::exchange(other.view_, {});
     surface_cells_ = std::exchange(other.surface_cells_, {});
     timing_ = other.timing_;
@@ -533,6 +535,9 @@ Expected<TemplateFile> TemplateFile::open(const std::string& path, const algo::G
   if (::mprotect(memory, *length, PROT_READ) != 0) {
     return make_error(path + ": cannot make the template read-only: " + errno_text(errno));
   }
+  double sum_z = 0.0;
+  for (std::size_t i = 0; i < h.surface_cell_count; ++i) sum_z += cells[i].z + 0.5;
+  file.centroid_z_m_ = h.origin_m[2] + h.resolution_m * sum_z / static_cast<double>(h.surface_cell_count);
   file.timing_.verify_ms = ms_since(verify_start);
   file.surface_cells_ = {cells, h.surface_cell_count};
   const algo::SparseMapData data{table, table + h.brick_count, bytes + h.bricks_offset, h.stored_bricks};

@@ -54,8 +54,9 @@ struct TemplateBuildParams {
 struct TemplateModel {
   algo::GridSpec grid{};
   algo::DistanceMap map;
-  // x-y mean of the occupied cell centres: c of DESIGN.md "Pose".
+  // x-y mean of the occupied cell centres: c of DESIGN.md "Pose"; its depth (the full pose's c) the same mean in z.
   Eigen::Vector2d centroid_m = Eigen::Vector2d::Zero();
+  double centroid_z_m = 0.0;
   // Occupied cells, Morton (Z-order) sorted, then subsampled evenly along that order to at most max_surface_points:
   // a run of consecutive cells is a compact patch, so any strided subset is still spread over the whole part.
   std::vector<algo::SurfaceCell> surface_cells;
@@ -133,6 +134,9 @@ class TemplateFile {
   // The sparse map and the occupied cells, in place in the file's memory.
   [[nodiscard]] const algo::DistanceMapView& view() const { return view_; }
   [[nodiscard]] const Eigen::Vector2d& centroid_m() const { return info_.centroid_m; }
+  // Depth of c (the full pose's centre): the mean depth of the surface cells' centres, which are every occupied cell
+  // unless TemplateBuildParams::max_surface_points capped them (then an even subset): TemplateModel::centroid_z_m.
+  [[nodiscard]] double centroid_z_m() const { return centroid_z_m_; }
   [[nodiscard]] std::span<const algo::SurfaceCell> surface_cells() const { return surface_cells_; }
   [[nodiscard]] const std::string& part_name() const { return info_.part_name; }
   [[nodiscard]] std::uint32_t plc_id() const { return info_.plc_id; }
@@ -148,6 +152,7 @@ class TemplateFile {
   const std::uint8_t* memory_ = nullptr;  // mmap'ed anonymous, the file's bytes, read-only after open()
   std::size_t memory_bytes_ = 0;
   TemplateInfo info_{};
+  double centroid_z_m_ = 0.0;
   algo::DistanceMapView view_{};
   std::span<const algo::SurfaceCell> surface_cells_;
   TemplateLoadTiming timing_{};

@@ -87,11 +87,12 @@ void ProductionLoop::log_part(const PartRecord& record) const {
   if (r.code == drivers::ResultCode::kOk) {
     CS_QLOG_INFO(log_, kComponent,
                  "acq %u %s: part %.*s (id %u) source %s p %.3f pose x %+.2f mm y %+.2f mm theta %+.3f deg "
-                 "cycle %.1f ms (recognition %.1f ms) frames %d points %zu seq %u",
+                 "z %+.2f mm rx %+.3f deg ry %+.3f deg cycle %.1f ms (recognition %.1f ms) frames %d points %zu seq %u",
                  r.acq_id, drivers::to_string(r.code), static_cast<int>(name.size()), name.data(),
                  static_cast<unsigned>(r.part_id), algo::to_string(decision.source).data(), decision.probability,
                  decision.pose.x_m * kMmPerM, decision.pose.y_m * kMmPerM, decision.pose.theta_rad * kDegPerRad,
-                 record.cycle_ms, record.recognise_ms, record.frames, record.points, record.seq);
+                 decision.z_m * kMmPerM, decision.rx_rad * kDegPerRad, decision.ry_rad * kDegPerRad, record.cycle_ms,
+                 record.recognise_ms, record.frames, record.points, record.seq);
     return;
   }
   CS_QLOG_INFO(log_, kComponent,

@@ -4,6 +4,7 @@
 // (drivers/sim/scene build_part) at known poses, so the truth is the simulator's pose.
 #include <Eigen/Geometry>
 #include <algorithm>
+#include <array>
 #include <catch2/catch.hpp>
 #include <chrono>
 #include <cmath>
@@ -76,15 +77,16 @@ const sim::PartSpec& part(const std::string& name) {
   return catalogue().front();
 }
 
-// The simulated cell's placement (SimCell::begin_pass): p_C = n + R_z(theta) R_y(swing) p_part + (x, y, 0).
+// The simulated cell's placement (SimCell::begin_pass): p_C = n + R_z(theta) R_y(swing) R_x(tilt) p_part + (x, y, z).
 Eigen::Vector3d nominal_centre(const sim::PartSpec& spec) {
   const sim::CarrierParams c = sim::default_rig_params().carrier;
   return {0.5 * c.length_m, c.hook_height_m - 0.5e-3 * spec.height_mm, c.part_plane_z_m};
 }
 Eigen::Isometry3d part_to_carrier(const sim::PartSpec& spec, const sim::PartPose& pose) {
-  return Eigen::Translation3d(nominal_centre(spec) + Eigen::Vector3d(pose.x_m, pose.y_m, 0.0)) *
+  return Eigen::Translation3d(nominal_centre(spec) + Eigen::Vector3d(pose.x_m, pose.y_m, pose.z_m)) *
          Eigen::AngleAxisd(pose.theta_rad, Eigen::Vector3d::UnitZ()) *
-         Eigen::AngleAxisd(pose.swing_rad, Eigen::Vector3d::UnitY());
+         Eigen::AngleAxisd(pose.swing_rad, Eigen::Vector3d::UnitY()) *
+         Eigen::AngleAxisd(pose.tilt_rad, Eigen::Vector3d::UnitX());
 }
 
 // A scan of the part's exact surface: every facet sampled on a lattice of about one profile per 2.2 mm along x and
@@ -197,12 +199,19 @@ const Template& taught(const std::string& name) {
   return *it->second;
 }
 
+Eigen::Vector3d mean_point(const std::vector<ScanPoint>& points) {
+  Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+  for (const ScanPoint& p : points) sum += Eigen::Vector3d(p.x, p.y, p.z);
+  return sum / static_cast<double>(points.size());
+}
+
 TemplateModel model_of(const Template& t, int class_index, int part_id) {
   TemplateModel m;
   m.class_index = class_index;
   m.part_id = part_id;
   m.map = t.map.view();
   m.centroid_m = t.centroid_m;
+  m.centroid_z_m = mean_point(t.scan).z();  // c's depth: every accepted decision also refines the full pose
   m.surface_cells = t.surface;
   return m;
 }
@@ -1528,6 +1537,107 @@ SCENARIO(
           }
         }
       }
+    }
+  }
+}
+
+namespace {
+
+// Thresholds nothing fails: the full pose tests are about the pose of an accepted part, not about verification.
+algo::TemplateThresholds accept_anything() {
+  algo::TemplateThresholds t;
+  t.max_error = 1.0;
+  t.max_missing_area_m2 = t.max_extra_area_m2 = t.max_hole_pattern_m2 = 1.0;
+  t.max_uncovered = t.max_outliers = 1.0;
+  return t;
+}
+
+// The true full pose of a scan placed at `scan` relative to a template placed at `taught` (both by
+// part_to_carrier), about c: p_scan = c + R (p_template - c) + d with R = R_scan R_taught^T, d = the image of c less c.
+// Returned as x, y, z [m] and rx, ry, theta [rad] of R = R_z(theta) R_y(ry) R_x(rx).
+std::array<double, algo::kPoseAxes> true_full_pose(const sim::PartSpec& spec, const sim::PartPose& taught,
+                                                   const sim::PartPose& scan, const Eigen::Vector3d& c) {
+  const Eigen::Isometry3d a = part_to_carrier(spec, scan) * part_to_carrier(spec, taught).inverse();
+  const Eigen::Matrix3d r = a.linear();
+  const Eigen::Vector3d d = a * c - c;
+  return {d.x(), d.y(), d.z(), std::atan2(r(2, 1), r(2, 2)), -std::asin(r(2, 0)), std::atan2(r(1, 0), r(0, 0))};
+}
+
+}  // namespace
+
+SCENARIO("An accepted part gets its full pose and a 1-sigma per axis; an axis its geometry does not fix is invalid",
+         "[cascade][full_pose]") {
+  using algo::PoseAxis;
+  constexpr sim::PartPose kSwungPose{-0.017, 0.012, 2.1 * kDeg, 2.6 * kDeg, -1.2 * kDeg, 0.003};
+  const ClassProbability sure[] = {{0, 0.9}};
+  Cascade cascade(CascadeParams{}, pm_params(), test_grid());
+  GIVEN("plate_4h taught, then scanned swung by 2.6 deg, tilted by -1.2 deg, 3 mm nearer and shifted") {
+    const Template& t = taught("plate_4h");
+    TemplateModel model = model_of(t, 0, 101);
+    model.thresholds = accept_anything();
+    const Eigen::Vector3d c(model.centroid_m.x(), model.centroid_m.y(), model.centroid_z_m);
+    const auto truth = true_full_pose(part("plate_4h"), t.pose, kSwungPose, c);
+    const auto scan = sample_part(part("plate_4h"), kSwungPose, 811);
+    const TemplateModel models[] = {model};
+    const Decision d = cascade.decide(sure, models, scan, far_deadline());
+    THEN(
+        "x within half a profile pitch, y within 0.5 mm, z within 0.3 mm, rx, ry and theta within 0.1 deg; every sigma "
+        "set") {
+      REQUIRE(d.accepted());
+      const std::array<double, algo::kPoseAxes> got = {d.pose.x_m, d.pose.y_m, d.z_m,
+                                                       d.rx_rad,   d.ry_rad,   d.pose.theta_rad};
+      INFO("error x " << (got[0] - truth[0]) * 1e3 << " y " << (got[1] - truth[1]) * 1e3 << " z "
+                      << (got[2] - truth[2]) * 1e3 << " mm, rx " << (got[3] - truth[3]) / kDeg << " ry "
+                      << (got[4] - truth[4]) / kDeg << " theta " << (got[5] - truth[5]) / kDeg << " deg");
+      // Along x the part is sampled one profile per 2.2 mm: its edges (and so x) are known to about half of that.
+      CHECK(std::abs(got[0] - truth[0]) < 0.0011);
+      CHECK(std::abs(got[1] - truth[1]) < 0.0005);
+      CHECK(std::abs(got[2] - truth[2]) < 0.0003);
+      for (std::size_t a = 3; a < algo::kPoseAxes; ++a) CHECK(std::abs(got[a] - truth[a]) < 0.1 * kDeg);
+      for (const double s : d.pose_sigma) {
+        CHECK(std::isfinite(s));
+        CHECK(s > 0.0);
+      }
+    }
+  }
+  GIVEN("a flat strip 450 x 12 mm without any relief, taught and scanned like the plate") {
+    sim::PartSpec strip;
+    strip.name = "strip";
+    strip.width_mm = 450.0;
+    strip.height_mm = 12.0;
+    const auto taught_scan = sample_part(strip, kTaughtPose, 812);
+    const auto t = teach_from("strip", kTaughtPose, taught_scan);
+    TemplateModel model = model_of(*t, 0, 7);
+    model.thresholds = accept_anything();
+    const auto scan = sample_part(strip, kSwungPose, 813);
+    const TemplateModel models[] = {model};
+    const Decision d = cascade.decide(sure, models, scan, far_deadline());
+    THEN("its tilt about x (fixed only over 12 mm) is published invalid with no sigma; its swing and depth are not") {
+      REQUIRE(d.accepted());
+      const auto sigma = [&](PoseAxis a) { return d.pose_sigma[static_cast<std::size_t>(a)]; };
+      INFO("rx " << d.rx_rad / kDeg << " deg, sigma ry " << sigma(PoseAxis::kRy) / kDeg << " deg, sigma z "
+                 << sigma(PoseAxis::kZ) * 1e3 << " mm");
+      CHECK(std::isnan(d.rx_rad));
+      CHECK(std::isnan(sigma(PoseAxis::kRx)));
+      CHECK(std::isfinite(d.ry_rad));
+      CHECK(std::isfinite(d.z_m));
+      CHECK(sigma(PoseAxis::kRy) <= cascade.params().max_sigma_rad);
+    }
+  }
+  GIVEN("a template without its centroid's depth (NaN): the planar pose only") {
+    TemplateModel model = model_of(taught("plate_4h"), 0, 101);
+    model.thresholds = accept_anything();
+    model.centroid_z_m = std::numeric_limits<double>::quiet_NaN();
+    const auto scan = sample_part(part("plate_4h"), kSwungPose, 814);
+    const TemplateModel models[] = {model};
+    const Decision d = cascade.decide(sure, models, scan, far_deadline());
+    THEN("x, y, theta are published, z, rx, ry and every sigma are not") {
+      REQUIRE(d.accepted());
+      CHECK(d.pose_valid);
+      CHECK(std::isnan(d.z_m));
+      CHECK(std::isnan(d.rx_rad));
+      CHECK(std::isnan(d.ry_rad));
+      for (const double s : d.pose_sigma) CHECK(std::isnan(s));
     }
   }
 }

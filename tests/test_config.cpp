@@ -80,6 +80,8 @@ TEST_CASE(
   CHECK(cfg->sim.pose_xy_range_m == d.sim.pose_xy_range_m);
   CHECK(cfg->sim.pose_theta_range_deg == d.sim.pose_theta_range_deg);
   CHECK(cfg->sim.swing_range_deg == d.sim.swing_range_deg);
+  CHECK(cfg->sim.tilt_range_deg == d.sim.tilt_range_deg);
+  CHECK(cfg->sim.pose_z_range_m == d.sim.pose_z_range_m);
   REQUIRE(cfg->sim.coatings.size() == d.sim.coatings.size());
   for (std::size_t i = 0; i < d.sim.coatings.size(); ++i) {
     CHECK(cfg->sim.coatings[i].name == d.sim.coatings[i].name);
@@ -125,6 +127,13 @@ TEST_CASE(
   CHECK(cfg->cascade.size_factor == d.cascade.size_factor);
   CHECK(cfg->cascade.size_floor_m == d.cascade.size_floor_m);
   CHECK(cfg->cascade.robust_k == d.cascade.robust_k);
+  CHECK(cfg->cascade.full_pose == d.cascade.full_pose);
+  CHECK(cfg->cascade.max_sigma_m == Approx(d.cascade.max_sigma_m));
+  CHECK(cfg->cascade.max_sigma_rad == Approx(d.cascade.max_sigma_rad));
+  for (std::size_t a = 0; a < algo::kPoseAxes; ++a) {
+    CHECK(cfg->cascade.pose_sigma_scale[a] == d.cascade.pose_sigma_scale[a]);
+    CHECK(cfg->cascade.pose_sigma_floor[a] == Approx(d.cascade.pose_sigma_floor[a]));
+  }
   CHECK(cfg->cascade.blob_window_m == d.cascade.blob_window_m);
   CHECK(cfg->cascade.depth_tolerance_m == d.cascade.depth_tolerance_m);
   CHECK(cfg->cascade.refine_iterations == d.cascade.refine_iterations);
@@ -253,9 +262,18 @@ TEST_CASE("Given pose texts, when parsed, then metres and degrees are read and m
   CHECK(pose->y_m == -0.02);
   CHECK(pose->theta_rad == Approx(3 * std::numbers::pi / 180.0));
   CHECK(pose->swing_rad == 0.0);
+  CHECK(pose->tilt_rad == 0.0);
+  CHECK(pose->z_m == 0.0);
+  auto full = cli::parse_pose("0.01,0.02,3,2.5,-1.5,0.004");  // swing, tilt in degrees, z in metres
+  REQUIRE(full.ok());
+  CHECK(full->swing_rad == Approx(2.5 * std::numbers::pi / 180.0));
+  CHECK(full->tilt_rad == Approx(-1.5 * std::numbers::pi / 180.0));
+  CHECK(full->z_m == 0.004);
   CHECK_FALSE(cli::parse_pose("1,2").ok());
   CHECK_FALSE(cli::parse_pose("a,b,c").ok());
-  CHECK_FALSE(cli::parse_pose("0.01,0.02,3,4,5").ok());
+  CHECK_FALSE(cli::parse_pose("0.01,0.02,3,4,5,0.001,7").ok());
+  CHECK_FALSE(cli::parse_pose("0.01,0.02,3,4,50").ok());  // a tilt of 50 deg is no hanging part
+  CHECK_FALSE(cli::parse_pose("0.01,0.02,3,4,5,0.5").ok());
   CHECK_FALSE(cli::parse_pose("0.5,0,0").ok());  // 0.5 m is not a pose error, it is a typo for mm
   CHECK(cli::parse_pose("0.01,,3").error().message.find("'' is not a number") != std::string::npos);
 }
@@ -387,6 +405,8 @@ const RangedKey kRangedKeys[] = {
     {"sim.pose_xy_range_m", kNumber, "0", "0.3", "m"},
     {"sim.pose_theta_range_deg", kNumber, "0", "45", "deg"},
     {"sim.swing_range_deg", kNumber, "0", "20", "deg"},
+    {"sim.tilt_range_deg", kNumber, "0", "20", "deg"},
+    {"sim.pose_z_range_m", kNumber, "0", "0.1", "m"},
     {"sim.reflectivity_jitter", kNumber, "0", "0.9", ""},
     {"sim.split_probability", kNumber, "0", "1", ""},
     {"sim.camera_noise_seed", kInteger, "0", "9223372036854775807", ""},
@@ -490,6 +510,12 @@ const RangedKey kRangedKeys[] = {
     {"cascade.size_factor", kNumber, "1", "100", ""},
     {"cascade.size_floor_m", kNumber, "0", "1", "m"},
     {"cascade.robust_k", kNumber, "1", "100", ""},
+    {"cascade.pose_max_sigma_mm", kNumber, "0", "100", "mm"},
+    {"cascade.pose_max_sigma_deg", kNumber, "0", "45", "deg"},
+    {"cascade.pose_sigma_scale.x", kNumber, "0.01", "1000", ""},
+    {"cascade.pose_sigma_scale.rz", kNumber, "0.01", "1000", ""},
+    {"cascade.pose_sigma_floor.z_mm", kNumber, "0", "10", "mm"},
+    {"cascade.pose_sigma_floor.ry_deg", kNumber, "0", "10", "deg"},
     {"runtime.deadline_ms", kInteger, "10", "60000", "ms"},
     {"runtime.realtime_priority", kInteger, "0", "99", ""},
 };

@@ -149,6 +149,11 @@ TEST_CASE("teach then train then classify a small database through the executabl
   REQUIRE(classify.exit_code == 0);
   CHECK(classify.output.find("\"class\": \"plate_5h\"") != std::string::npos);
   CHECK(classify.output.find("\"pose\": {\"x\": ") != std::string::npos);
+  // The full pose (issue 13): the keys of version 1 first, then z, rx_deg, ry_deg, and a sigma of each.
+  CHECK(classify.output.find("\"theta_deg\": ") < classify.output.find("\"z\": "));
+  CHECK(classify.output.find("\"rx_deg\": ") != std::string::npos);
+  CHECK(classify.output.find("\"ry_deg\": ") != std::string::npos);
+  CHECK(classify.output.find("\"sigma\": {\"x\": ") != std::string::npos);
 
   // A part never taught comes out unknown, never as a taught id.
   const fs::path stranger = cell.dir / "stranger.ply";
@@ -158,6 +163,7 @@ TEST_CASE("teach then train then classify a small database through the executabl
   const Run unknown = cell.run("classify --json " + stranger.string());
   INFO(unknown.output);
   CHECK(unknown.output.find("\"class\": null") != std::string::npos);
+  CHECK(unknown.output.find("\"pose\": null, \"sigma\": null") != std::string::npos);
 
   // eval --sim: new passes (seeds never taught) of a taught and an untaught part, written as PLY files with the
   // truth of the taught one relative to its template, then evaluated from the files.
@@ -168,7 +174,7 @@ TEST_CASE("teach then train then classify a small database through the executabl
   CHECK(fs::exists(eval_dir / "plate_5h" / "s100001.ply"));
   CHECK(fs::exists(eval_dir / "channel_u" / "s100002.ply"));
   const std::string truth_csv = read_all(eval_dir / "truth.csv");
-  CHECK(truth_csv.rfind("file,x_m,y_m,theta_deg\nplate_5h/s100001.ply,", 0) == 0);
+  CHECK(truth_csv.rfind("file,x_m,y_m,theta_deg,z_m,rx_deg,ry_deg\nplate_5h/s100001.ply,", 0) == 0);
   CHECK(std::count(truth_csv.begin(), truth_csv.end(), '\n') == 3);  // header + the taught part's two passes
   CHECK(eval.output.find("(2 of taught parts, 2 of parts not taught)") != std::string::npos);
   CHECK(eval.output.find("not taught   2 of 2 came out unknown") != std::string::npos);
@@ -180,6 +186,12 @@ TEST_CASE("teach then train then classify a small database through the executabl
   REQUIRE(std::sscanf(eval.output.c_str() + at, "pose xy mean %lf p95 %lf max %lf", &mean_mm, &p95_mm, &max_mm) == 3);
   CHECK(max_mm >= 0.0);
   CHECK(max_mm <= 8.8);
+  // Per axis: error and how often the truth lay within 1 and 2 sigma (the truth has all six axes).
+  for (const char* axis : {"pose x ", "pose y ", "pose z ", "pose rx ", "pose ry ", "pose theta "}) {
+    const auto line = eval.output.find(std::string(axis) + "  ");
+    CHECK(line != std::string::npos);
+  }
+  CHECK(eval.output.find("within 1 sigma") != std::string::npos);
   // An existing non-empty folder is never overwritten.
   CHECK(cell.run("eval --sim --count 1 --parts plate_5h --scans " + eval_dir.string()).exit_code == 2);
 
