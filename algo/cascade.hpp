@@ -431,13 +431,14 @@ class Cascade {
   void reset_scan(const Roi& roi);
   void reset_template(const Roi& roi);
 
+  // (Fields in an order without padding holes: Eigen's Vector2d first, the ints as one group.)
+  Eigen::Vector2d raster_origin_m_ = Eigen::Vector2d::Zero();
   CascadeParams params_;
   PerfectMatcher matcher_;
   // x-y raster of the grid plus a margin (scan points rotated and shifted by the pose may leave the grid).
+  double resolution_m_ = 0.0;
   int margin_cells_ = 0;
   int width_ = 0, height_ = 0;
-  double resolution_m_ = 0.0;
-  Eigen::Vector2d raster_origin_m_ = Eigen::Vector2d::Zero();
   int window_cells_ = 1;
   std::vector<std::array<int, 2>> window_offsets_;  // (dx, dy) of the window's cells, nearest first
   std::vector<float> t_lo_, t_hi_;                  // template depth range per cell (+inf / -inf when empty)
@@ -459,9 +460,9 @@ class Cascade {
   Roi edt_box_{0, 0, 0, 0};
   std::vector<Eigen::Vector2d> outline_;  // scan points in the outline cells of its closed x-y mask, scan frame
   std::size_t outline_count_ = 0;
-  bool outline_valid_ = false;            // outline_ belongs to the current scan
   std::vector<Candidate> candidates_;     // the pm_candidates most probable classes of a decision
   std::vector<std::int32_t> blob_cells_;  // cells of the blob being weighed
+  bool outline_valid_ = false;            // outline_ belongs to the current scan
 };
 
 }  // namespace cellsight::algo
