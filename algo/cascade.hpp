@@ -22,6 +22,8 @@
 
 namespace cellsight::algo {
 
+inline constexpr double kRadPerDeg = std::numbers::pi / 180.0;
+
 struct CascadeParams {
   // Candidate policy (issue 10; the thesis's 6.4.4 verified only the SVM's best k = 2). Candidates are verified in
   // the SVM's rank order, at most pm_candidates of them and while verify_budget_ms lasts (the first always), until
@@ -83,16 +85,12 @@ struct CascadeParams {
   // its value is NaN (invalid on the PLC), never a guess. x, y and theta stay published whatever their sigma (the
   // thesis's planar pose).
   bool full_pose = true;
-  std::array<double, kPoseAxes> pose_sigma_scale = {1.7, 1.0, 1.0, 1.0, 0.9, 1.2};
-  std::array<double, kPoseAxes> pose_sigma_floor = {0.07e-3,
-                                                    0.11e-3,
-                                                    0.03e-3,
-                                                    0.016 * std::numbers::pi / 180.0,
-                                                    0.013 * std::numbers::pi / 180.0,
-                                                    0.015 * std::numbers::pi / 180.0};
+  std::array<double, kPoseAxes> pose_sigma_scale = {1.7, 1.1, 1.05, 1.0, 0.9, 1.2};
+  std::array<double, kPoseAxes> pose_sigma_floor = {
+      0.09e-3, 0.11e-3, 0.03e-3, 0.014 * kRadPerDeg, 0.012 * kRadPerDeg, 0.015 * kRadPerDeg};
   // The robot's accuracy need (issue 13: z 0.5 mm, tilt and swing 0.15 deg): a 1-sigma above it is no measurement.
   double max_sigma_m = 0.0005;
-  double max_sigma_rad = 0.15 * std::numbers::pi / 180.0;
+  double max_sigma_rad = 0.15 * kRadPerDeg;
   // Before the depth comparison the scan's depth is levelled onto the template's by a robust plane fit
   // (z offset + slopes in x and y): the swing about the hook's vertical axis (+-2 deg, up to 16 mm of depth at the
   // edge of a 450 mm part between two passes) is not part of the planar pose; a local difference (a rib) is.
