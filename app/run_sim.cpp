@@ -95,6 +95,11 @@ class SimOracle final : public runtime::Recogniser {
     d.probability = 1.0;
     d.pose_valid = true;
     d.pose = {pass.pose.x_m, pass.pose.y_m, pass.pose.theta_rad};
+    // All six axes, so the PLC test checks every pose register's encoding against the truth log; no sigma (the truth
+    // has no uncertainty to report: 0xFFFF).
+    d.z_m = pass.pose.z_m;
+    d.rx_rad = pass.pose.tilt_rad;
+    d.ry_rad = pass.pose.swing_rad;
     return d;
   }
 

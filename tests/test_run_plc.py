@@ -570,6 +570,16 @@ def main():
         dy_mm = block["y_um"] / 1000.0 - want_y * 1000.0
         dth_deg = block["rz_mdeg"] / 1000.0 - want_th
         pose_errors.append((abs(dx_mm), abs(dy_mm), abs(dth_deg)))
+        if args.sim_oracle:
+            # The oracle publishes the truth on all six axes (run_sim.cpp): Z, RX, RY reach the PLC to the wire's
+            # resolution, signs and word order included; it has no uncertainty, so every sigma is 0xFFFF.
+            truth_zrr = ((t["pose"]["z_m"] * 1e6, "z_um"), (t["pose"]["tilt_deg"] * 1e3, "rx_mdeg"),
+                         (t["pose"]["swing_deg"] * 1e3, "ry_mdeg"))
+            for want, key in truth_zrr:
+                if block[key] == INVALID_S32 or abs(block[key] - want) > 1.0:
+                    problems.add(f"result {seq} ({t['part']}): {key} {block[key]} but the truth is {want:.1f}")
+            if any(block[sigma] != INVALID_SIGMA for _, sigma in AXES):
+                problems.add(f"result {seq}: the oracle has no sigma, yet a sigma register is not 0xFFFF")
         if abs(dx_mm) > args.pose_tol_mm or abs(dy_mm) > args.pose_tol_mm or abs(dth_deg) > args.theta_tol_deg:
             problems.add(f"result {seq} ({t['part']}): pose off by x {dx_mm:+.2f} mm, y {dy_mm:+.2f} mm, "
                          f"theta {dth_deg:+.3f} deg")
