@@ -10,6 +10,7 @@
 #include <cstdint>
 #include <cstdio>
 #include <memory>
+#include <string_view>
 #include <thread>
 
 #include "base/result.hpp"
@@ -100,8 +101,41 @@ std::size_t LogQueue::drain(Sink&& sink) {
 
 }  // namespace cellsight::runtime
 
-// The loop's logging: like CS_LOG_* (drivers/log.hpp), through a LogQueue.
-#define CS_QLOG_DEBUG(queue, component, ...) (void)(queue).push(::cellsight::log::Level::kDebug, component, __VA_ARGS__)
-#define CS_QLOG_INFO(queue, component, ...) (void)(queue).push(::cellsight::log::Level::kInfo, component, __VA_ARGS__)
-#define CS_QLOG_WARN(queue, component, ...) (void)(queue).push(::cellsight::log::Level::kWarn, component, __VA_ARGS__)
-#define CS_QLOG_ERROR(queue, component, ...) (void)(queue).push(::cellsight::log::Level::kError, component, __VA_ARGS__)
+namespace cellsight::runtime {
+
+// How many conversions one queued line may have. Once any custom printf handler is registered, glibc formats every
+// printf through printf_positional, which keeps the conversion specs in a 1 KiB buffer on the stack and mallocs a
+// bigger one past it: with glibc 2.36, 15 or more conversions cost a 2 KiB malloc per call. libquadmath registers
+// such a handler when it loads (it comes in with OpenCV's BLAS / LAPACK), so in cellsight a 17-conversion line
+// allocated in the loop thread on every part (found by test_run_loop's RSS test under ASan). The macros below hold
+// every loop format to the bound at compile time; a longer line is formatted in two steps (loop_publish.cpp).
+inline constexpr int kMaxLogConversions = 14;
+
+// The conversions of a printf format ("%%" is none).
+constexpr int log_conversions(std::string_view format) {
+  int count = 0;
+  for (std::size_t i = 0; i < format.size(); ++i) {
+    if (format[i] != '%') continue;
+    if (i + 1 < format.size() && format[i + 1] == '%') {
+      ++i;
+      continue;
+    }
+    ++count;
+  }
+  return count;
+}
+
+}  // namespace cellsight::runtime
+
+// The loop's logging: like CS_LOG_* (drivers/log.hpp), through a LogQueue. The format must be a literal within
+// kMaxLogConversions.
+#define CS_QLOG_AT(level, queue, component, format, ...)                                                     \
+  do {                                                                                                       \
+    static_assert(::cellsight::runtime::log_conversions(format) <= ::cellsight::runtime::kMaxLogConversions, \
+                  "a loop log line with this many conversions makes glibc's printf allocate");               \
+    (void)(queue).push(level, component, format __VA_OPT__(, ) __VA_ARGS__);                                 \
+  } while (false)
+#define CS_QLOG_DEBUG(queue, component, ...) CS_QLOG_AT(::cellsight::log::Level::kDebug, queue, component, __VA_ARGS__)
+#define CS_QLOG_INFO(queue, component, ...) CS_QLOG_AT(::cellsight::log::Level::kInfo, queue, component, __VA_ARGS__)
+#define CS_QLOG_WARN(queue, component, ...) CS_QLOG_AT(::cellsight::log::Level::kWarn, queue, component, __VA_ARGS__)
+#define CS_QLOG_ERROR(queue, component, ...) CS_QLOG_AT(::cellsight::log::Level::kError, queue, component, __VA_ARGS__)

@@ -1,5 +1,6 @@
 // The production loop's publishing step: a decision becomes the PLC's result block, the part's counters, warning
 // and log line, and the observer's record.
+#include <cstdio>
 #include <numbers>
 #include <string_view>
 
@@ -85,14 +86,17 @@ void ProductionLoop::log_part(const PartRecord& record) const {
   const algo::Decision& decision = record.decision;
   const auto name = record.class_name.empty() ? std::string_view("-") : record.class_name;
   if (r.code == drivers::ResultCode::kOk) {
+    // The pose first on its own (a stack buffer): one format for the whole line would exceed kMaxLogConversions.
+    char pose[160];
+    std::snprintf(pose, sizeof pose, "x %+.2f mm y %+.2f mm theta %+.3f deg z %+.2f mm rx %+.3f deg ry %+.3f deg",
+                  decision.pose.x_m * kMmPerM, decision.pose.y_m * kMmPerM, decision.pose.theta_rad * kDegPerRad,
+                  decision.z_m * kMmPerM, decision.rx_rad * kDegPerRad, decision.ry_rad * kDegPerRad);
     CS_QLOG_INFO(log_, kComponent,
-                 "acq %u %s: part %.*s (id %u) source %s p %.3f pose x %+.2f mm y %+.2f mm theta %+.3f deg "
-                 "z %+.2f mm rx %+.3f deg ry %+.3f deg cycle %.1f ms (recognition %.1f ms) frames %d points %zu seq %u",
+                 "acq %u %s: part %.*s (id %u) source %s p %.3f pose %s cycle %.1f ms (recognition %.1f ms) "
+                 "frames %d points %zu seq %u",
                  r.acq_id, drivers::to_string(r.code), static_cast<int>(name.size()), name.data(),
-                 static_cast<unsigned>(r.part_id), algo::to_string(decision.source).data(), decision.probability,
-                 decision.pose.x_m * kMmPerM, decision.pose.y_m * kMmPerM, decision.pose.theta_rad * kDegPerRad,
-                 decision.z_m * kMmPerM, decision.rx_rad * kDegPerRad, decision.ry_rad * kDegPerRad, record.cycle_ms,
-                 record.recognise_ms, record.frames, record.points, record.seq);
+                 static_cast<unsigned>(r.part_id), algo::to_string(decision.source).data(), decision.probability, pose,
+                 record.cycle_ms, record.recognise_ms, record.frames, record.points, record.seq);
     return;
   }
   CS_QLOG_INFO(log_, kComponent,
