@@ -475,6 +475,15 @@ TEST_CASE("scans flagged at training survive a save and must name scans of the p
 // differing by one hole; channel_u stays untaught, so the run must report it as unknown.
 TEST_CASE("fixture: a small trained database for the PLC integration test", "[.][plc_fixture]") {
   const SmallCell cell(fs::path(CELLSIGHT_BINARY_DIR) / "tests" / "plc_db");
+  // The PLC test checks the runtime's path and the recogniser's answers, not this machine's speed: the sanitizer build
+  // on a loaded machine took 150-240 ms per pass and ran out of the 200 ms verification budget on taught parts
+  // ("not_verified"). 2 s is still well inside the loop's 3 s deadline.
+  std::string text = read_all(cell.config_path);
+  const std::string budget = "verify_budget_ms: 200 ";
+  const auto at = text.find(budget);
+  REQUIRE(at != std::string::npos);
+  text.replace(at, budget.size(), "verify_budget_ms: 2000");
+  std::ofstream(cell.config_path) << text;
   int id = 1;
   for (const char* part : {"plate_4h", "plate_5h", "bracket_l"}) {
     const Run r = cell.run(std::string("teach --sim --part ") + part + " --id " + std::to_string(id++) + " --count 8");
