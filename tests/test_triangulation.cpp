@@ -55,6 +55,33 @@ TEST_CASE("Given camera points, when projected, then algo::project equals cv::pr
 }
 
 TEST_CASE(
+    "Given a lens with strong barrel or pincushion distortion, when a pixel is undistorted, then it inverts "
+    "the distortion over the whole image") {
+  algo::Intrinsics k;
+  k.fx_px = 1500;
+  k.fy_px = 1480;
+  k.cx_px = 512;
+  k.cy_px = 384;
+  // Stronger than any lens of the cell (short C-mount lenses: |k1| up to ~0.3), with tangential terms.
+  for (const double k1 : {-0.3, 0.25}) {
+    k.k1 = k1;
+    k.k2 = -0.4 * k1;
+    k.k3 = 0.05 * k1;
+    k.p1 = 0.002;
+    k.p2 = -0.0015;
+    for (double x = -0.4; x <= 0.4; x += 0.05) {
+      for (double y = -0.3; y <= 0.3; y += 0.05) {
+        const Eigen::Vector2d px = algo::project(k, Eigen::Vector3d(x, y, 1.0));
+        const Eigen::Vector2d n = algo::undistort(k, px);
+        INFO("k1 " << k1 << " at (" << x << ", " << y << ")");
+        CHECK(n.x() == Approx(x).margin(1e-12));
+        CHECK(n.y() == Approx(y).margin(1e-12));
+      }
+    }
+  }
+}
+
+TEST_CASE(
     "Given a point on the laser plane projected by OpenCV, when its pixel is triangulated, then the point is "
     "recovered") {
   const sim::Rig rig = sim::make_rig(sim::default_rig_params());
