@@ -182,8 +182,9 @@ build_sysroot() {
   done < <(sed -n 's/^list(APPEND _cmake_import_check_targets \(opencv_[a-z0-9_]*\) )$/\1/p' "$modules")
   echo "$RECIPE_HASH $RECIPE" >"$tmp/.cellsight-sysroot"
   mv "$tmp" "$SYSROOT"
-  echo "   sysroot: ${#packages[@]} packages, $(awk '{s += $3} END {printf "%.1f", s / 1e6}' "$APT_DIR/uris.txt") MB of .deb files," \
-    "$(du -sm "$SYSROOT" | cut -f1) MB unpacked"
+  local deb_mb
+  deb_mb=$(awk '{s += $3} END {printf "%.1f", s / 1e6}' "$APT_DIR/uris.txt")
+  echo "   sysroot: ${#packages[@]} packages, $deb_mb MB of .deb files, $(du -sm "$SYSROOT" | cut -f1) MB unpacked"
 }
 
 if [ -f "$STAMP" ] && [ "$(cut -d' ' -f1 "$STAMP")" = "$RECIPE_HASH" ]; then

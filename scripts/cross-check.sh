@@ -30,7 +30,10 @@ if [ ! -x "$CROSS_BIN" ] || [ ! -d "$SYSROOT" ]; then
   echo "cross-check.sh: no $CROSS_BIN or $SYSROOT: run scripts/cross-build.sh $TARGET first" >&2
   exit 2
 fi
-command -v "$QEMU" >/dev/null || { echo "cross-check.sh: no $QEMU (scripts/cross-build.sh installs qemu-user)" >&2; exit 2; }
+if ! command -v "$QEMU" >/dev/null; then
+  echo "cross-check.sh: no $QEMU (scripts/cross-build.sh installs qemu-user)" >&2
+  exit 2
+fi
 
 NATIVE_BIN=${CELLSIGHT_BIN:-build/app/cellsight}
 if [ ! -x "$NATIVE_BIN" ]; then
