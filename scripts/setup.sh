@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Installs every Debian 12 package cellsight needs to build, test and run. Idempotent and non-interactive:
 # packages already present are not touched; apt-get runs only when something is missing.
+# usage: scripts/setup.sh [PACKAGE...]   the packages named instead (scripts/cross-build.sh: the cross compiler)
 set -euo pipefail
 
 PACKAGES=(
@@ -12,6 +13,7 @@ PACKAGES=(
   clang-format clang-tidy    # the code rules (scripts/lint.sh, a stage of scripts/test.sh)
   mbpoll python3 python3-pymodbus python3-serial-asyncio   # real Modbus clients for the PLC tests
 )
+if [ $# -gt 0 ]; then PACKAGES=("$@"); fi
 
 SUDO=()
 if [ "$(id -u)" -ne 0 ]; then
