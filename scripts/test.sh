@@ -10,14 +10,28 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+# Each stage's wall time, printed as it ends and summed up at the exit: CI keeps the whole run under 45 min, and the
+# figures say where the time goes.
+STAGE_START=$SECONDS
+STAGE_TIMES=()
+stage_done() {
+  STAGE_TIMES+=("$1 $((SECONDS - STAGE_START)) s")
+  echo "test.sh: $1 took $((SECONDS - STAGE_START)) s"
+  STAGE_START=$SECONDS
+}
+trap 'echo "test.sh: stages: ${STAGE_TIMES[*]:-none}; total $SECONDS s"' EXIT
+
 scripts/setup.sh
+stage_done setup
 # The code rules first: a finding fails the run in a few minutes instead of after the builds.
 if [ "${CELLSIGHT_LINT:-1}" != 0 ] && [ $# -eq 0 ]; then
   scripts/lint.sh
+  stage_done lint
 fi
 BUILD=${CELLSIGHT_TEST_BUILD:-build-test}
 cmake -S . -B "$BUILD" -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCELLSIGHT_SANITIZE=ON -DCELLSIGHT_WERROR=ON >/dev/null
 cmake --build "$BUILD" -j"$(nproc)"
+stage_done "sanitizer build"
 export ASAN_OPTIONS=${ASAN_OPTIONS:-detect_leaks=1:abort_on_error=1}
 export UBSAN_OPTIONS=${UBSAN_OPTIONS:-print_stacktrace=1:halt_on_error=1}
 if [ $# -gt 0 ]; then
@@ -25,6 +39,7 @@ if [ $# -gt 0 ]; then
 else
   ctest --test-dir "$BUILD" --output-on-failure -j"$(nproc)"
 fi
+stage_done "sanitizer tests"
 # The timing-sensitive tests (the loop's deadlines and hand-offs, the Modbus server) run in a Release build as well:
 # the sanitizers slow the code 2-5 times, which once hid tests that passed only while the loop was slow (issue 15).
 RELEASE_TESTS=(test_run_loop test_modbus)
@@ -40,18 +55,22 @@ if [ ${#selected[@]} -gt 0 ]; then
   cmake --build "$RELEASE" -j"$(nproc)" --target "${selected[@]}"
   regex=$(IFS='|'; echo "${selected[*]}")
   ctest --test-dir "$RELEASE" --output-on-failure -j"$(nproc)" -R "^($regex):"
+  stage_done "release build and tests"
 fi
 # The threaded tests under ThreadSanitizer (scripts/tsan.sh; CELLSIGHT_TSAN=0 skips it).
 if [ "${CELLSIGHT_TSAN:-1}" != 0 ]; then
   scripts/tsan.sh "$@"
+  stage_done tsan
 fi
 # The soak (README "Soak and fault injection"): `run --sim` for 500 parts in the Release build with an acknowledging
 # PLC, a polling client, an abusive one and faults injected, SIGTERM mid-pass and a teach into a full disk; about
 # 2 minutes here.
 if [ "${CELLSIGHT_SOAK:-1}" != 0 ] && { [ $# -eq 0 ] || [[ soak =~ $1 ]]; }; then
   CELLSIGHT_SOAK_BUILD=$RELEASE scripts/soak.sh --ci --work "$RELEASE/soak"
+  stage_done soak
 fi
 scripts/fuzz.sh --ci "${CELLSIGHT_FUZZ_SECONDS:-10}" "$@"
+stage_done fuzz
 # The ARM (aarch64) cross build and its proof under qemu-user (README "Cross build for ARM (aarch64)"): off by
 # default, CELLSIGHT_CROSS=1 runs it. scripts/cross-build.sh downloads Debian's arm64 packages into a sysroot
 # (build-aarch64/sysroot; 73 MB, reused by later runs) and builds cellsight for aarch64; scripts/cross-check.sh
@@ -62,4 +81,5 @@ if [ "${CELLSIGHT_CROSS:-0}" = 1 ] && { [ $# -eq 0 ] || [[ cross =~ $1 ]]; }; th
   cmake --build "$RELEASE" -j"$(nproc)" --target cellsight
   scripts/cross-build.sh aarch64
   CELLSIGHT_BIN=$RELEASE/app/cellsight scripts/cross-check.sh aarch64
+  stage_done "cross build and check"
 fi
