@@ -163,15 +163,19 @@ void read_gpio_section(formats::YamlSection g, Config& cfg) {
   g.finish();
 }
 
-void read_modbus_section(formats::YamlSection m, Config& cfg) {
-  m.text("bind_address", cfg.modbus.bind_address);
-  // libmodbus listens on a numeric IPv4 address only: a host name or a bad address would fail at `run` time.
+// A listening address: a dotted IPv4 address, checked here so that a bad one names file and key, not fail at `run`.
+void read_ipv4(formats::YamlSection& section, const char* key, std::string& value, const char* examples) {
+  section.text(key, value);
   in_addr parsed{};
-  if (::inet_pton(AF_INET, cfg.modbus.bind_address.c_str(), &parsed) != 1) {
-    m.error("bind_address", "'" + cfg.modbus.bind_address +
-                                "' is not valid, expected a dotted IPv4 address such as 0.0.0.0 (every interface) "
-                                "or 192.168.0.10 (host names are not accepted)");
+  if (::inet_pton(AF_INET, value.c_str(), &parsed) != 1) {
+    section.error(key, "'" + value + "' is not valid, expected a dotted IPv4 address such as " + examples +
+                           " (host names are not accepted)");
   }
+}
+
+void read_modbus_section(formats::YamlSection m, Config& cfg) {
+  // libmodbus listens on a numeric IPv4 address only: a host name or a bad address would fail at `run` time.
+  read_ipv4(m, "bind_address", cfg.modbus.bind_address, "0.0.0.0 (every interface) or 192.168.0.10");
   m.integer("port", cfg.modbus.port, 1, 65535, "");
   m.integer("max_clients", cfg.modbus.max_clients, 1, 64, "clients");
   m.integer("byte_timeout_ms", cfg.modbus.byte_timeout_ms, 1, 10000, "ms");
@@ -299,6 +303,23 @@ void read_runtime_section(formats::YamlSection s, Config& cfg) {
   s.finish();
 }
 
+void read_hmi_section(formats::YamlSection s, Config& cfg) {
+  s.boolean("enabled", cfg.hmi.enabled);
+  // civetweb listens on a numeric address too.
+  read_ipv4(s, "bind_address", cfg.hmi.bind_address,
+            "127.0.0.1 (this machine only), 0.0.0.0 (every interface) or 192.168.0.10");
+  s.integer("port", cfg.hmi.port, 1, 65535, "");
+  s.text("users_file", cfg.hmi.users_file);
+  s.integer("max_clients", cfg.hmi.max_clients, 2, 256, "clients");
+  s.integer("session_idle_minutes", cfg.hmi.session_idle_minutes, 1, 7 * 24 * 60, "min");
+  s.integer("max_sessions", cfg.hmi.max_sessions, 1, 1000, "sessions");
+  s.integer("max_failed_logins", cfg.hmi.max_failed_logins, 1, 1000, "logins");
+  s.integer("lockout_s", cfg.hmi.lockout_s, 1, 86400, "s");
+  s.integer("max_request_bytes", cfg.hmi.max_request_bytes, 1024, 64 << 20, "bytes");
+  s.integer("history", cfg.hmi.history, 1, 100000, "results");
+  s.finish();
+}
+
 // The sections after the rig and the simulator, in the order of the shipped file.
 void read_rest(formats::YamlSection& root, Config& cfg) {
   read_grid_section(root.section("grid"), cfg);
@@ -311,6 +332,7 @@ void read_rest(formats::YamlSection& root, Config& cfg) {
   read_perfect_match_section(root.section("perfect_match"), cfg);
   read_cascade_section(root.section("cascade"), cfg);
   read_runtime_section(root.section("runtime"), cfg);
+  read_hmi_section(root.section("hmi"), cfg);
 }
 
 }  // namespace
@@ -343,6 +365,8 @@ Expected<Config> config_from_yaml(const YAML::Node& doc, const std::string& path
   const fs::path catalogue(cfg.catalogue_path);
   if (catalogue.is_relative())
     cfg.catalogue_path = (fs::path(path).parent_path() / catalogue).lexically_normal().string();
+  const fs::path users(cfg.hmi.users_file);
+  if (users.is_relative()) cfg.hmi.users_file = (fs::path(path).parent_path() / users).lexically_normal().string();
   return cfg;
 }
 

@@ -9,6 +9,7 @@
 #include "algo/result.hpp"
 #include "drivers/sim/rig.hpp"
 #include "drivers/sim/sim_cell.hpp"
+#include "hmi/hmi_params.hpp"
 
 namespace cellsight::app {
 
@@ -84,6 +85,7 @@ struct SvmConfig {
 // have one source; config/cellsight.yaml exposes the keys a maintenance engineer may need to tune.
 using PerfectMatchConfig = algo::PerfectMatchParams;  // algo/perfect_match.hpp
 using CascadeConfig = algo::CascadeParams;            // algo/cascade.hpp
+using HmiConfig = hmi::HmiParams;                     // hmi/hmi_params.hpp
 
 struct RuntimeConfig {
   int deadline_ms = 3000;  // support removal .. registers written, hard
@@ -111,6 +113,7 @@ struct Config {
   PerfectMatchConfig pm;
   CascadeConfig cascade;
   RuntimeConfig runtime;
+  HmiConfig hmi;
 };
 
 [[nodiscard]] Config default_config();

@@ -23,6 +23,8 @@ struct RunOptions {
   std::uint64_t sim_replay = 0;  // --sim-replay K (--sim): K distinct passes, rendered once, replayed from memory
   std::string sim_faults;  // --sim-faults SPEC (--sim): faults injected into the simulated devices (the soak test)
   int port = -1;           // --port P: overrides modbus.port (0: any free port, printed in the log)
+  int hmi_port = -1;       // --hmi-port P: overrides hmi.port (0: any free port, printed in the log)
+  bool hmi = true;         // --no-hmi: no operator's screen, whatever hmi.enabled says
 };
 
 }  // namespace cellsight::app

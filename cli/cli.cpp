@@ -16,6 +16,7 @@
 #include "app/sim_setup.hpp"
 #include "cli/calibrate_mode.hpp"
 #include "cli/classify_mode.hpp"
+#include "cli/hmi_user_mode.hpp"
 #include "cli/mode_args.hpp"
 #include "cli/parts_mode.hpp"
 #include "cli/perturb_mode.hpp"
@@ -303,6 +304,7 @@ int run_file_mode(const std::string& mode, int argc, char** argv) {
   if (mode == "eval") return run_eval(rest, *config, models);
   if (mode == "run") return run_run(rest, *config);
   if (mode == "perturb") return run_perturb(rest, *config);
+  if (mode == "hmi-user") return run_hmi_user(rest, *config);
   return usage_error("unknown mode '" + mode + "'");
 }
 
@@ -331,7 +333,7 @@ int run_cli(int argc, char** argv) {
   const int mode_at = mode_word_index(argc, argv);
   const std::string mode_word = mode_at < argc ? argv[mode_at] : "";
   if (mode_word == "teach" || mode_word == "train" || mode_word == "parts" || mode_word == "classify" ||
-      mode_word == "eval" || mode_word == "run" || mode_word == "perturb") {
+      mode_word == "eval" || mode_word == "run" || mode_word == "perturb" || mode_word == "hmi-user") {
     return run_file_mode(mode_word, argc, argv);
   }
   // `calibrate` has options of its own (--images DIR, ...): it gets every word after the mode.
@@ -361,6 +363,7 @@ int run_cli(int argc, char** argv) {
     std::FILE* out = args.mode.empty() ? stderr : stdout;
     std::fputs(kUsage, out);
     std::fputs(kRunUsage, out);
+    std::fputs(kHmiUserUsage, out);
     std::fputs(kUsageGlobals, out);
     return args.mode.empty() ? kExitUsage : kExitOk;
   }

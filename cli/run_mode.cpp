@@ -29,6 +29,7 @@
 #include "app/run_sim.hpp"
 #include "app/scan_acquisition.hpp"
 #include "cli/cli.hpp"
+#include "cli/run_hmi.hpp"
 #include "drivers/log.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "drivers/sim/sim_faults.hpp"
@@ -49,7 +50,7 @@ using runtime::ServiceNotifier;
 using runtime::TriggerSource;
 
 const char* const kRunUsage =
-    "  run [--sim] [--parts N] [--models DIR] [--calibration FILE] [--port P]\n"
+    "  run [--sim] [--parts N] [--models DIR] [--calibration FILE] [--port P] [--hmi-port P | --no-hmi]\n"
     "      [--sim: --seed S --sim-parts A,B,.. --truth-log FILE --wait-plc --sim-oracle --sim-faults SPEC\n"
     "       --sim-replay K]\n"
     "        the production cell: scan, recognise, publish to the PLC over Modbus TCP until SIGTERM/SIGINT or N\n"
@@ -60,7 +61,9 @@ const char* const kRunUsage =
     "        without a model database, not recognition); --sim-faults KIND@EVERY[/VALUE],... injects faults into\n"
     "        every EVERY-th simulated pass (camera_stall, camera_hiccup, encoder_glitch, chatter; the soak test);\n"
     "        --sim-replay K: the conveyor brings K distinct passes over and over, each rendered once and then\n"
-    "        replayed byte for byte from memory (K x one pass of frames), so the loop runs as fast as it works\n";
+    "        replayed byte for byte from memory (K x one pass of frames), so the loop runs as fast as it works;\n"
+    "        the operator's screen (section hmi of the config) is served unless --no-hmi; --hmi-port overrides\n"
+    "        its port (0: any free port)\n";
 
 namespace {
 
@@ -143,10 +146,12 @@ Expected<app::RunOptions> parse_run_args(const std::vector<std::string>& args) {
       options.wait_plc = true;
     } else if (a == "--sim-oracle") {
       options.sim_oracle = true;
+    } else if (a == "--no-hmi") {
+      options.hmi = false;
     } else if (a == "--config" || a == "--log-level") {
       if (!has_value) return make_error(a + " needs a value");
       ++i;  // handled by the front end
-    } else if (a == "--parts" || a == "--seed" || a == "--port" || a == "--sim-replay") {
+    } else if (a == "--parts" || a == "--seed" || a == "--port" || a == "--hmi-port" || a == "--sim-replay") {
       auto value = need_value();
       if (!value) return value.error();
       std::uint64_t number = 0;
@@ -162,8 +167,8 @@ Expected<app::RunOptions> parse_run_args(const std::vector<std::string>& args) {
         options.seed = number;
         seed_given = true;
       } else {
-        if (number > static_cast<std::uint64_t>(kPortMax)) return make_error("--port " + *value + ": 0..65535");
-        options.port = static_cast<int>(number);
+        if (number > static_cast<std::uint64_t>(kPortMax)) return make_error(a + " " + *value + ": 0..65535");
+        (a == "--port" ? options.port : options.hmi_port) = static_cast<int>(number);
       }
     } else if (a == "--sim-faults") {
       auto value = need_value();
@@ -374,9 +379,8 @@ int run_run(const std::vector<std::string>& args, const app::Config& config) {
   loop.set_recogniser(std::move(recognition->recogniser));
   if (recognition->loader) loop.set_recogniser_loader(recognition->loader);
   loop.set_service(&service);
-  if (sim_run) {
-    if (LoopObserver* truth = sim_run->truth_observer(config, models_dir); truth != nullptr) loop.set_observer(truth);
-  }
+  LoopObserver* truth = sim_run ? sim_run->truth_observer(config, models_dir) : nullptr;
+  const std::unique_ptr<RunHmi> hmi = RunHmi::attach(config, options, loop, truth);
 
   // The server starts once the loop is built (scan buffers allocated), just before the loop runs: the link's loop
   // watchdog then never sees a silent start-up.
@@ -387,6 +391,7 @@ int run_run(const std::vector<std::string>& args, const app::Config& config) {
       server.stop();
       return fail(kExitFailure, ok.error().message);
     }
+    if (hmi) hmi->start(loop, server, models_dir);  // its threads, too, leave the stop signals to this one
   }
   announce_ready(service, server_config.bind_address, server.bound_port(), sim, options.parts);
 
@@ -396,6 +401,7 @@ int run_run(const std::vector<std::string>& args, const app::Config& config) {
     CS_LOG_INFO(kComponent, "%s: stopping", sig == SIGTERM ? "SIGTERM" : sig == SIGINT ? "SIGINT" : "signal");
   }
   service.stopping();
+  if (hmi) hmi->stop();
   loop.request_stop();
   loop.join();
   const LoopStats stats = loop.stats();

@@ -15,7 +15,7 @@ import subprocess
 import sys
 
 FILE_LIMIT = 600
-FILE_LIMIT_DIRS = ('app/', 'runtime/', 'cli/')
+FILE_LIMIT_DIRS = ('app/', 'runtime/', 'cli/', 'hmi/')
 FUNCTION_LIMIT = 100
 
 def blank(text):

@@ -53,12 +53,14 @@ DEV_PACKAGES=(
   libopencv-dev libopencv-core-dev libopencv-imgproc-dev libopencv-imgcodecs-dev libopencv-calib3d-dev
   libopencv-features2d-dev libopencv-flann-dev
   libyaml-cpp-dev libsvm-dev libgpiod-dev libmodbus-dev libsystemd-dev zlib1g-dev
+  libcivetweb-dev nlohmann-json3-dev libcrypt-dev
 )
 RUNTIME_PACKAGES=(
   libc6 libgcc-s1 libstdc++6
   libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-calib3d406 libopencv-features2d406
   libopencv-flann406
   libyaml-cpp0.7 libsvm3 libgpiod2 libmodbus5 libsystemd0 zlib1g
+  libcivetweb1 libcrypt1
 )
 NOT_NEEDED=(libglx-mesa0 proj-data)
 

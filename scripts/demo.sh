@@ -5,7 +5,8 @@
 #   2. teaches the catalogue (COUNT simulated passes per part) into a model database,
 #   3. trains the recogniser (features, simulated annealing + k-fold CV, SVM, template thresholds),
 #   4. runs the production loop for PARTS parts with the Modbus server up (127.0.0.1:1502), one log line per part,
-#      while a PLC program (tests/modbus_plc_client.py, pymodbus) takes every result by the handshake.
+#      while a PLC program (tests/modbus_plc_client.py, pymodbus) takes every result by the handshake, and the
+#      operator's screen is served at http://127.0.0.1:8080/ (printed below; open it in a browser while it runs).
 # A database that is already taught and trained is reused (delete out/demo to start over).
 #
 # usage: scripts/demo.sh [PARTS] [COUNT]      (defaults: 20 parts, 12 teach passes per part type)
@@ -46,6 +47,8 @@ fi
 
 echo "== 4. running the cell for $PARTS parts, with a PLC program (tests/modbus_plc_client.py) taking every result"
 echo "   over Modbus TCP 127.0.0.1:1502 by the RESULT_VALID / RESULT_ACK handshake (the cell: log lines; the PLC: JSON)"
+echo "   operator's screen: http://127.0.0.1:8080/ (hmi section of config/cellsight.yaml; accounts:"
+echo "   build/app/cellsight hmi-user NAME --role operator|maintenance; viewing from this machine needs none)"
 "$BIN" --models "$MODELS" run --sim --parts "$PARTS" --wait-plc --calibration "$CAL" &
 CELL=$!
 trap 'kill "$CELL" 2>/dev/null || true' EXIT

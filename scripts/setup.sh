@@ -8,6 +8,7 @@ PACKAGES=(
   build-essential cmake pkg-config git
   libeigen3-dev libopencv-dev libyaml-cpp-dev libsvm-dev
   libgpiod-dev libmodbus-dev libsystemd-dev zlib1g-dev
+  libcivetweb-dev nlohmann-json3-dev libcrypt-dev   # the operator's screen: HTTP server, JSON, password hashes
   catch2
   clang libclang-rt-14-dev   # libFuzzer and the sanitizer runtimes for the fuzz targets (scripts/fuzz.sh)
   clang-format clang-tidy    # the code rules (scripts/lint.sh, a stage of scripts/test.sh)

@@ -50,6 +50,7 @@
 #include "runtime/recogniser.hpp"
 #include "runtime/service_notify.hpp"
 #include "sim_test_util.hpp"
+#include "tests/free_port.hpp"
 #include "tests/scratch_dir.hpp"
 #include "tests/support/alloc_counter.hpp"
 
@@ -1366,19 +1367,6 @@ std::filesystem::path fresh_dir(const std::string& name) {
   return test::scratch_dir("run-" + name);
 }
 
-int free_tcp_port() {
-  const int fd = socket(AF_INET, SOCK_STREAM, 0);
-  REQUIRE(fd >= 0);
-  sockaddr_in address{};
-  address.sin_family = AF_INET;
-  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  REQUIRE(bind(fd, reinterpret_cast<sockaddr*>(&address), sizeof address) == 0);
-  socklen_t length = sizeof address;
-  REQUIRE(getsockname(fd, reinterpret_cast<sockaddr*>(&address), &length) == 0);
-  close(fd);
-  return ntohs(address.sin_port);
-}
-
 // Runs `fn` with stderr going to a file; returns what was written.
 template <class Fn>
 std::string capture_stderr(const std::filesystem::path& file, Fn fn) {
@@ -1402,7 +1390,7 @@ TEST_CASE("run: SIGTERM or SIGINT stops a running simulated cell cleanly: exit 0
   const app::Config config = small_config();
   const auto dir = fresh_dir("signal");
   const std::string calibration = write_true_calibration(config, dir);
-  const int port = free_tcp_port();
+  const int port = test::free_tcp_port();
   std::atomic<int> exit_code{-1};
   std::thread cell([&] {
     exit_code =

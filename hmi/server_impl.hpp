@@ -1,0 +1,86 @@
+// HmiServer's insides, shared by server.cpp (life cycle, routing, access rules) and api.cpp (the JSON routes and
+// the live stream). Not for other layers.
+#pragma once
+
+#include <civetweb.h>
+
+#include <array>
+#include <atomic>
+#include <condition_variable>
+#include <cstdint>
+#include <deque>
+#include <mutex>
+#include <nlohmann/json.hpp>
+#include <optional>
+#include <string>
+#include <thread>
+#include <utility>
+#include <vector>
+
+#include "hmi/server.hpp"
+#include "hmi/sessions.hpp"
+
+namespace cellsight::hmi {
+
+// One request as the routes see it.
+struct Request {
+  mg_connection* conn = nullptr;
+  std::string method;
+  std::string uri;
+  std::string query;
+  std::string remote;
+  long long content_length = -1;
+  bool local = false;              // from the loopback address
+  std::optional<Session> session;  // from the cookie, when valid
+};
+
+struct HmiServer::Impl {
+  Impl(HmiParams p, std::vector<User> u, LiveFeed* f, StatusFn s);
+
+  HmiParams params;
+  std::vector<User> users;
+  LiveFeed* feed;
+  StatusFn status;
+  SessionTable sessions;
+  LoginBrake brake;
+  mg_context* ctx = nullptr;
+  int bound_port = 0;
+
+  // The results taken from the feed, newest last, each with its event id (1, 2, ...).
+  std::mutex history_mutex;
+  std::condition_variable history_changed;
+  std::deque<std::pair<std::uint64_t, LiveResult>> history;
+  std::uint64_t last_id = 0;
+  std::array<std::uint64_t, 8> by_code{};  // results taken, per ResultCode (0-6; 7: any other value)
+  std::atomic<std::uint64_t> taken{0};
+  std::atomic<bool> stopping{false};
+  std::atomic<int> streams{0};
+  std::atomic<std::uint64_t> streams_refused{0};
+  std::atomic<std::uint64_t> streams_dropped{0};
+  std::atomic<std::uint64_t> requests{0};
+  std::thread pump;
+
+  void pump_loop();
+  // server.cpp
+  int dispatch(mg_connection* conn);
+  int serve_asset(const Request& r);
+  int route_api(Request& r);
+  // api.cpp
+  int api_login(const Request& r);
+  int api_logout(const Request& r);
+  int api_session(const Request& r);
+  int api_status(const Request& r);
+  int api_results(const Request& r);
+  int api_events(const Request& r);
+  [[nodiscard]] nlohmann::json status_json();
+  [[nodiscard]] std::vector<std::pair<std::uint64_t, LiveResult>> results_after(std::uint64_t id);
+};
+
+// Responses (api.cpp): a JSON body with Content-Length and the security headers; the status code is returned for
+// civetweb's access log.
+int send_json(mg_connection* conn, int status, const nlohmann::json& body, const std::string& extra_header_name = "",
+              const std::string& extra_header_value = "");
+int send_error(mg_connection* conn, int status, const std::string& message);
+[[nodiscard]] nlohmann::json result_json(std::uint64_t id, const LiveResult& r);
+
+}  // namespace cellsight::hmi

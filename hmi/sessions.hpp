@@ -1,0 +1,73 @@
+// Logged-in browsers and the login brake. A session is a random 256-bit token in an HttpOnly, SameSite=Strict cookie,
+// with a second random token the page must send in X-CSRF-Token on every state-changing request. Sessions expire
+// after a time without use and their number is bounded (the oldest goes). The brake counts failed logins per client
+// address: after max_failures in a row that address is refused for lockout_s, whatever it sends.
+#pragma once
+
+#include <chrono>
+#include <cstddef>
+#include <map>
+#include <mutex>
+#include <optional>
+#include <string>
+
+#include "hmi/users.hpp"
+
+namespace cellsight::hmi {
+
+using HmiClock = std::chrono::steady_clock;
+
+struct Session {
+  std::string token;
+  std::string csrf;
+  std::string user;
+  Role role = Role::kNone;
+  HmiClock::time_point last_used{};
+};
+
+// 2 * bytes lower-case hex digits from getrandom(2); empty if the kernel has no entropy to give (never a weak token).
+[[nodiscard]] std::string random_token(std::size_t bytes = 32);
+
+class SessionTable {
+ public:
+  SessionTable(std::chrono::seconds idle_timeout, std::size_t max_sessions)
+      : idle_timeout_(idle_timeout), max_sessions_(max_sessions == 0 ? 1 : max_sessions) {}
+
+  // A new session; nullopt when no random token could be made.
+  [[nodiscard]] std::optional<Session> create(const std::string& user, Role role, HmiClock::time_point now);
+  // The live session of `token` (its idle time restarts), or nullopt.
+  [[nodiscard]] std::optional<Session> find(const std::string& token, HmiClock::time_point now);
+  void remove(const std::string& token);
+  [[nodiscard]] std::size_t size() const;
+
+ private:
+  void expire(HmiClock::time_point now);  // with mutex_ held
+
+  mutable std::mutex mutex_;
+  std::map<std::string, Session> sessions_;
+  std::chrono::seconds idle_timeout_;
+  std::size_t max_sessions_;
+};
+
+class LoginBrake {
+ public:
+  LoginBrake(int max_failures, std::chrono::seconds lockout) : max_failures_(max_failures), lockout_(lockout) {}
+
+  // Seconds the address must still wait (0: it may try).
+  [[nodiscard]] long locked_for_s(const std::string& address, HmiClock::time_point now);
+  void failed(const std::string& address, HmiClock::time_point now);
+  void succeeded(const std::string& address);
+
+ private:
+  struct Entry {
+    int failures = 0;
+    HmiClock::time_point locked_until{};
+  };
+  static constexpr std::size_t kMaxAddresses = 4096;  // bounded memory against address-spraying clients
+  std::mutex mutex_;
+  std::map<std::string, Entry> entries_;
+  int max_failures_;
+  std::chrono::seconds lockout_;
+};
+
+}  // namespace cellsight::hmi
