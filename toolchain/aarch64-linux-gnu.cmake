@@ -9,7 +9,7 @@
 #   (or CELLSIGHT_SYSROOT in the environment). The compiler's C and C++ library headers and link files come from
 #   the cross compiler's packages; the sysroot holds the libraries cellsight finds and loads.
 #   Measured on the 2-core development machine: host tools 68 MB and 22 s once; the first run
-#   downloads 9 MB of package lists and 73 MB of .deb files (159 packages, 284 MB unpacked) and takes 4 min 5 s on
+#   downloads 9 MB of package lists and 73 MB of .deb files (164 packages, 288 MB unpacked) and takes 4 min 5 s on
 #   an idle 2-core machine, 3.5 min of it compiling; a second run reuses the sysroot and the build: 4 s.
 #   Run it without the hardware: qemu-aarch64 -L build-aarch64/sysroot build-aarch64/app/cellsight help
 #   (scripts/cross-check.sh aarch64 compares its decisions and poses with the native binary's).
