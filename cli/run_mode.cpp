@@ -401,8 +401,10 @@ int run_run(const std::vector<std::string>& args, const app::Config& config) {
     CS_LOG_INFO(kComponent, "%s: stopping", sig == SIGTERM ? "SIGTERM" : sig == SIGINT ? "SIGINT" : "signal");
   }
   service.stopping();
-  if (hmi) hmi->stop();
+  // The loop first: it abandons the pass in flight at once. Stopping the screen's server can take up to a second
+  // (civetweb joins its threads), and a pass must not be finished and published in that time after a SIGTERM.
   loop.request_stop();
+  if (hmi) hmi->stop();
   loop.join();
   const LoopStats stats = loop.stats();
   const drivers::LinkStats link = server.stats();

@@ -12,6 +12,8 @@ Phases (each checked; exit 0 only when every check holds):
                       RESULT_ACK, wait for RESULT_VALID to drop, clear the ack) and acknowledges every result; it
                       never pulses CLEAR_ERROR, so every recovery is the cell's own;
               PLC B   only polls status and result block with FC04;
+              viewer  an operator's browser on the screen (HMI): live stream and status, every result the PLC
+                      took must have been streamed with the same acquisition and part;
               abuser  malformed frames and forbidden requests (exception replies), broken framing, idle
                       connections held open, half frames (slowloris) and reconnect storms;
               sampler RSS (VmRSS) and open fds of the cellsight process from /proc after every result;
@@ -26,7 +28,8 @@ Phases (each checked; exit 0 only when every check holds):
             by the PLC match the injected faults one for one, RESULT_VALID is never set while ERROR is, no result's
             TIMESTAMP is older than the previous; 0 timeouts and late decisions (the loop's own counters), 0 missed
             triggers, the bounces filtered equal the bounces injected; RSS and non-socket fds of the first and the
-            last window of parts (1000, or N/5 when N < 5000) within 1 %, sockets never above max_clients + 1.
+            last window of parts (1000, or N/5 when N < 5000) within 1 %, sockets never above max_clients + 1 + the HMI's
+            listener and the viewer's two connections.
 Prints one JSON summary (and one line per problem); --json FILE writes it too.
 
 usage: soak.py --cellsight BIN --config FILE --calibration FILE (--models DIR | --sim-oracle) [--parts N]
@@ -34,6 +37,7 @@ usage: soak.py --cellsight BIN --config FILE --calibration FILE (--models DIR | 
 """
 
 import argparse
+import http.client
 import json
 import os
 import re
@@ -90,6 +94,9 @@ class Cell:
         command = [args.cellsight, "--config", args.config, "run", "--sim", "--parts", str(parts), "--seed",
                    str(seed), "--wait-plc", "--truth-log", self.truth_path, "--port", str(port), "--calibration",
                    args.calibration]
+        # The operator's screen runs as in production, on a port of its own (8080 may be taken on a CI machine).
+        self.hmi_port = plc_test.free_port()
+        command += ["--hmi-port", str(self.hmi_port)]
         command += ["--sim-oracle"] if args.sim_oracle else ["--models", args.models]
         if args.sim_parts:
             command += ["--sim-parts", args.sim_parts]
@@ -370,6 +377,71 @@ class RoundProblems:
 
     def add(self, what):
         self.items.append(what)
+
+
+def hmi_viewer(hmi_port, shared, problems):
+    """An operator's browser on 127.0.0.1 (no login there): the live stream open all run, the status polled every
+    2 s. Collects every streamed result {seq: result} into shared.hmi_results for the check against the PLC's."""
+    shared.hmi_results, shared.hmi_status_polls, shared.hmi_reconnects = {}, 0, 0
+    last_id, next_poll = 0, 0.0
+    while not shared.stop:
+        try:
+            stream = http.client.HTTPConnection("127.0.0.1", hmi_port, timeout=2)
+            stream.request("GET", "/api/events", headers={"Last-Event-ID": str(last_id)} if last_id else {})
+            reply = stream.getresponse()
+            if reply.status != 200:
+                problems.add(f"HMI viewer: /api/events answered {reply.status}")
+                return
+            event = None
+            while not shared.stop:
+                if time.monotonic() >= next_poll:
+                    poll = http.client.HTTPConnection("127.0.0.1", hmi_port, timeout=2)
+                    poll.request("GET", "/api/status")
+                    answer = poll.getresponse()
+                    json.loads(answer.read())
+                    poll.close()
+                    if answer.status != 200:
+                        problems.add(f"HMI viewer: /api/status answered {answer.status}")
+                    shared.hmi_status_polls += 1
+                    next_poll = time.monotonic() + 2.0
+                try:
+                    line = reply.fp.readline().decode()
+                except socket.timeout:
+                    continue
+                if not line:
+                    raise ConnectionError("the live stream ended")
+                if line.startswith("event: "):
+                    event = line[7:].strip()
+                elif line.startswith("id: "):
+                    last_id = int(line[4:])
+                elif line.startswith("data: ") and event == "result":
+                    result = json.loads(line[6:])
+                    shared.hmi_results[result["seq"]] = result
+            stream.close()
+        except (OSError, ConnectionError, http.client.HTTPException, ValueError):
+            if shared.stop:
+                break
+            shared.hmi_reconnects += 1
+            time.sleep(0.5)
+
+
+def check_hmi_view(shared, plc, problems, summary):
+    """Every result the PLC took was streamed to the screen once, with the same part, code and acquisition."""
+    seen = getattr(shared, "hmi_results", {})
+    missing = wrong = 0
+    for seq, block, _, _ in plc.results:
+        shown = seen.get(seq)
+        if shown is None:
+            missing += 1
+        elif shown["acq_id"] != block["acq_id"] or shown["part_id"] != block["part_id"]:
+            wrong += 1
+    summary["hmi"] = {"streamed": len(seen), "missing": missing, "different": wrong,
+                      "status_polls": getattr(shared, "hmi_status_polls", 0),
+                      "stream_reconnects": getattr(shared, "hmi_reconnects", 0)}
+    if missing or wrong:
+        problems.add(f"HMI viewer: of {len(plc.results)} results {missing} never streamed, {wrong} differ from the PLC's")
+    if getattr(shared, "hmi_status_polls", 0) == 0:
+        problems.add("HMI viewer: no status poll answered")
 
 
 def abuser(port, shared, problems):
@@ -694,7 +766,8 @@ def main_phase(args, work, problems, summary):
         return
     plc.start()
     threads = [threading.Thread(target=plc_b, args=(port, shared, problems)),
-               threading.Thread(target=abuser, args=(port, shared, problems))]
+               threading.Thread(target=abuser, args=(port, shared, problems)),
+               threading.Thread(target=hmi_viewer, args=(cell.hmi_port, shared, problems))]
     for t in threads:
         t.start()
     started = time.monotonic()
@@ -726,6 +799,8 @@ def main_phase(args, work, problems, summary):
     counters = final_counters(text) or {}
     if not counters:
         problems.add("main: no final counters in cellsight's log")
+
+    check_hmi_view(shared, plc, problems, summary)
 
     # ---- every part fed has exactly one result, in order ----
     truth = cell.truth()
@@ -850,8 +925,10 @@ def main_phase(args, work, problems, summary):
                 problems.add(f"main: {name} not flat: first {window} parts median {f_med} max {f_max}, last "
                              f"median {l_med} max {l_max}")
         mem["sockets_max"] = max(s[6] for s in samples)
-        if mem["sockets_max"] > args.max_clients + 1:
-            problems.add(f"main: {mem['sockets_max']} sockets open (max_clients {args.max_clients} + listener)")
+        # Modbus: max_clients + its listener; the screen: its listener + the viewer's stream and status poll.
+        if mem["sockets_max"] > args.max_clients + 1 + 3:
+            problems.add(f"main: {mem['sockets_max']} sockets open (max_clients {args.max_clients} + listener, "
+                         "HMI listener + 2 viewer connections)")
     else:
         problems.add("main: too few RSS/fd samples")
 
