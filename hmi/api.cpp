@@ -25,7 +25,12 @@ nlohmann::json sigma(std::uint16_t wire, double per_unit) {
   return static_cast<double>(wire) / per_unit;
 }
 
-// Reads the whole body (already bounded by dispatch()) and parses it; nullopt-like: a discarded json on failure.
+std::string session_cookie(const std::string& token, long max_age_s) {
+  return "cs_session=" + token + "; Path=/; HttpOnly; SameSite=Strict; Max-Age=" + std::to_string(max_age_s);
+}
+
+}  // namespace
+
 nlohmann::json read_json_body(const Request& r) {
   std::string body;
   if (r.content_length > 0) body.resize(static_cast<std::size_t>(r.content_length));
@@ -38,11 +43,11 @@ nlohmann::json read_json_body(const Request& r) {
   return nlohmann::json::parse(body, nullptr, false);
 }
 
-std::string session_cookie(const std::string& token, long max_age_s) {
-  return "cs_session=" + token + "; Path=/; HttpOnly; SameSite=Strict; Max-Age=" + std::to_string(max_age_s);
+std::string query_value(const Request& r, const char* key) {
+  char value[256] = {};
+  if (mg_get_var(r.query.c_str(), r.query.size(), key, value, sizeof value) < 0) return {};
+  return value;
 }
-
-}  // namespace
 
 int send_json(mg_connection* conn, int status, const nlohmann::json& body, const std::string& extra_header_name,
               const std::string& extra_header_value) {

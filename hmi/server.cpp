@@ -112,14 +112,33 @@ int HmiServer::Impl::route_api(Request& r) {
     const char* csrf = mg_get_header(r.conn, "X-CSRF-Token");
     if (csrf == nullptr || r.session->csrf != csrf) return send_error(r.conn, 403, "missing or wrong CSRF token");
     if (r.uri == "/api/logout") return api_logout(r);
-    return send_error(r.conn, 404, "no such action: " + r.uri);
+    return route_module(r);
   }
   if (r.uri == "/api/session") return api_session(r);  // tells the page whether to show the login
   if (!r.session && !r.local) return send_error(r.conn, 401, "log in first (viewing without login: this machine only)");
   if (r.uri == "/api/status") return api_status(r);
   if (r.uri == "/api/results") return api_results(r);
   if (r.uri == "/api/events") return api_events(r);
-  return send_error(r.conn, 404, "no such resource: " + r.uri);
+  return route_module(r);
+}
+
+// The modules' routes (routes.hpp). For a POST the session and its CSRF token were checked by route_api.
+int HmiServer::Impl::route_module(const Request& r) {
+  const std::string method = r.method == "HEAD" ? "GET" : r.method;
+  for (const Route& route : routes) {
+    const bool prefix = !route.path.empty() && route.path.back() == '/';
+    const bool match = prefix ? r.uri.rfind(route.path, 0) == 0 : r.uri == route.path;
+    if (!match || route.method != method) continue;
+    const Role needed = method == "POST" ? std::max(route.min_role, Role::kOperator) : route.min_role;
+    if (needed != Role::kNone) {
+      if (!r.session) return send_error(r.conn, 401, "log in first");
+      if (static_cast<int>(r.session->role) < static_cast<int>(needed)) {
+        return send_error(r.conn, 403, std::string("needs the ") + to_string(needed) + " role");
+      }
+    }
+    return route.handler(r);
+  }
+  return send_error(r.conn, 404, (method == "POST" ? "no such action: " : "no such resource: ") + r.uri);
 }
 
 HmiServer::HmiServer(HmiParams params, std::vector<User> users, LiveFeed* feed, StatusFn status)
@@ -127,6 +146,10 @@ HmiServer::HmiServer(HmiParams params, std::vector<User> users, LiveFeed* feed, 
 
 HmiServer::~HmiServer() {
   stop();
+}
+
+void HmiServer::add_routes(std::vector<Route> routes) {
+  for (Route& route : routes) impl_->routes.push_back(std::move(route));
 }
 
 Status HmiServer::start() {

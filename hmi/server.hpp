@@ -24,6 +24,7 @@
 #include "base/result.hpp"
 #include "hmi/hmi_params.hpp"
 #include "hmi/live_feed.hpp"
+#include "hmi/routes.hpp"
 #include "hmi/users.hpp"
 
 namespace cellsight::hmi {
@@ -38,6 +39,9 @@ class HmiServer {
   ~HmiServer();  // stop()
   HmiServer(const HmiServer&) = delete;
   HmiServer& operator=(const HmiServer&) = delete;
+
+  // Before start(): more pages' routes (routes.hpp: the access rules are the server's).
+  void add_routes(std::vector<Route> routes);
 
   // Binds bind_address:port and starts serving; the error names the address, the port and why.
   [[nodiscard]] Status start();

@@ -17,6 +17,7 @@
 #include <utility>
 #include <vector>
 
+#include "hmi/routes.hpp"
 #include "hmi/server.hpp"
 #include "hmi/sessions.hpp"
 
@@ -59,12 +60,14 @@ struct HmiServer::Impl {
   std::atomic<std::uint64_t> streams_dropped{0};
   std::atomic<std::uint64_t> requests{0};
   std::thread pump;
+  std::vector<Route> routes;  // the modules' (add_routes), matched after the built-in ones
 
   void pump_loop();
   // server.cpp
   int dispatch(mg_connection* conn);
   int serve_asset(const Request& r);
   int route_api(Request& r);
+  int route_module(const Request& r);
   // api.cpp
   int api_login(const Request& r);
   int api_logout(const Request& r);
@@ -76,11 +79,6 @@ struct HmiServer::Impl {
   [[nodiscard]] std::vector<std::pair<std::uint64_t, LiveResult>> results_after(std::uint64_t id);
 };
 
-// Responses (api.cpp): a JSON body with Content-Length and the security headers; the status code is returned for
-// civetweb's access log.
-int send_json(mg_connection* conn, int status, const nlohmann::json& body, const std::string& extra_header_name = "",
-              const std::string& extra_header_value = "");
-int send_error(mg_connection* conn, int status, const std::string& message);
 [[nodiscard]] nlohmann::json result_json(std::uint64_t id, const LiveResult& r);
 
 }  // namespace cellsight::hmi

@@ -132,6 +132,8 @@ function connect() {
 async function refreshSession() {
   const s = await (await fetch('/api/session')).json();
   csrf = s.csrf || null;
+  cs.session = s;
+  cs.sessionHooks.forEach((fn) => fn(s));
   $('who').textContent = s.user ? s.user + ' (' + s.role + ')' : '';
   $('login-open').hidden = !!s.user;
   $('logout').hidden = !s.user;
@@ -153,6 +155,38 @@ async function post(path, body) {
   return fetch(path, {method: 'POST', headers, body: JSON.stringify(body || {})});
 }
 
+// What the other pages' scripts (parts.js, review.js, debug.js) use: the session, JSON calls with the CSRF token,
+// and a call when their tab is opened or the session changes.
+const cs = {
+  session: null,
+  tabHooks: {},
+  sessionHooks: [],
+  onTab(name, fn) { this.tabHooks[name] = fn; },
+  onSession(fn) { this.sessionHooks.push(fn); },
+  async get(path) {
+    const res = await fetch(path);
+    const body = await res.json().catch(() => ({}));
+    if (!res.ok) throw new Error(body.error || res.statusText);
+    return body;
+  },
+  async post(path, body) {
+    const res = await post(path, body);
+    const answer = await res.json().catch(() => ({}));
+    if (!res.ok) throw new Error(answer.error || res.statusText);
+    return answer;
+  },
+  el(tag, attrs, ...children) {
+    const e = document.createElement(tag);
+    for (const [k, v] of Object.entries(attrs || {})) {
+      if (k === 'class') e.className = v; else if (k.startsWith('on')) e[k] = v; else e.setAttribute(k, v);
+    }
+    for (const c of children) e.append(c instanceof Node ? c : String(c));
+    return e;
+  },
+  fmt,
+};
+window.cs = cs;
+
 $('login-open').onclick = () => { $('login').hidden = false; $('login-user').focus(); };
 $('login-cancel').onclick = () => { $('login').hidden = true; };
 $('login-form').onsubmit = async (e) => {
@@ -170,6 +204,7 @@ document.querySelectorAll('nav .tab').forEach((b) => {
   b.onclick = () => {
     document.querySelectorAll('nav .tab').forEach((t) => t.classList.toggle('active', t === b));
     document.querySelectorAll('.page').forEach((p) => { p.hidden = p.id !== b.dataset.tab; });
+    if (cs.tabHooks[b.dataset.tab]) cs.tabHooks[b.dataset.tab]();
   };
 });
 refreshSession();
