@@ -17,6 +17,7 @@ namespace {
 constexpr std::int64_t kHealthyIterationNs = 1'000'000'000;
 // An edge stamped more than this before it was seen is not trusted as the cycle start (another clock, a stale edge).
 constexpr auto kEdgeTimestampWindow = std::chrono::seconds(1);
+constexpr std::uint16_t kTeachBit = static_cast<std::uint16_t>(drivers::StatusFlag::kTeachMode);
 }  // namespace
 
 // =================================================================================================== set-up
@@ -40,6 +41,8 @@ ProductionLoop::ProductionLoop(const LoopConfig& config, drivers::Camera& camera
 ProductionLoop::~ProductionLoop() {
   request_stop();
   join();
+  delete offered_.exchange(nullptr);  // offered or replaced recognisers nobody took
+  delete retired_.exchange(nullptr);
 }
 
 void ProductionLoop::set_recogniser(std::unique_ptr<Recogniser> recogniser) {
@@ -53,6 +56,11 @@ void ProductionLoop::set_observer(LoopObserver* observer) {
 }
 void ProductionLoop::set_service(ServiceNotifier* service) {
   service_ = service;
+}
+
+void ProductionLoop::set_keeper(ScanKeeper* keeper, bool keep_unknown) {
+  keeper_ = keeper;
+  worker_.set_keeper(keeper, keep_unknown);
 }
 
 Status ProductionLoop::start() {
@@ -218,7 +226,9 @@ void ProductionLoop::update_flags() {
     const auto bit = static_cast<std::uint16_t>(flag);
     if (!flags_sent_ || ((flags ^ flags_) & bit) != 0) link_.set_flag(flag, (flags & bit) != 0);
   }
-  flags_ = flags;
+  const bool teach_changed = !flags_sent_ || ((flags_ & kTeachBit) != 0) != (teach_part_id_ != 0);
+  if (teach_changed) link_.set_flag(drivers::StatusFlag::kTeachMode, teach_part_id_ != 0);
+  flags_ = static_cast<std::uint16_t>(flags | (teach_part_id_ != 0 ? kTeachBit : 0));
   flags_sent_ = true;
 }
 

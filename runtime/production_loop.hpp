@@ -25,6 +25,7 @@
 #include "runtime/pass_acquirer.hpp"
 #include "runtime/recogniser.hpp"
 #include "runtime/recognition_worker.hpp"
+#include "runtime/scan_keeper.hpp"
 
 namespace cellsight::runtime {
 
@@ -47,6 +48,25 @@ class ProductionLoop {
   void set_recogniser_loader(RecogniserLoader loader);
   void set_observer(LoopObserver* observer);   // borrowed; must outlive the loop threads
   void set_service(ServiceNotifier* service);  // borrowed; WATCHDOG=1 while healthy
+  // Keep scans for the operator's screen (borrowed, outlives the loop threads): the passes of a part being taught,
+  // and when keep_unknown those that come out unknown. Without a keeper ENTER_TEACH is refused.
+  void set_keeper(ScanKeeper* keeper, bool keep_unknown);
+
+  // ---- the screen's commands: the same path as the PLC's COMMAND register (one poster thread) ----
+  // Taken by the loop at its next step, between passes (a teach mode change applies from the next pass on).
+  // False when the previous one has not been taken yet.
+  bool post_command(drivers::CommandCode command, std::uint32_t arg);
+  // The last posted command's fate: pending until the loop took it, then done or refused.
+  enum class CommandFate : std::uint8_t { kPending, kDone, kRefused };
+  [[nodiscard]] CommandFate command_fate() const;
+  // Any thread: a recogniser (e.g. built after a retrain) that the loop puts in place between passes, never in one;
+  // the previous offer not taken yet comes back to be destroyed by the caller.
+  std::unique_ptr<Recogniser> offer_recogniser(std::unique_ptr<Recogniser> recogniser);
+  // Any thread: the recogniser the loop replaced, to be destroyed off the loop thread; null when none.
+  std::unique_ptr<Recogniser> take_retired_recogniser();
+  [[nodiscard]] std::uint64_t recognisers_swapped() const { return swapped_.load(std::memory_order_relaxed); }
+  // A part is being taught: its PLC id, else 0 (any thread).
+  [[nodiscard]] std::uint16_t teaching_part_id() const { return teaching_.load(std::memory_order_acquire); }
 
   [[nodiscard]] Status start();
   // Any thread (not a signal handler: use an atomic flag there and call this from a normal thread).
@@ -98,6 +118,9 @@ class ProductionLoop {
   void handle_sw_triggers(std::uint32_t count, LoopState state);
   void handle_clear_error(LoopState state);
   void handle_exec(const drivers::PlcCommands& commands);
+  void handle_screen_command();
+  void swap_offered_recogniser();
+  [[nodiscard]] bool execute(drivers::CommandCode command, std::uint32_t arg);
   // production_loop.cpp: bookkeeping
   void update_flags();
   [[nodiscard]] bool trigger_allowed() const;
@@ -125,6 +148,7 @@ class ProductionLoop {
   mutable LogQueue log_;  // log_part() is const but queues lines
   LoopObserver* observer_ = nullptr;
   ServiceNotifier* service_ = nullptr;
+  ScanKeeper* keeper_ = nullptr;
 
   // Here and in the next block the members go from the widest to the narrowest: no padding between them.
   std::thread loop_thread_;
@@ -135,6 +159,17 @@ class ProductionLoop {
   std::atomic<bool> finished_{false};
   std::atomic<LoopState> state_{LoopState::kIdle};
   std::atomic<bool> recogniser_hung_{false};
+  // The screen's command mailbox: the poster writes code and argument, then publishes screen_posted_; the loop
+  // executes, writes the fate, then publishes screen_done_ = screen_posted_.
+  std::atomic<std::uint32_t> screen_posted_{0};
+  std::atomic<std::uint32_t> screen_done_{0};
+  std::atomic<std::uint32_t> screen_arg_{0};
+  std::atomic<std::uint16_t> screen_command_{0};
+  std::atomic<bool> screen_ok_{false};
+  std::atomic<std::uint16_t> teaching_{0};
+  std::atomic<Recogniser*> offered_{nullptr};  // owned; offer_recogniser() -> the loop
+  std::atomic<Recogniser*> retired_{nullptr};  // owned; the loop -> take_retired_recogniser()
+  std::atomic<std::uint64_t> swapped_{0};
 
   // Loop thread only.
   Clock::time_point fault_since_{};
@@ -146,7 +181,9 @@ class ProductionLoop {
   std::uint32_t acq_id_ = 0;
   std::uint32_t missed_since_result_ = 0;
   std::uint32_t trigger_count_ = 0;
-  std::uint32_t missed_count_ = 0;  // MISSED_TRIGGERS (reset by RESET_COUNTERS)
+  std::uint32_t missed_count_ = 0;        // MISSED_TRIGGERS (reset by RESET_COUNTERS)
+  std::uint16_t teach_part_id_ = 0;       // teach mode: the PLC id being taught (0: production)
+  std::uint16_t pass_teach_part_id_ = 0;  // ... as latched when the pass started
   int consecutive_timeouts_ = 0;
   drivers::ErrorCode fault_cause_ = drivers::ErrorCode::kNone;
   drivers::ErrorCode error_ = drivers::ErrorCode::kNone;  // what ERROR_CODE shows
@@ -154,6 +191,7 @@ class ProductionLoop {
   std::uint16_t flags_ = 0;  // StatusFlag bits as last sent
   TriggerSource pass_trigger_ = TriggerSource::kPartPresent;
   bool flags_sent_ = false;
+  bool pass_teach_ = false;
   bool trigger_enable_ = false;
   bool clear_requested_ = false;
   bool models_reload_requested_ = false;

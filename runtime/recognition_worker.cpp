@@ -1,6 +1,8 @@
 // The recognition thread: mailbox protocol and job execution.
 #include "runtime/recognition_worker.hpp"
 
+#include <ctime>
+
 #include "base/start_thread.hpp"
 #include "drivers/log.hpp"
 #include "runtime/futex.hpp"
@@ -24,6 +26,11 @@ void RecognitionWorker::set_loader(RecogniserLoader loader) {
   loader_ = std::move(loader);
 }
 
+void RecognitionWorker::set_keeper(ScanKeeper* keeper, bool keep_unknown) {
+  keeper_ = keeper;
+  keep_unknown_ = keep_unknown;
+}
+
 Status RecognitionWorker::start() {
   if (thread_.joinable()) return make_error("recognition worker: start() called twice");
   exit_.store(false, std::memory_order_release);
@@ -34,6 +41,11 @@ void RecognitionWorker::stop() {
   exit_.store(true, std::memory_order_release);
   futex_ring(bell_);
   if (thread_.joinable()) thread_.join();
+}
+
+void RecognitionWorker::swap_recogniser(std::unique_ptr<Recogniser>& recogniser) {
+  std::swap(recogniser_, recogniser);
+  has_recogniser_.store(recogniser_ != nullptr, std::memory_order_release);
 }
 
 bool RecognitionWorker::idle() const {
@@ -47,9 +59,11 @@ void RecognitionWorker::post(WorkerJob job) {
   futex_ring(bell_);
 }
 
-bool RecognitionWorker::post_recognise(std::span<const algo::ScanPoint> points, Clock::time_point deadline) {
+bool RecognitionWorker::post_recognise(std::span<const algo::ScanPoint> points, Clock::time_point deadline,
+                                       const KeepTag& tag) {
   if (!idle()) return false;
   points_ = points;
+  tag_ = tag;
   deadline_ = deadline;
   post(WorkerJob::kRecognise);
   return true;
@@ -76,6 +90,29 @@ std::string_view RecognitionWorker::class_name(int class_index) const {
   return recogniser_->class_name(class_index);
 }
 
+// A bounded copy (memcpy of at most max_points) and no allocation; the class names are copied into fixed fields.
+void RecognitionWorker::keep(const algo::Decision& decision) {
+  if (keeper_ == nullptr) return;
+  const bool unknown =
+      decision.source == algo::DecisionSource::kUnknown || decision.source == algo::DecisionSource::kTimeout;
+  if (!tag_.teach && !(keep_unknown_ && unknown)) return;
+  KeptScanInfo& info = kept_info_;
+  info.tag = tag_;
+  timespec now{};
+  clock_gettime(CLOCK_REALTIME, &now);
+  info.wall_ms = static_cast<std::int64_t>(now.tv_sec) * 1000 + now.tv_nsec / 1'000'000;
+  info.decision = decision;
+  for (auto& name : info.names) name[0] = '\0';
+  if (recogniser_ != nullptr) {
+    for (int i = 0; i < decision.candidate_count && i < algo::kMaxReportedCandidates; ++i) {
+      ScanKeeper::put_name(info.names[static_cast<std::size_t>(i)],
+                           recogniser_->class_name(decision.candidates[static_cast<std::size_t>(i)].class_index));
+    }
+    ScanKeeper::put_name(info.names[algo::kMaxReportedCandidates], recogniser_->class_name(decision.class_index));
+  }
+  (void)keeper_->keep(points_, info);
+}
+
 void RecognitionWorker::run() {
   std::uint32_t taken = 0;  // the last posted_seq_ this thread worked on
   for (;;) {
@@ -98,6 +135,7 @@ void RecognitionWorker::run() {
       } else {
         answer.decision.source = algo::DecisionSource::kUnknown;
       }
+      keep(answer.decision);
     } else if (loader_) {
       auto loaded = loader_();  // may allocate: the loop is in fault "model database invalid" meanwhile
       if (loaded) {

@@ -15,6 +15,7 @@
 #include "base/result.hpp"
 #include "runtime/loop_types.hpp"
 #include "runtime/recogniser.hpp"
+#include "runtime/scan_keeper.hpp"
 
 namespace cellsight::runtime {
 
@@ -45,6 +46,9 @@ class RecognitionWorker {
   // Before start().
   void set_recogniser(std::unique_ptr<Recogniser> recogniser);
   void set_loader(RecogniserLoader loader);
+  // Keep scans in `keeper` (borrowed, may be null): every pass posted with tag.teach, and when keep_unknown the
+  // passes that come out unknown or timed out. The copy is made before the answer is published.
+  void set_keeper(ScanKeeper* keeper, bool keep_unknown);
 
   [[nodiscard]] Status start();
   // Lets a running job finish, then ends the thread. Any thread except the worker itself.
@@ -54,11 +58,15 @@ class RecognitionWorker {
   // No job in the slot: the last answer is in answer() and a new job may be posted.
   [[nodiscard]] bool idle() const;
   // Recognise `points` (which stay untouched until the answer is back) before `deadline`. False when busy.
-  [[nodiscard]] bool post_recognise(std::span<const algo::ScanPoint> points, Clock::time_point deadline);
+  [[nodiscard]] bool post_recognise(std::span<const algo::ScanPoint> points, Clock::time_point deadline,
+                                    const KeepTag& tag = {});
   // Load the recogniser with the loader (model database). False when busy or without a loader.
   [[nodiscard]] bool post_load();
   // Sleeps until the worker is idle or `until`; true when idle. Wakes as soon as the answer is published.
   [[nodiscard]] bool wait_idle(Clock::time_point until);
+  // The poster, while idle(): puts `recogniser` in place and hands back the one it replaces (destroy it elsewhere:
+  // a model database takes long to unmap). The worker reads it only after the next post.
+  void swap_recogniser(std::unique_ptr<Recogniser>& recogniser);
   // The last job's answer; read only while idle().
   [[nodiscard]] const WorkerAnswer& answer() const { return answer_; }
   [[nodiscard]] bool has_loader() const { return static_cast<bool>(loader_); }
@@ -72,14 +80,19 @@ class RecognitionWorker {
  private:
   void run();
   void post(WorkerJob job);
+  void keep(const algo::Decision& decision);
 
   std::unique_ptr<Recogniser> recogniser_;  // the worker's while a job runs; replaced only by kLoad
   RecogniserLoader loader_;
+  ScanKeeper* keeper_ = nullptr;
+  bool keep_unknown_ = false;
+  KeptScanInfo kept_info_;  // filled by keep() (worker thread), copied into the keeper's slot
   std::thread thread_;
 
   // The slot. Job half: written by the poster before posted_seq_ (release), read by the worker after (acquire).
   WorkerJob job_ = WorkerJob::kRecognise;
   std::span<const algo::ScanPoint> points_;
+  KeepTag tag_;
   Clock::time_point deadline_{};
   Clock::time_point posted_at_{};
   // Answer half: written by the worker before done_seq_ (release), read by the poster after (acquire).

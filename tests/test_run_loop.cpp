@@ -925,6 +925,15 @@ TEST_CASE("loop: nothing is allocated inside the loop over several simulated par
   runtime::LoopConfig lc = small_loop_config(config);
   lc.max_parts = kParts;
   runtime::ProductionLoop& loop = cell.make_loop(lc);
+  // With the operator's screen the recognition thread also copies kept scans (here: every pass, teach mode).
+  runtime::ScanKeeper keeper(kParts, 20'000);
+  bool teach = false;
+  SECTION("production") {}
+  SECTION("teach mode: every pass is kept for the screen") {
+    teach = true;
+    loop.set_keeper(&keeper, true);
+    REQUIRE(loop.post_command(drivers::CommandCode::kEnterTeach, 9));
+  }
   REQUIRE(loop.start().ok());
   REQUIRE(wait_until([&] { return loop.stats().results >= kWarmUp; }, 60'000));
   long allocations = 0;
@@ -943,6 +952,12 @@ TEST_CASE("loop: nothing is allocated inside the loop over several simulated par
   CHECK(loop.stats().iterations - frames_from > 100);
   REQUIRE(wait_until([&] { return plc.count() == kParts; }, 5000));
   CHECK(plc.violations() == 0);
+  if (teach) {
+    CHECK(keeper.kept() == kParts);
+    CHECK(keeper.truncated() == 0);
+  }
+  loop.request_stop();
+  loop.join();
 }
 
 // ------------------------------------------------------------------ a replayed line (for long runs)
@@ -1661,3 +1676,137 @@ TEST_CASE("service: READY=1, WATCHDOG=1 only while the loop is healthy, STOPPING
 }
 
 }  // namespace
+
+// ================================================================== scans kept for the screen, teach mode, new models
+
+namespace {
+
+// Everything the keeper holds now, oldest first (the consumer's side).
+std::vector<std::pair<runtime::KeptScanInfo, std::vector<algo::ScanPoint>>> drain(runtime::ScanKeeper& keeper) {
+  std::vector<std::pair<runtime::KeptScanInfo, std::vector<algo::ScanPoint>>> out;
+  const runtime::KeptScanInfo* info = nullptr;
+  std::span<const algo::ScanPoint> points;
+  while (keeper.peek(info, points)) {
+    out.emplace_back(*info, std::vector<algo::ScanPoint>(points.begin(), points.end()));
+    keeper.release();
+  }
+  return out;
+}
+
+}  // namespace
+
+TEST_CASE(
+    "loop: unknown passes and the passes of a part being taught are kept; teach mode is a command between "
+    "passes and shows in STATUS",
+    "[run][loop][keep]") {
+  const app::Config config = small_config();
+  Script unknown;
+  unknown.source = algo::DecisionSource::kUnknown;
+  Cell cell(config, {Script{}, unknown, Script{}, Script{}, Script{}});
+  SimPlc plc(cell.link);
+  runtime::ScanKeeper keeper(4, app::scan_builder_params(config).max_points);
+  runtime::ProductionLoop& loop = cell.make_loop(small_loop_config(config));
+  loop.set_keeper(&keeper, true);
+  REQUIRE(loop.start().ok());
+
+  // Production: only the unknown one (acq 2) is kept, with every point the recogniser saw.
+  cell.enqueue(2);
+  REQUIRE(wait_until([&] { return plc.count() == 2; }, 30'000));
+  auto kept = drain(keeper);
+  REQUIRE(kept.size() == 1);
+  CHECK(kept[0].first.tag.acq_id == 2);
+  CHECK_FALSE(kept[0].first.tag.teach);
+  CHECK(kept[0].first.decision.source == algo::DecisionSource::kUnknown);
+  const auto records = cell.recorder.parts();
+  REQUIRE(records.size() == 2);
+  CHECK(kept[0].second.size() == records[1].points);
+  CHECK(kept[0].second.size() > 1000);
+  CHECK((plc.status() & map::kStatusTeachMode) == 0);
+
+  // Teach mode through the command path: STATUS.TEACH_MODE follows, every pass is kept (recognised ones too).
+  REQUIRE(loop.post_command(drivers::CommandCode::kEnterTeach, 7));
+  REQUIRE(wait_until([&] { return loop.command_fate() != runtime::ProductionLoop::CommandFate::kPending; }, 5000));
+  CHECK(loop.command_fate() == runtime::ProductionLoop::CommandFate::kDone);
+  CHECK(loop.teaching_part_id() == 7);
+  REQUIRE(wait_until([&] { return (plc.status() & map::kStatusTeachMode) != 0; }, 5000));
+  cell.enqueue(2, 11);
+  REQUIRE(wait_until([&] { return plc.count() == 4; }, 30'000));
+  kept = drain(keeper);
+  REQUIRE(kept.size() == 2);
+  for (const auto& [info, points] : kept) {
+    CHECK(info.tag.teach);
+    CHECK(info.tag.teach_part_id == 7);
+    CHECK(info.decision.source == algo::DecisionSource::kSvm);
+    CHECK(!points.empty());
+  }
+  CHECK(kept[0].first.tag.acq_id == 3);
+  CHECK(kept[1].first.tag.acq_id == 4);
+
+  REQUIRE(loop.post_command(drivers::CommandCode::kLeaveTeach, 0));
+  REQUIRE(wait_until([&] { return loop.command_fate() == runtime::ProductionLoop::CommandFate::kDone; }, 5000));
+  REQUIRE(wait_until([&] { return (plc.status() & map::kStatusTeachMode) == 0; }, 5000));
+  CHECK(loop.teaching_part_id() == 0);
+  // A bad argument is refused, and the mode stays as it was.
+  REQUIRE(loop.post_command(drivers::CommandCode::kEnterTeach, 0));
+  REQUIRE(wait_until([&] { return loop.command_fate() != runtime::ProductionLoop::CommandFate::kPending; }, 5000));
+  CHECK(loop.command_fate() == runtime::ProductionLoop::CommandFate::kRefused);
+  CHECK(loop.teaching_part_id() == 0);
+  loop.request_stop();
+  loop.join();
+  CHECK(keeper.dropped() == 0);
+}
+
+TEST_CASE("loop: without a keeper ENTER_TEACH is refused; a full keeper drops the scan and never waits",
+          "[run][loop][keep]") {
+  const app::Config config = small_config();
+  Script unknown;
+  unknown.source = algo::DecisionSource::kUnknown;
+  SECTION("no keeper") {
+    Cell cell(config, {Script{}});
+    runtime::ProductionLoop& loop = cell.make_loop(small_loop_config(config));
+    REQUIRE(loop.start().ok());
+    REQUIRE(loop.post_command(drivers::CommandCode::kEnterTeach, 5));
+    REQUIRE(wait_until([&] { return loop.command_fate() != runtime::ProductionLoop::CommandFate::kPending; }, 5000));
+    CHECK(loop.command_fate() == runtime::ProductionLoop::CommandFate::kRefused);
+    CHECK(loop.teaching_part_id() == 0);
+  }
+  SECTION("one slot that nobody empties") {
+    Cell cell(config, {unknown});
+    SimPlc plc(cell.link);
+    runtime::ScanKeeper keeper(1, app::scan_builder_params(config).max_points);
+    runtime::ProductionLoop& loop = cell.make_loop(small_loop_config(config));
+    loop.set_keeper(&keeper, true);
+    REQUIRE(loop.start().ok());
+    cell.enqueue(3);
+    REQUIRE(wait_until([&] { return plc.count() == 3; }, 30'000));
+    loop.request_stop();
+    loop.join();
+    CHECK(keeper.kept() == 1);
+    CHECK(keeper.dropped() == 2);
+    CHECK(drain(keeper).at(0).first.tag.acq_id == 1);
+  }
+}
+
+TEST_CASE("loop: an offered recogniser is put in place between passes; the replaced one is handed back",
+          "[run][loop][keep]") {
+  const app::Config config = small_config();
+  Cell cell(config, {Script{}});
+  SimPlc plc(cell.link);
+  runtime::ProductionLoop& loop = cell.make_loop(small_loop_config(config));
+  REQUIRE(loop.start().ok());
+  cell.enqueue(1);
+  REQUIRE(wait_until([&] { return plc.count() == 1; }, 30'000));
+  CHECK(Block(plc.seen(0).block).part_id() == 3);
+  CHECK(loop.take_retired_recogniser() == nullptr);
+  Script other;
+  other.part_id = 2;
+  CHECK(loop.offer_recogniser(std::make_unique<ScriptedRecogniser>(std::vector<Script>{other})) == nullptr);
+  REQUIRE(wait_until([&] { return loop.recognisers_swapped() == 1; }, 5000));
+  const std::unique_ptr<runtime::Recogniser> retired = loop.take_retired_recogniser();
+  CHECK(retired.get() == static_cast<runtime::Recogniser*>(cell.recogniser_ptr));
+  cell.enqueue(1, 5);
+  REQUIRE(wait_until([&] { return plc.count() == 2; }, 30'000));
+  CHECK(Block(plc.seen(1).block).part_id() == 2);
+  loop.request_stop();
+  loop.join();
+}

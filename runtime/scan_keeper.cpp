@@ -1,0 +1,51 @@
+// ScanKeeper: a single-producer / single-consumer ring of large slots (the points are copied in place, so the
+// records are not moved through base::SpscRing, which copies whole records).
+#include "runtime/scan_keeper.hpp"
+
+#include <algorithm>
+#include <cstring>
+
+namespace cellsight::runtime {
+
+ScanKeeper::ScanKeeper(std::size_t slots, std::size_t max_points)
+    : max_points_(max_points), slots_(std::max<std::size_t>(slots, 1)) {
+  for (Slot& slot : slots_) slot.points.resize(max_points_);
+}
+
+bool ScanKeeper::keep(std::span<const algo::ScanPoint> points, const KeptScanInfo& info) {
+  const std::uint64_t head = head_.load(std::memory_order_relaxed);
+  if (head - tail_.load(std::memory_order_acquire) >= slots_.size()) {
+    dropped_.fetch_add(1, std::memory_order_relaxed);
+    return false;
+  }
+  Slot& slot = slots_[head % slots_.size()];
+  const std::size_t n = std::min(points.size(), max_points_);
+  if (n < points.size()) truncated_.fetch_add(1, std::memory_order_relaxed);
+  if (n > 0) std::memcpy(slot.points.data(), points.data(), n * sizeof(algo::ScanPoint));
+  slot.info = info;
+  slot.info.points = n;
+  head_.store(head + 1, std::memory_order_release);
+  return true;
+}
+
+bool ScanKeeper::peek(const KeptScanInfo*& info, std::span<const algo::ScanPoint>& points) const {
+  const std::uint64_t tail = tail_.load(std::memory_order_relaxed);
+  if (tail == head_.load(std::memory_order_acquire)) return false;
+  const Slot& slot = slots_[tail % slots_.size()];
+  info = &slot.info;
+  points = std::span<const algo::ScanPoint>(slot.points.data(), slot.info.points);
+  return true;
+}
+
+void ScanKeeper::release() {
+  const std::uint64_t tail = tail_.load(std::memory_order_relaxed);
+  if (tail != head_.load(std::memory_order_acquire)) tail_.store(tail + 1, std::memory_order_release);
+}
+
+void ScanKeeper::put_name(std::array<char, KeptScanInfo::kNameBytes>& field, std::string_view name) {
+  const std::size_t n = std::min(name.size(), field.size() - 1);
+  std::memcpy(field.data(), name.data(), n);
+  field[n] = '\0';
+}
+
+}  // namespace cellsight::runtime
