@@ -127,8 +127,22 @@ nlohmann::json HmiServer::Impl::status_json() {
               {"live_streams_refused", streams_refused.load(std::memory_order_relaxed)},
               {"live_streams_dropped", streams_dropped.load(std::memory_order_relaxed)},
               {"sessions", sessions.size()},
-              {"requests", requests.load(std::memory_order_relaxed)}};
+              {"requests", requests.load(std::memory_order_relaxed)},
+              {"status_builds", status_builds.load(std::memory_order_relaxed)}};
   return j;
+}
+
+// The live streams' status event: built at most once per kStatusEvery whatever the number of open views (building
+// it reads the loop's and the link's counters and the session table), and shared as text.
+std::string HmiServer::Impl::status_event_text() {
+  const auto now = HmiClock::now();
+  const std::lock_guard<std::mutex> lock(status_mutex);
+  if (status_text.empty() || now - status_built >= kStatusEvery) {
+    status_text = status_json().dump();
+    status_built = now;
+    status_builds.fetch_add(1, std::memory_order_relaxed);
+  }
+  return status_text;
 }
 
 int HmiServer::Impl::api_login(const Request& r) {
@@ -212,7 +226,7 @@ int HmiServer::Impl::api_events(const Request& r) {
       sent = id;
     }
     if (HmiClock::now() >= next_status) {
-      chunk += "event: status\ndata: " + status_json().dump() + "\n\n";
+      chunk += "event: status\ndata: " + status_event_text() + "\n\n";
       next_status = HmiClock::now() + kStatusEvery;
     }
     if (!chunk.empty()) ok = mg_write(r.conn, chunk.data(), chunk.size()) == static_cast<int>(chunk.size());

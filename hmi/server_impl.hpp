@@ -59,6 +59,10 @@ struct HmiServer::Impl {
   std::atomic<std::uint64_t> streams_refused{0};
   std::atomic<std::uint64_t> streams_dropped{0};
   std::atomic<std::uint64_t> requests{0};
+  std::mutex status_mutex;  // the shared status event
+  std::string status_text;
+  HmiClock::time_point status_built{};
+  std::atomic<std::uint64_t> status_builds{0};
   std::thread pump;
   std::vector<Route> routes;  // the modules' (add_routes), matched after the built-in ones
 
@@ -76,6 +80,7 @@ struct HmiServer::Impl {
   int api_results(const Request& r);
   int api_events(const Request& r);
   [[nodiscard]] nlohmann::json status_json();
+  [[nodiscard]] std::string status_event_text();
   [[nodiscard]] std::vector<std::pair<std::uint64_t, LiveResult>> results_after(std::uint64_t id);
 };
 

@@ -71,21 +71,26 @@ void SessionTable::expire(HmiClock::time_point now) {
 
 long LoginBrake::locked_for_s(const std::string& address, HmiClock::time_point now) {
   const std::lock_guard<std::mutex> lock(mutex_);
-  const auto it = entries_.find(address);
+  auto it = entries_.find(address);
+  // A newcomer while the table is full would be counted under the shared entry (failed()): its lock applies.
+  if (it == entries_.end() && entries_.size() >= max_addresses_) it = entries_.find(kShared);
   if (it == entries_.end() || it->second.locked_until <= now) return 0;
   return static_cast<long>(std::chrono::ceil<std::chrono::seconds>(it->second.locked_until - now).count());
 }
 
 void LoginBrake::failed(const std::string& address, HmiClock::time_point now) {
   const std::lock_guard<std::mutex> lock(mutex_);
-  if (entries_.size() >= kMaxAddresses && entries_.count(address) == 0) {
+  if (entries_.size() >= max_addresses_ && entries_.count(address) == 0) {
     // Forget the addresses that are not locked; if every one is, the table stays full and the newcomer is counted
     // under a shared entry, which locks all such newcomers together (a spraying attacker locks only itself out).
     for (auto it = entries_.begin(); it != entries_.end();) {
-      it = it->second.locked_until <= now ? entries_.erase(it) : std::next(it);
+      // The shared entry keeps its count until its lock has been served, or newcomers would never be locked.
+      const bool shared_counting = it->first == kShared && it->second.locked_until == HmiClock::time_point{};
+      it = it->second.locked_until <= now && !shared_counting ? entries_.erase(it) : std::next(it);
     }
   }
-  Entry& e = entries_.size() < kMaxAddresses ? entries_[address] : entries_["(many addresses)"];
+  const bool known = entries_.count(address) != 0;
+  Entry& e = known || entries_.size() < max_addresses_ ? entries_[address] : entries_[kShared];
   if (e.locked_until != HmiClock::time_point{} && e.locked_until <= now) e = Entry{};  // lock served: start over
   if (++e.failures >= max_failures_) e.locked_until = now + lockout_;
 }

@@ -51,9 +51,12 @@ class SessionTable {
 
 class LoginBrake {
  public:
-  LoginBrake(int max_failures, std::chrono::seconds lockout) : max_failures_(max_failures), lockout_(lockout) {}
+  // max_addresses bounds the table (memory against address-spraying clients); when every one of them is locked,
+  // newcomers are counted together under one shared entry and locked out together.
+  LoginBrake(int max_failures, std::chrono::seconds lockout, std::size_t max_addresses = 4096)
+      : max_addresses_(max_addresses), max_failures_(max_failures), lockout_(lockout) {}
 
-  // Seconds the address must still wait (0: it may try).
+  // Seconds the address must still wait (0: it may try); for a newcomer while the table is full, the shared entry's.
   [[nodiscard]] long locked_for_s(const std::string& address, HmiClock::time_point now);
   void failed(const std::string& address, HmiClock::time_point now);
   void succeeded(const std::string& address);
@@ -63,7 +66,8 @@ class LoginBrake {
     int failures = 0;
     HmiClock::time_point locked_until{};
   };
-  static constexpr std::size_t kMaxAddresses = 4096;  // bounded memory against address-spraying clients
+  static constexpr const char* kShared = "(many addresses)";
+  std::size_t max_addresses_;
   std::mutex mutex_;
   std::map<std::string, Entry> entries_;
   int max_failures_;

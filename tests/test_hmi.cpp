@@ -329,3 +329,53 @@ TEST_CASE("hmi: from another machine nothing is shown without a login; from this
   CHECK(status.as_json()["state"] == "idle");
   CHECK(status.as_json()["hmi"]["sessions"] == 1);
 }
+
+TEST_CASE("hmi: when the login brake's table is full of locked addresses, newcomers are locked out together",
+          "[hmi][security]") {
+  const auto t0 = hmi::HmiClock::now();
+  hmi::LoginBrake brake(2, std::chrono::seconds(60), 3);
+  for (const char* address : {"10.0.0.1", "10.0.0.2", "10.0.0.3"}) {
+    brake.failed(address, t0);
+    brake.failed(address, t0);
+    CHECK(brake.locked_for_s(address, t0) == 60);
+  }
+  // Newcomers: the table is full of locked entries, so their failures count together.
+  CHECK(brake.locked_for_s("10.0.0.4", t0) == 0);
+  brake.failed("10.0.0.4", t0);
+  CHECK(brake.locked_for_s("10.0.0.4", t0) == 0);
+  brake.failed("10.0.0.5", t0);
+  CHECK(brake.locked_for_s("10.0.0.4", t0) == 60);
+  CHECK(brake.locked_for_s("10.0.0.6", t0) == 60);  // a third newcomer that never tried is locked out as well
+  // Once the locks are served, the table frees up and each address counts on its own again.
+  const auto later = t0 + std::chrono::seconds(61);
+  CHECK(brake.locked_for_s("10.0.0.6", later) == 0);
+  brake.failed("10.0.0.6", later);
+  CHECK(brake.locked_for_s("10.0.0.6", later) == 0);
+  CHECK(brake.locked_for_s("10.0.0.1", later) == 0);
+}
+
+TEST_CASE("hmi: the status event is built once per second however many live views are open", "[hmi][live]") {
+  Screen screen;
+  constexpr int kViews = 6;
+  std::vector<mg_connection*> views;
+  for (int i = 0; i < kViews; ++i) {
+    char error[256] = {};
+    mg_connection* conn = mg_connect_client("127.0.0.1", screen.port(), 0, error, sizeof error);
+    REQUIRE(conn != nullptr);
+    const std::string request = "GET /api/events HTTP/1.1\r\nHost: x\r\n\r\n";
+    mg_write(conn, request.data(), request.size());
+    REQUIRE(mg_get_response(conn, error, sizeof error, 5000) >= 0);
+    CHECK(mg_get_response_info(conn)->status_code == 200);
+    views.push_back(conn);
+  }
+  const auto builds = [&] {
+    return http("127.0.0.1", screen.port(), "GET", "/api/status").as_json()["hmi"]["status_builds"].get<int>();
+  };
+  const int before = builds();
+  std::this_thread::sleep_for(std::chrono::milliseconds(3500));
+  const int during = builds() - before;
+  for (mg_connection* conn : views) mg_close_connection(conn);
+  // Each view sends a status event every second (3-4 here); built per view that would be 18-24.
+  CHECK(during >= 3);
+  CHECK(during <= 5);
+}
