@@ -317,6 +317,9 @@ void read_hmi_section(formats::YamlSection s, Config& cfg) {
   s.integer("lockout_s", cfg.hmi.lockout_s, 1, 86400, "s");
   s.integer("max_request_bytes", cfg.hmi.max_request_bytes, 1024, 64 << 20, "bytes");
   s.integer("history", cfg.hmi.history, 1, 100000, "results");
+  s.boolean("review_unknown", cfg.hmi.review_unknown);
+  s.integer("review_keep", cfg.hmi.review_keep, 1, 10000, "scans");
+  s.integer("keep_slots", cfg.hmi.keep_slots, 1, 16, "scans");
   s.finish();
 }
 

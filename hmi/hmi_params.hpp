@@ -19,6 +19,12 @@ struct HmiParams {
   int lockout_s = 300;
   int max_request_bytes = 65536;  // larger bodies get 413 before they are read
   int history = 200;              // results kept for the live page and /api/results
+  // Review: unknown passes kept on disk (<models>/review) for the operator, at most review_keep (oldest removed);
+  // teach passes are kept whatever review_unknown says. keep_slots: scans (16 MB each) the loop can hand over
+  // before the writer has stored them; beyond, a scan is not kept (counted).
+  bool review_unknown = true;
+  int review_keep = 100;
+  int keep_slots = 2;
 };
 
 }  // namespace cellsight::hmi

@@ -2,9 +2,15 @@
 // new RESULT_SEQ readable by a PLC over Modbus TCP (budget: 30 ms median for 8 classes, 3 s hard deadline).
 //
 // usage: bench_cycle [--parts N] [--config FILE] [--models DIR --calibration FILE] [--fake-ms T]
+//                    [--hmi [--browsers B] [--unknown-every K]]
+//   --hmi runs the operator's screen beside the loop as `run` does (live feed as the loop's observer, the scan
+//   keeper and the Review store, the HTTP server) with B browsers watching the live stream (default 4); with the
+//   stand-in every K-th part comes out unknown, so its scan is kept and stored (default 0: none). Compare the
+//   medians with and without --hmi (README "Operator's screen").
 //   without --models the recogniser is a stand-in that answers after T ms (default 0): the figure is then the
 //   loop's own overhead (hand-over to the recognition thread, mapping, publish, Modbus presentation).
 //   with --models (and the calibration it was trained with) the production recogniser is used.
+#include <civetweb.h>
 #include <modbus/modbus.h>
 
 #include <algorithm>
@@ -28,7 +34,12 @@
 #include "drivers/modbus/register_map.hpp"
 #include "drivers/sim/sim_devices.hpp"
 #include "formats/calibration_file.hpp"
+#include "hmi/live_feed.hpp"
+#include "hmi/review_store.hpp"
+#include "hmi/server.hpp"
 #include "runtime/production_loop.hpp"
+#include "runtime/scan_keeper.hpp"
+#include "tests/scratch_dir.hpp"
 
 using namespace cellsight;
 using Clock = std::chrono::steady_clock;
@@ -45,11 +56,15 @@ std::int64_t now_ns() {
 // Stand-in recogniser: a fixed decision after a fixed time.
 class FixedRecogniser final : public runtime::Recogniser {
  public:
-  explicit FixedRecogniser(int delay_ms) : delay_ms_(delay_ms) {}
+  FixedRecogniser(int delay_ms, int unknown_every) : delay_ms_(delay_ms), unknown_every_(unknown_every) {}
   algo::Decision recognise(std::span<const algo::ScanPoint> /*points*/, Clock::time_point deadline) override {
     if (delay_ms_ > 0)
       std::this_thread::sleep_until(std::min(deadline, Clock::now() + std::chrono::milliseconds(delay_ms_)));
     algo::Decision d;
+    if (unknown_every_ > 0 && ++calls_ % unknown_every_ == 0) {
+      d.source = algo::DecisionSource::kUnknown;
+      return d;
+    }
     d.source = algo::DecisionSource::kSvm;
     d.class_index = 0;
     d.part_id = 1;
@@ -61,6 +76,57 @@ class FixedRecogniser final : public runtime::Recogniser {
 
  private:
   int delay_ms_;
+  int unknown_every_;
+  int calls_ = 0;
+};
+
+// The operator's screen as `run` attaches it (cli/run_hmi.cpp), with browsers watching the live stream.
+struct BenchScreen {
+  BenchScreen(const app::Config& config, runtime::ProductionLoop& loop, runtime::LoopObserver* next, int browsers)
+      : feed(256, next),
+        keeper(static_cast<std::size_t>(config.hmi.keep_slots), app::scan_builder_params(config).max_points),
+        review((test::scratch_dir("bench-cycle") / "review").string(), config.hmi.review_keep, &keeper),
+        browsers_wanted(browsers) {
+    loop.set_observer(&feed);
+    loop.set_keeper(&keeper, true);
+    hmi::HmiParams params = config.hmi;
+    params.port = 0;
+    server = std::make_unique<hmi::HmiServer>(params, std::vector<hmi::User>{}, &feed, [&loop] {
+      const runtime::LoopStats s = loop.stats();
+      return nlohmann::json{{"state", runtime::to_string(s.state)}, {"results", s.results}};
+    });
+  }
+  bool start() {
+    if (!review.start() || !server->start()) return false;
+    for (int b = 0; b < browsers_wanted; ++b) {
+      browsers.emplace_back([this] {
+        char error[256] = {};
+        mg_connection* conn = mg_connect_client("127.0.0.1", server->port(), 0, error, sizeof error);
+        if (conn == nullptr) return;
+        const std::string request = "GET /api/events HTTP/1.1\r\nHost: x\r\n\r\n";
+        mg_write(conn, request.data(), request.size());
+        if (mg_get_response(conn, error, sizeof error, 5000) >= 0) {
+          char buffer[4096];
+          while (mg_read(conn, buffer, sizeof buffer) > 0) events_bytes.fetch_add(1);
+        }
+        mg_close_connection(conn);
+      });
+    }
+    return true;
+  }
+  void stop() {
+    server->stop();  // ends the live streams: the browsers' reads return
+    for (std::thread& t : browsers) t.join();
+    review.stop();
+  }
+
+  hmi::LiveFeed feed;
+  runtime::ScanKeeper keeper;
+  hmi::ReviewStore review;
+  std::unique_ptr<hmi::HmiServer> server;
+  int browsers_wanted;
+  std::vector<std::thread> browsers;
+  std::atomic<std::uint64_t> events_bytes{0};
 };
 
 struct Part {
@@ -110,6 +176,8 @@ double median(std::vector<double> v) {
 int main(int argc, char** argv) {
   int parts = 20;
   int fake_ms = 0;
+  bool with_hmi = false;
+  int browsers = 4, unknown_every = 0;
   std::string config_path = CELLSIGHT_SOURCE_DIR "/config/cellsight.yaml";
   std::string models, calibration_path;
   for (int i = 1; i < argc; ++i) {
@@ -125,9 +193,16 @@ int main(int argc, char** argv) {
       models = argv[++i];
     } else if (a == "--calibration" && value) {
       calibration_path = argv[++i];
+    } else if (a == "--hmi") {
+      with_hmi = true;
+    } else if (a == "--browsers" && value) {
+      browsers = std::atoi(argv[++i]);
+    } else if (a == "--unknown-every" && value) {
+      unknown_every = std::atoi(argv[++i]);
     } else {
       std::fprintf(stderr,
-                   "usage: bench_cycle [--parts N] [--config FILE] [--models DIR --calibration FILE] [--fake-ms T]\n");
+                   "usage: bench_cycle [--parts N] [--config FILE] [--models DIR --calibration FILE] [--fake-ms T]\n"
+                   "                   [--hmi [--browsers B] [--unknown-every K]]\n");
       return 2;
     }
   }
@@ -159,7 +234,7 @@ int main(int argc, char** argv) {
     }
     recogniser = std::move(*made);
   } else {
-    recogniser = std::make_unique<FixedRecogniser>(fake_ms);
+    recogniser = std::make_unique<FixedRecogniser>(fake_ms, unknown_every);
   }
 
   sim::SimLine line(*cell);
@@ -194,6 +269,14 @@ int main(int argc, char** argv) {
   loop.set_recogniser(std::move(recogniser));
   Timing timing(static_cast<std::size_t>(parts));
   loop.set_observer(&timing);
+  std::unique_ptr<BenchScreen> screen;
+  if (with_hmi) {
+    screen = std::make_unique<BenchScreen>(*config, loop, &timing, browsers);
+    if (!screen->start()) {
+      std::fprintf(stderr, "bench_cycle: the operator's screen did not start\n");
+      return 1;
+    }
+  }
 
   // The PLC: polls RESULT_SEQ as fast as loopback allows and acknowledges each new result.
   std::atomic<bool> stop{false};
@@ -242,11 +325,20 @@ int main(int argc, char** argv) {
   loop.request_stop();
   loop.join();
   server.stop();
+  if (screen) screen->stop();
 
   std::printf(
       "cycle: part-present falling edge -> new RESULT_SEQ read by a Modbus client (127.0.0.1, polling every "
       "%lld us)\n",
       static_cast<long long>(kPollPeriod.count()));
+  if (screen) {
+    std::printf("operator's screen: on, %d browsers on the live stream, %llu scans kept, %llu dropped, %llu stored\n",
+                browsers, static_cast<unsigned long long>(screen->keeper.kept()),
+                static_cast<unsigned long long>(screen->keeper.dropped()),
+                static_cast<unsigned long long>(screen->review.stored()));
+  } else {
+    std::printf("operator's screen: off\n");
+  }
   std::printf("recogniser: %s\n", models.empty() ? ("stand-in, " + std::to_string(fake_ms) + " ms").c_str()
                                                  : ("production, " + models).c_str());
   std::printf("%5s %6s %14s %12s %12s\n", "seq", "acq", "recognise_ms", "publish_ms", "cycle_ms");

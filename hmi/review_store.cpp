@@ -1,0 +1,257 @@
+// ReviewStore: the writer thread, the ring on disk and the depth image.
+#include "hmi/review_store.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+#include <sstream>
+
+#include "base/atomic_file.hpp"
+#include "base/start_thread.hpp"
+#include "drivers/log.hpp"
+#include "formats/ply.hpp"
+
+namespace cellsight::hmi {
+namespace {
+
+namespace fs = std::filesystem;
+constexpr const char* kComponent = "hmi";
+constexpr auto kPoll = std::chrono::milliseconds(100);  // the keeper has no bell: the writer looks this often
+
+nlohmann::json finite_or_null(double v, double scale = 1.0) {
+  return std::isfinite(v) ? nlohmann::json(v * scale) : nlohmann::json(nullptr);
+}
+
+std::string name_of(const std::array<char, runtime::KeptScanInfo::kNameBytes>& field) {
+  return std::string(field.data());
+}
+
+bool is_id(const std::string& text) {
+  return !text.empty() && text.size() <= 12 &&
+         std::all_of(text.begin(), text.end(), [](char c) { return c >= '0' && c <= '9'; });
+}
+
+std::string folder_name(std::uint64_t id) {
+  char text[24];
+  std::snprintf(text, sizeof text, "%08llu", static_cast<unsigned long long>(id));
+  return text;
+}
+
+}  // namespace
+
+ReviewStore::ReviewStore(std::string dir, int keep, runtime::ScanKeeper* keeper)
+    : dir_(std::move(dir)), keep_(std::max(1, keep)), keeper_(keeper) {
+  std::error_code ec;
+  fs::create_directories(dir_, ec);
+  // Entries left by an earlier run: kept (the operator may still teach them), read back in id order.
+  for (const auto& item : fs::directory_iterator(dir_, ec)) {
+    const std::string name = item.path().filename().string();
+    if (!item.is_directory() || !is_id(name)) continue;
+    const std::uint64_t id = std::stoull(name);
+    next_id_ = std::max(next_id_, id + 1);
+    std::ifstream in(item.path() / "info.json");
+    nlohmann::json info = nlohmann::json::parse(in, nullptr, false);
+    if (info.is_discarded() || !fs::exists(item.path() / "scan.ply")) {
+      fs::remove_all(item.path(), ec);  // half-written when the cell stopped: the loop had moved on anyway
+      continue;
+    }
+    ReviewEntry entry{id, std::move(info)};
+    entries_.push_back(std::move(entry));
+  }
+  std::sort(entries_.begin(), entries_.end(), [](const auto& a, const auto& b) { return a.id < b.id; });
+}
+
+ReviewStore::~ReviewStore() {
+  stop();
+}
+
+void ReviewStore::set_on_stored(std::function<void(const ReviewEntry&)> on_stored) {
+  on_stored_ = std::move(on_stored);
+}
+
+Status ReviewStore::start() {
+  if (keeper_ == nullptr) return {};
+  {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    stopping_ = false;
+  }
+  return base::start_thread(thread_, "cs-review", [this] { run(); });
+}
+
+void ReviewStore::stop() {
+  {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    stopping_ = true;
+  }
+  wake_.notify_all();
+  if (thread_.joinable()) thread_.join();
+}
+
+void ReviewStore::run() {
+  for (;;) {
+    const runtime::KeptScanInfo* kept = nullptr;
+    std::span<const algo::ScanPoint> points;
+    while (keeper_->peek(kept, points)) {
+      store(*kept, points);
+      keeper_->release();
+    }
+    std::unique_lock<std::mutex> lock(mutex_);
+    if (wake_.wait_for(lock, kPoll, [this] { return stopping_; })) return;
+  }
+}
+
+void ReviewStore::store(const runtime::KeptScanInfo& kept, std::span<const algo::ScanPoint> points) {
+  std::uint64_t id = 0;
+  {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    id = next_id_++;
+  }
+  const fs::path folder = fs::path(dir_) / folder_name(id);
+  std::error_code ec;
+  fs::create_directories(folder, ec);
+  ReviewEntry entry{id, info_json(id, kept)};
+  // The scan first and the info last: an entry without info.json is not listed (a crash in between leaves a folder
+  // that the next start ignores and prune() removes).
+  Status ok = base::write_file_atomic((folder / "scan.ply").string(), formats::write_ply_binary(points));
+  if (ok) {
+    const std::string png = depth_png(points);
+    if (!png.empty()) ok = base::write_file_atomic((folder / "depth.png").string(), png);
+  }
+  if (ok) ok = base::write_file_atomic((folder / "info.json").string(), entry.info.dump(1));
+  if (!ok) {
+    failed_.fetch_add(1, std::memory_order_relaxed);
+    CS_LOG_ERROR(kComponent, "review: cannot keep acq %u: %s", kept.tag.acq_id, ok.error().message.c_str());
+    fs::remove_all(folder, ec);
+    return;
+  }
+  {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    entries_.push_back(entry);
+  }
+  stored_.fetch_add(1, std::memory_order_relaxed);
+  prune();
+  if (on_stored_) on_stored_(entry);
+}
+
+void ReviewStore::prune() {
+  std::vector<std::uint64_t> old;
+  {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    for (std::size_t i = 0; i + static_cast<std::size_t>(keep_) < entries_.size(); ++i) old.push_back(entries_[i].id);
+  }
+  (void)remove(old);
+}
+
+std::vector<ReviewEntry> ReviewStore::list() const {
+  const std::lock_guard<std::mutex> lock(mutex_);
+  return {entries_.rbegin(), entries_.rend()};
+}
+
+std::optional<ReviewEntry> ReviewStore::find(std::uint64_t id) const {
+  const std::lock_guard<std::mutex> lock(mutex_);
+  for (const ReviewEntry& e : entries_) {
+    if (e.id == id) return e;
+  }
+  return std::nullopt;
+}
+
+std::string ReviewStore::scan_path(std::uint64_t id) const {
+  return (fs::path(dir_) / folder_name(id) / "scan.ply").string();
+}
+
+std::string ReviewStore::image_path(std::uint64_t id) const {
+  return (fs::path(dir_) / folder_name(id) / "depth.png").string();
+}
+
+std::size_t ReviewStore::remove(const std::vector<std::uint64_t>& ids) {
+  std::size_t removed = 0;
+  const std::lock_guard<std::mutex> lock(mutex_);
+  for (const std::uint64_t id : ids) {
+    const auto it = std::find_if(entries_.begin(), entries_.end(), [id](const auto& e) { return e.id == id; });
+    if (it == entries_.end()) continue;
+    entries_.erase(it);
+    std::error_code ec;
+    fs::remove_all(fs::path(dir_) / folder_name(id), ec);
+    ++removed;
+  }
+  return removed;
+}
+
+nlohmann::json ReviewStore::info_json(std::uint64_t id, const runtime::KeptScanInfo& kept) {
+  const algo::Decision& d = kept.decision;
+  nlohmann::json candidates = nlohmann::json::array();
+  for (int i = 0; i < d.candidate_count && i < algo::kMaxReportedCandidates; ++i) {
+    const algo::CandidateOutcome& c = d.candidates[static_cast<std::size_t>(i)];
+    candidates.push_back({{"name", name_of(kept.names[static_cast<std::size_t>(i)])},
+                          {"probability", c.probability},
+                          {"verified", c.verified},
+                          {"passed", c.passed},
+                          {"rejected_by", std::string(algo::to_string(c.rejected_by))},
+                          {"value", finite_or_null(c.value)},
+                          {"limit", finite_or_null(c.limit)},
+                          {"pm_error_mm", finite_or_null(c.pm_error, 1e3)},
+                          {"missing_area_mm2", finite_or_null(c.missing_area_m2, 1e6)},
+                          {"extra_area_mm2", finite_or_null(c.extra_area_m2, 1e6)},
+                          {"coverage", finite_or_null(c.coverage)},
+                          {"outliers", finite_or_null(c.outliers)}});
+  }
+  const std::string chosen = name_of(kept.names[algo::kMaxReportedCandidates]);
+  return {{"id", id},
+          {"kind", kept.tag.teach ? "teach" : "unknown"},
+          {"teach_part_id", kept.tag.teach ? nlohmann::json(kept.tag.teach_part_id) : nlohmann::json(nullptr)},
+          {"acq_id", kept.tag.acq_id},
+          {"time_ms", kept.wall_ms},
+          {"points", kept.points},
+          {"source", std::string(algo::to_string(d.source))},
+          {"part", d.accepted() && !chosen.empty() ? nlohmann::json(chosen) : nlohmann::json(nullptr)},
+          {"reason", d.unknown_reason == algo::RejectReason::kNone
+                         ? nlohmann::json(nullptr)
+                         : nlohmann::json(std::string(algo::to_string(d.unknown_reason)))},
+          {"probability", d.probability},
+          {"candidates", candidates}};
+}
+
+std::string depth_png(std::span<const algo::ScanPoint> points) {
+  if (points.empty()) return {};
+  constexpr double kPxPerM = 1000.0;  // 1 px per mm
+  constexpr int kMaxSide = 1200;      // a scan is at most ~650 x 400 mm; larger is clipped
+  float x0 = points[0].x, x1 = x0, y0 = points[0].y, y1 = y0;
+  std::vector<float> depth;
+  depth.reserve(points.size());
+  for (const algo::ScanPoint& p : points) {
+    x0 = std::min(x0, p.x), x1 = std::max(x1, p.x), y0 = std::min(y0, p.y), y1 = std::max(y1, p.y);
+    depth.push_back(p.z);
+  }
+  const auto lo_it = depth.begin() + static_cast<std::ptrdiff_t>(depth.size() / 50);
+  const auto hi_it = depth.begin() + static_cast<std::ptrdiff_t>(depth.size() - 1 - depth.size() / 50);
+  std::nth_element(depth.begin(), lo_it, depth.end());
+  const float lo = *lo_it;
+  std::nth_element(depth.begin(), hi_it, depth.end());
+  const float hi = std::max(*hi_it, lo + 1e-4f);
+  const int w = std::min(kMaxSide, static_cast<int>((x1 - x0) * kPxPerM) + 1);
+  const int h = std::min(kMaxSide, static_cast<int>((y1 - y0) * kPxPerM) + 1);
+  cv::Mat level(h, w, CV_8UC1, cv::Scalar(0));
+  cv::Mat seen(h, w, CV_8UC1, cv::Scalar(0));
+  for (const algo::ScanPoint& p : points) {
+    const int c = static_cast<int>((p.x - x0) * kPxPerM), r = static_cast<int>((y1 - p.y) * kPxPerM);
+    if (c < 0 || c >= w || r < 0 || r >= h) continue;
+    const float t = std::clamp((p.z - lo) / (hi - lo), 0.0f, 1.0f);
+    level.at<std::uint8_t>(r, c) = static_cast<std::uint8_t>(1 + 254 * t);
+    seen.at<std::uint8_t>(r, c) = 255;
+  }
+  // Close the 1 mm gaps between profiles so the picture reads as a surface, then colour it; unseen stays black.
+  const cv::Mat kernel = cv::getStructuringElement(cv::MORPH_RECT, {3, 3});
+  cv::dilate(level, level, kernel);
+  cv::dilate(seen, seen, kernel);
+  cv::Mat colour;
+  cv::applyColorMap(level, colour, cv::COLORMAP_VIRIDIS);
+  colour.setTo(cv::Scalar(0, 0, 0), seen == 0);
+  std::vector<std::uint8_t> png;
+  if (!cv::imencode(".png", colour, png)) return {};
+  return {png.begin(), png.end()};
+}
+
+}  // namespace cellsight::hmi
