@@ -137,4 +137,43 @@ void ProgressPrinter::finish() {
   last_width_ = 0;
 }
 
+// ---- machine-readable progress ---------------------------------------------------------------------------------
+
+void ProgressLines::step(TrainPhase phase, std::size_t done, std::size_t total) {
+  const double part = total > 0 ? static_cast<double>(std::min(done, total)) / static_cast<double>(total) : 1.0;
+  const bool features = phase == TrainPhase::kFeatures;
+  const double lo = features ? 0.0 : kTrainingEnd;
+  const double hi = features ? kFeaturesEnd : 1.0;
+  print(lo + part * (hi - lo), phase,
+        string_printf("%s %zu/%zu", features ? "features" : "thresholds", std::min(done, total), total));
+}
+
+void ProgressLines::training(const algo::TrainingProgress& p) {
+  const int stages = std::max(p.stages, 1);
+  const double in_stage =
+      p.iterations > 0 ? std::clamp(static_cast<double>(p.iteration) / p.iterations, 0.0, 1.0) : 1.0;
+  const double part = std::clamp((p.stage + in_stage) / stages, 0.0, 1.0);
+  print(kFeaturesEnd + part * (kTrainingEnd - kFeaturesEnd), TrainPhase::kTraining,
+        string_printf("%s %d/%d annealing %d/%d", classifier_display_name(p.classifier).c_str(), p.stage + 1, stages,
+                      p.iteration, p.iterations));
+}
+
+void ProgressLines::finished(const char* text) {
+  if (out_ == nullptr) return;
+  const std::lock_guard<std::mutex> lock(mutex_);
+  std::fprintf(out_, "progress: 1.000 %s\n", text);
+  std::fflush(out_);  // a pipe is block-buffered: the screen must see each line as it comes
+}
+
+void ProgressLines::print(double fraction, TrainPhase phase, const std::string& text) {
+  if (out_ == nullptr) return;
+  const std::lock_guard<std::mutex> lock(mutex_);
+  const int p = static_cast<int>(phase);
+  if (p == last_phase_ && fraction < last_ + kMinStep) return;
+  last_phase_ = p;
+  last_ = fraction;
+  std::fprintf(out_, "progress: %.3f %s\n", fraction, text.c_str());
+  std::fflush(out_);
+}
+
 }  // namespace cellsight::app

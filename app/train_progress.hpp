@@ -1,7 +1,10 @@
 // The progress line of `cellsight train` (algo::TrainingProgress as text) and the printer that redraws or logs it.
 #pragma once
 
+#include <cstddef>
+#include <cstdint>
 #include <cstdio>
+#include <mutex>
 #include <optional>
 #include <string>
 
@@ -58,6 +61,35 @@ class ProgressPrinter {
   bool line_open_ = false;
   int prints_ = 0;
   std::optional<algo::TrainingProgress> pending_;  // the last update, when it was not printed
+};
+
+// Machine-readable progress of the whole training (`train --progress`, what the operator's screen reads): lines
+//   "progress: 0.420 SVM 1/1 annealing 40/96"
+// whose fraction runs over the three phases, weighted by their usual share of the time: features of the taught scans
+// (first kFeaturesEnd), the classifiers' annealing stages (up to kTrainingEnd), the thresholds (every taught scan
+// against its rivals' templates). A line when the fraction has grown by kMinStep, or when the phase changes.
+// Thread-safe: the features and the threshold matches report from their worker threads.
+enum class TrainPhase : std::uint8_t { kFeatures, kTraining, kThresholds };
+
+class ProgressLines {
+ public:
+  static constexpr double kFeaturesEnd = 0.25;
+  static constexpr double kTrainingEnd = 0.85;
+  static constexpr double kMinStep = 0.005;
+
+  explicit ProgressLines(std::FILE* out) : out_(out) {}  // nullptr: prints nothing; `out` is borrowed
+  // `done` of `total` items of a phase (features, thresholds).
+  void step(TrainPhase phase, std::size_t done, std::size_t total);
+  void training(const algo::TrainingProgress& progress);
+  void finished(const char* text);  // "progress: 1.000 TEXT"
+
+ private:
+  void print(double fraction, TrainPhase phase, const std::string& text);
+
+  std::FILE* out_;
+  std::mutex mutex_;
+  double last_ = -1.0;
+  int last_phase_ = -1;
 };
 
 }  // namespace cellsight::app

@@ -21,6 +21,7 @@
 #include "app/scan_acquisition.hpp"
 #include "app/sim_setup.hpp"
 #include "base/atomic_file.hpp"
+#include "base/file_read.hpp"
 #include "cli/cli.hpp"
 #include "cli/eval_set.hpp"
 #include "cli/mode_args.hpp"
@@ -29,6 +30,7 @@
 #include "formats/calibration_file.hpp"
 #include "formats/input_file.hpp"
 #include "formats/ply.hpp"
+#include "formats/scan_file.hpp"
 #include "formats/template_file.hpp"
 
 namespace cellsight::cli {
@@ -204,6 +206,21 @@ void print_stats(const char* name, const std::vector<double>& v, const char* uni
               percentile(v, 0.95), *std::max_element(v.begin(), v.end()), unit, v.size(), percentile(v, 0.5));
 }
 
+// A taught scan of the database (scans/PART/NNNNN.cscan), so that the operator's screen and a technician can
+// classify what was taught without exporting it first; its own header checksum and checked inflate guard it.
+bool is_taught_scan(const std::string& path) {
+  return fs::path(path).extension() == app::kTaughtScanExtension;
+}
+
+Expected<std::vector<algo::ScanPoint>> load_scan(const std::string& path) {
+  if (!is_taught_scan(path)) return formats::load_ply_file(path);
+  auto bytes = base::read_file(path, app::kMaxTaughtScanBytes);
+  if (!bytes) return bytes.error();
+  auto points = formats::parse_scan_file(*bytes);
+  if (!points) return make_error(path + ": " + points.error().message);
+  return points;
+}
+
 }  // namespace
 
 int run_classify(const std::vector<std::string>& words, const app::Config& config, const std::string& models_dir) {
@@ -218,7 +235,7 @@ int run_classify(const std::vector<std::string>& words, const app::Config& confi
   int failures = 0;
   std::vector<std::string> scans;
   for (const std::string& path : args.positional) {
-    if (Status ok = formats::check_ply_file(path); !ok) {
+    if (Status ok = is_taught_scan(path) ? formats::check_regular_file(path, "") : formats::check_ply_file(path); !ok) {
       std::fprintf(stderr, "cellsight: %s\n", ok.error().message.c_str());
       ++failures;
     } else {
@@ -231,7 +248,7 @@ int run_classify(const std::vector<std::string>& words, const app::Config& confi
   auto recogniser = app::make_recogniser(config, models_dir, options->calibration_path, options->mode);
   if (!recogniser) return fail(kExitUsage, recogniser.error().message);
   for (const std::string& path : scans) {
-    auto points = formats::load_ply_file(path);
+    auto points = load_scan(path);
     if (!points) {
       std::fprintf(stderr, "cellsight: %s\n", points.error().message.c_str());
       ++failures;

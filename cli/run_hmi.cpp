@@ -1,6 +1,8 @@
 #include "cli/run_hmi.hpp"
 
+#include "app/recognition.hpp"
 #include "drivers/log.hpp"
+#include "hmi/parts_api.hpp"
 
 namespace cellsight::cli {
 namespace {
@@ -51,7 +53,11 @@ nlohmann::json status_of(const runtime::ProductionLoop& loop, const drivers::Plc
 }  // namespace
 
 RunHmi::RunHmi(const app::Config& config, int port)
-    : params_(config.hmi), deadline_ms_(config.runtime.deadline_ms), feed_(kFeedCapacity) {
+    : params_(config.hmi),
+      deadline_ms_(config.runtime.deadline_ms),
+      feed_(kFeedCapacity),
+      config_path_(config.source.empty() || config.source.front() == '(' ? std::string() : config.source),
+      grid_(app::grid_spec(config)) {
   if (port >= 0) params_.port = port;
 }
 
@@ -77,9 +83,18 @@ void RunHmi::start(const runtime::ProductionLoop& loop, const drivers::PlcLink& 
   server_ = std::make_unique<hmi::HmiServer>(
       params_, users ? std::move(*users) : std::vector<hmi::User>{}, &feed_,
       [&loop, &link, deadline_ms, models_dir] { return status_of(loop, link, deadline_ms, models_dir); });
+  // The Parts and Debug pages: their long actions are this binary's own commands, run as child processes. By
+  // /proc/self/exe, not its path: an update that replaced the file still starts the program that is running.
+  jobs_ = std::make_unique<hmi::JobRunner>("/proc/self/exe", config_path_, models_dir);
+  std::function<void()> changed = models_changed_;
+  if (!changed) {  // TODO(issue 14, review/loop wiring): set_models_changed() from run_mode with the loop's reload
+    changed = [] { CS_LOG_INFO(kComponent, "the model database changed; the loop uses it from its next start"); };
+  }
+  server_->add_routes(hmi::parts_routes(*jobs_, {models_dir, grid_, std::move(changed)}));
   if (auto ok = server_->start(); !ok) {
     CS_LOG_ERROR(kComponent, "no operator's screen: %s; the cell runs on without it", ok.error().message.c_str());
     server_.reset();
+    jobs_.reset();
     return;
   }
   serving_ = true;
@@ -87,6 +102,7 @@ void RunHmi::start(const runtime::ProductionLoop& loop, const drivers::PlcLink& 
 
 void RunHmi::stop() {
   if (server_) server_->stop();
+  jobs_.reset();  // cancels a running job and reaps it
   serving_ = false;
 }
 

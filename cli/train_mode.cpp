@@ -107,7 +107,8 @@ Expected<std::vector<algo::ScanPoint>> load_taught_scan(const app::ModelDb& db, 
 }
 
 Expected<TaughtData> build_dataset(const app::Config& config, const app::ModelDb& db, const algo::Plane& support,
-                                   int threads, const std::atomic<bool>* stop, const app::LoadedTemplates* templates) {
+                                   int threads, const std::atomic<bool>* stop, const app::LoadedTemplates* templates,
+                                   app::ProgressLines* progress) {
   const formats::Manifest& m = db.manifest();
   struct Job {
     int label;
@@ -162,6 +163,7 @@ Expected<TaughtData> build_dataset(const app::Config& config, const app::ModelDb
           return false;
         }
         const std::size_t n = ++done;
+        if (progress != nullptr) progress->step(app::TrainPhase::kFeatures, n, jobs.size());
         if (n % 50 == 0 || n == jobs.size()) CS_LOG_INFO("train", "features of %zu / %zu scans", n, jobs.size());
         return true;
       },
@@ -236,7 +238,7 @@ Expected<CrossMatches> cross_matches(const app::Config& config, const app::Model
                                      int threads, const app::LoadedTemplates& templates,
                                      const std::vector<std::vector<std::size_t>>& rivals,
                                      std::span<const algo::TemplateThresholds> own_limits,
-                                     const std::atomic<bool>* stop) {
+                                     const std::atomic<bool>* stop, app::ProgressLines& progress) {
   const formats::Manifest& m = db.manifest();
   struct Job {
     std::size_t label;
@@ -274,6 +276,7 @@ Expected<CrossMatches> cross_matches(const app::Config& config, const app::Model
           }
         }
         const std::size_t n = ++done;
+        progress.step(app::TrainPhase::kThresholds, n, jobs.size());
         if (n % 200 == 0 || n == jobs.size())
           CS_LOG_INFO("train", "rivals matched for %zu / %zu scans", n, jobs.size());
         return true;
@@ -498,7 +501,8 @@ void print_training_result(const algo::TrainingResult& trained, const std::strin
 int run_train(const std::vector<std::string>& words, const app::Config& config, const std::string& models_dir) {
   ModeArgs args;
   std::string error;
-  if (!parse_mode_args(words, {"--report", "--calibration", "--iterations", "--seed"}, {"--compare"}, args, error) ||
+  if (!parse_mode_args(words, {"--report", "--calibration", "--iterations", "--seed"}, {"--compare", "--progress"},
+                       args, error) ||
       !args.positional.empty()) {
     std::fprintf(stderr, "cellsight train: %s\n",
                  error.empty() ? ("unexpected argument '" + args.positional.front() + "'").c_str() : error.c_str());
@@ -534,14 +538,21 @@ int run_train(const std::vector<std::string>& words, const app::Config& config, 
     return report_failure({kExitUsage, "refused templates:" + all +
                                            "\n(delete the part with 'cellsight parts delete' and teach it again)"});
   }
-  auto taught = build_dataset(config, *db, *support, threads, &g_stop, &templates);
+  // --progress: "progress: F TEXT" lines for the operator's screen (app::ProgressLines), beside the usual output.
+  app::ProgressLines progress(args.has("--progress") ? stdout : nullptr);
+  auto taught = build_dataset(config, *db, *support, threads, &g_stop, &templates, &progress);
   if (!taught) return report_failure({kExitUsage, taught.error().message});
   auto split = algo::split_per_class(taught->data, *train_per_class, params.seed);
   if (!split) return report_failure({kExitUsage, split.error().message});
 
   app::ProgressPrinter printer = app::ProgressPrinter::for_stream(stdout);
   auto trained = algo::train_recogniser(
-      *split, params, [&](const algo::TrainingProgress& p) { printer.update(p); }, &g_stop);
+      *split, params,
+      [&](const algo::TrainingProgress& p) {
+        printer.update(p);
+        progress.training(p);
+      },
+      &g_stop);
   printer.finish();
   if (!trained) return report_failure({kExitFailure, trained.error().message});
   const algo::TrainingReport& report = trained->report;
@@ -555,7 +566,7 @@ int run_train(const std::vector<std::string>& words, const app::Config& config, 
   std::vector<algo::TemplateThresholds> own_limits;
   for (const std::vector<algo::MatchReport>& own : taught->own_matches)
     own_limits.push_back(algo::learn_thresholds(own, app::cascade_params(config)));
-  auto others = cross_matches(config, *db, *support, threads, templates, rivals, own_limits, &g_stop);
+  auto others = cross_matches(config, *db, *support, threads, templates, rivals, own_limits, &g_stop, progress);
   if (!others) return report_failure({kExitFailure, "thresholds: " + others.error().message});
   LearntParts learnt_parts;
   learn_part_thresholds(m, config, *taught, *others, learnt_parts);
@@ -576,6 +587,7 @@ int run_train(const std::vector<std::string>& words, const app::Config& config, 
     }
     std::printf("report -> %s\n", written->c_str());
   }
+  progress.finished("saved");
   return kExitOk;
 }
 

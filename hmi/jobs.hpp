@@ -21,30 +21,57 @@ enum class JobKind : std::uint8_t { kTeach, kDelete, kTrain, kClassify };
 struct JobView {
   std::uint64_t id = 0;  // 0: no job yet
   JobKind kind = JobKind::kTeach;
-  std::string title;           // what the page shows ("retrain", "teach bracket_7 (5 scans)")
-  std::string state = "idle";  // idle | running | done | failed | cancelled
-  double progress = -1.0;      // 0..1, or -1 when the command tells none
+  std::string title;            // what the page shows ("retrain", "teach bracket_7 (5 scans)")
+  std::string state = "idle";   // idle | running | done | failed | cancelled
+  double progress = -1.0;       // 0..1, or -1 when the command tells none
+  std::string progress_text;    // the words after the fraction of the last progress line ("annealing 40/96")
   std::int64_t started_ms = 0;  // CLOCK_REALTIME
   std::int64_t ended_ms = 0;
-  int exit_code = -1;
-  std::vector<std::string> log_tail;  // the last lines of its output
-  nlohmann::json result;              // classify --json's answer, the training report's summary, or null
+  int exit_code = -1;                 // the command's exit status; 128 + N when signal N ended it
+  std::vector<std::string> log_tail;  // the last lines of its output (stdout and stderr), progress lines left out
+  // classify --json's answer (an array of the JSON objects the command printed, one per line on stdout), the
+  // training report's summary (JobHooks::result), or null.
+  nlohmann::json result;
+};
+
+[[nodiscard]] nlohmann::json to_json(const JobView& view);
+
+// What the caller of start() adds to a job. Both run on the runner's thread after the child has ended.
+struct JobHooks {
+  // Replaces the default result (the JSON lines of stdout) before the job counts as ended, so the page never sees
+  // an ended job without its result (the training report's summary is read here).
+  std::function<nlohmann::json(const JobView&)> result;
+  // After the job has ended (e.g. to reload the models after a retrain).
+  std::function<void(const JobView&)> on_done;
 };
 
 class JobRunner {
  public:
-  // exe: the cellsight binary (/proc/self/exe); config_path and models_dir are passed to every command.
-  JobRunner(std::string exe, std::string config_path, std::string models_dir);
+  // Bounds of what is kept of a job's output.
+  static constexpr std::size_t kTailLines = 200;
+  static constexpr std::size_t kLineBytes = 1000;  // a longer line is cut (the tail is for reading)
+  static constexpr std::size_t kResultLineBytes = std::size_t{1} << 18;  // a JSON line of stdout, whole
+  static constexpr std::size_t kResultLines = 1000;                      // JSON lines of stdout kept
+  static constexpr int kNice = 10;                                       // the children's niceness
+
+  // exe: the cellsight binary (/proc/self/exe); config_path and models_dir are passed to every command
+  // (config_path empty: none, the child finds the same built-in defaults the parent found).
+  JobRunner(const std::string& exe, const std::string& config_path, const std::string& models_dir);
+  // Any program: every job runs `command_prefix... args...` (tests run /bin/sh -c SCRIPT sh ARGS).
+  explicit JobRunner(std::vector<std::string> command_prefix);
   ~JobRunner();  // cancels a running job and waits for it
   JobRunner(const JobRunner&) = delete;
   JobRunner& operator=(const JobRunner&) = delete;
 
-  // Starts `cellsight --config C --models M <args>`; an error when a job is running. on_done runs on the runner's
-  // thread when the job has ended (e.g. to reload the models after a retrain).
+  // Starts `cellsight --config C --models M <args>`; an error when a job is running (busy() tells which) or the
+  // process cannot be started.
   [[nodiscard]] Expected<std::uint64_t> start(JobKind kind, std::vector<std::string> args, std::string title,
-                                              std::function<void(const JobView&)> on_done = {});
+                                              JobHooks hooks = {});
   [[nodiscard]] JobView view() const;  // the running job, or the last one
-  void cancel();                       // SIGTERM to the running job (its saves are atomic: nothing half-written)
+  [[nodiscard]] bool busy() const;     // a job is running
+  // SIGTERM to the running job (its saves are atomic: nothing half-written); SIGKILL kKillAfter later if it has not
+  // ended by then. False when no job runs.
+  bool cancel();
 
   struct Impl;
 

@@ -14,41 +14,26 @@
 
 #include "app/catalogue.hpp"
 #include "tests/scratch_dir.hpp"
+#include "tests/small_cell.hpp"
 
 namespace fs = std::filesystem;
 
 namespace {
 
-const std::string kExe = CELLSIGHT_BINARY_DIR "/app/cellsight";
+using cellsight::test::kExe;
 const std::string kConfig = CELLSIGHT_SOURCE_DIR "/config/cellsight.yaml";
 
-struct Run {
-  int exit_code;
-  std::string output;  // stdout and stderr
-};
+using cellsight::test::Run;
 
 Run run(const std::string& args, const std::string& config = kConfig) {
-  const std::string command = kExe + " --config " + config + " " + args + " 2>&1";
-  FILE* pipe = ::popen(command.c_str(), "r");
-  REQUIRE(pipe != nullptr);
-  std::string out;
-  std::array<char, 4096> buf{};
-  std::size_t n = 0;
-  while ((n = std::fread(buf.data(), 1, buf.size(), pipe)) > 0) out.append(buf.data(), n);
-  const int status = ::pclose(pipe);
-  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
+  return cellsight::test::run_command(kExe + " --config " + config + " " + args + " 2>&1");
 }
 
 fs::path fresh_dir(const std::string& name) {
   return cellsight::test::scratch_path("cli/" + name);
 }
 
-std::string read_all(const fs::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  std::stringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
+using cellsight::test::read_all;
 
 // The pose block of truth.yaml.
 std::string pose_of(const fs::path& dir) {

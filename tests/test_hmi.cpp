@@ -23,10 +23,13 @@
 #include "hmi/sessions.hpp"
 #include "hmi/users.hpp"
 #include "tests/free_port.hpp"
+#include "tests/http_client.hpp"
 #include "tests/scratch_dir.hpp"
 
 using namespace cellsight;
 using nlohmann::json;
+using test::http;
+using test::Reply;
 
 namespace {
 
@@ -43,38 +46,6 @@ std::string non_loopback_address() {
   }
   freeifaddrs(list);
   return found;
-}
-
-struct Reply {
-  int status = 0;
-  std::map<std::string, std::string> headers;
-  std::string body;
-  [[nodiscard]] json as_json() const { return json::parse(body, nullptr, false); }
-};
-
-Reply http(const std::string& host, int port, const std::string& method, const std::string& path,
-           const std::string& body = "", const std::map<std::string, std::string>& headers = {}) {
-  char error[256] = {};
-  mg_connection* conn = mg_connect_client(host.c_str(), port, 0, error, sizeof error);
-  INFO(error);
-  REQUIRE(conn != nullptr);
-  std::string request = method + " " + path + " HTTP/1.1\r\nHost: " + host + "\r\nConnection: close\r\n";
-  for (const auto& [k, v] : headers) request += k + ": " + v + "\r\n";
-  if (!body.empty() || method == "POST") request += "Content-Length: " + std::to_string(body.size()) + "\r\n";
-  request += "\r\n";
-  mg_write(conn, request.data(), request.size());
-  if (!body.empty()) mg_write(conn, body.data(), body.size());
-  Reply reply;
-  if (mg_get_response(conn, error, sizeof error, 10000) >= 0) {
-    const mg_response_info* info = mg_get_response_info(conn);
-    reply.status = info->status_code;
-    for (int i = 0; i < info->num_headers; ++i) reply.headers[info->http_headers[i].name] = info->http_headers[i].value;
-    char buffer[4096];
-    int n = 0;
-    while ((n = mg_read(conn, buffer, sizeof buffer)) > 0) reply.body.append(buffer, static_cast<std::size_t>(n));
-  }
-  mg_close_connection(conn);
-  return reply;
 }
 
 runtime::PartRecord record(std::uint32_t acq, const char* name, std::uint16_t id) {

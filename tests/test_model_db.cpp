@@ -24,88 +24,14 @@
 #include "formats/template_file.hpp"
 #include "sim_test_util.hpp"
 #include "tests/scratch_dir.hpp"
-#include "true_calibration_file.hpp"
+#include "tests/small_cell.hpp"
 
 namespace fs = std::filesystem;
 using namespace cellsight;
 
-namespace {
-
-const std::string kExe = CELLSIGHT_BINARY_DIR "/app/cellsight";
-
-struct Run {
-  int exit_code;
-  std::string output;  // stdout and stderr
-};
-
-std::string read_all(const fs::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  std::stringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
-
-// A small cell for fast tests: the shipped config with a 4.4 mm grid (same extent), 3-fold CV and a short
-// annealing run; the simulator's true sensor as calibration.yaml (calibration has its own tests) with the carrier
-// plane the simulated carrier really has.
-struct SmallCell {
-  fs::path dir;
-  std::string config_path;
-  std::string models;
-  app::Config config;
-
-  // Under the temporary folder, per process.
-  static SmallCell named(const std::string& name) { return SmallCell(test::scratch_root() / "db" / name); }
-
-  explicit SmallCell(const fs::path& where) {
-    dir = where;
-    fs::remove_all(dir);
-    fs::create_directories(dir);
-    fs::copy_file(CELLSIGHT_SOURCE_DIR "/config/parts.yaml", dir / "parts.yaml");
-    std::string text = read_all(CELLSIGHT_SOURCE_DIR "/config/cellsight.yaml");
-    const auto replace = [&](const std::string& from, const std::string& to) {
-      const auto at = text.find(from);
-      REQUIRE(at != std::string::npos);
-      text.replace(at, from.size(), to);
-    };
-    replace("folds: 5", "folds: 3");
-    replace("sa_iterations: 200", "sa_iterations: 6");
-    // Coarser grid, same extent: an 8x smaller distance map keeps the test fast under the sanitizers.
-    replace("  nx: 296", "  nx: 148");
-    replace("  ny: 500", "  ny: 250");
-    replace("  nz: 182", "  nz: 91");
-    replace("  resolution_m: 0.0022", "  resolution_m: 0.0044");
-    config_path = (dir / "cellsight.yaml").string();
-    std::ofstream(config_path) << text;
-    auto loaded = app::load_config(config_path);
-    INFO((loaded.ok() ? std::string() : loaded.error().message));
-    REQUIRE(loaded.ok());
-    config = *loaded;
-    test::write_true_calibration(config, (dir / "calibration.yaml").string());
-    models = (dir / "models").string();
-  }
-
-  // `env`: "NAME=value ..." for the command's environment.
-  [[nodiscard]] Run run(const std::string& args, const std::string& env = "") const {
-    return run_with_config(config_path, args, env);
-  }
-  // As run(), with another configuration file.
-  [[nodiscard]] Run run_with_config(const std::string& config_file, const std::string& args,
-                                    const std::string& env = "") const {
-    const std::string command = (env.empty() ? "" : env + " ") + kExe + " --config " + config_file + " --models " +
-                                models + " --log-level warn " + args + " 2>&1";
-    FILE* pipe = ::popen(command.c_str(), "r");
-    REQUIRE(pipe != nullptr);
-    std::string out;
-    std::array<char, 4096> buf{};
-    std::size_t n = 0;
-    while ((n = std::fread(buf.data(), 1, buf.size(), pipe)) > 0) out.append(buf.data(), n);
-    const int status = ::pclose(pipe);
-    return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
-  }
-};
-
-}  // namespace
+using test::read_all;
+using test::Run;
+using test::SmallCell;
 
 TEST_CASE("teach then train then classify a small database through the executable", "[cycle]") {
   const SmallCell cell = SmallCell::named("cycle");
