@@ -1,6 +1,11 @@
 #include "cli/run_hmi.hpp"
 
+#include <chrono>
+#include <filesystem>
+#include <thread>
+
 #include "app/recognition.hpp"
+#include "app/scan_acquisition.hpp"
 #include "drivers/log.hpp"
 #include "hmi/parts_api.hpp"
 
@@ -10,6 +15,10 @@ namespace {
 constexpr const char* kComponent = "run";
 // Results the screen may fall behind by (its pump takes them every 50 ms; parts come at most a few per second).
 constexpr std::size_t kFeedCapacity = 256;
+// The live picture: a thinned copy of each pass (60 k points, ~1 MB, copied in ~0.2 ms by the recognition thread);
+// two slots, so the picture of one part is rendered while the next is handed over.
+constexpr std::size_t kPreviewSlots = 2;
+constexpr std::size_t kPreviewPoints = 60'000;
 
 nlohmann::json status_of(const runtime::ProductionLoop& loop, const drivers::PlcLink& link, int deadline_ms,
                          const std::string& models_dir) {
@@ -50,6 +59,25 @@ nlohmann::json status_of(const runtime::ProductionLoop& loop, const drivers::Plc
   };
 }
 
+// The screen's commands go through the loop's mailbox (ProductionLoop::post_command), as the PLC's do.
+class LoopCommands final : public hmi::CellCommands {
+ public:
+  explicit LoopCommands(runtime::ProductionLoop& loop) : loop_(loop) {}
+  bool post(drivers::CommandCode command, std::uint32_t arg) override { return loop_.post_command(command, arg); }
+  [[nodiscard]] Fate fate() const override {
+    switch (loop_.command_fate()) {
+      case runtime::ProductionLoop::CommandFate::kPending: return Fate::kPending;
+      case runtime::ProductionLoop::CommandFate::kDone: return Fate::kDone;
+      case runtime::ProductionLoop::CommandFate::kRefused: break;
+    }
+    return Fate::kRefused;
+  }
+  [[nodiscard]] std::uint16_t teaching_part_id() const override { return loop_.teaching_part_id(); }
+
+ private:
+  runtime::ProductionLoop& loop_;
+};
+
 }  // namespace
 
 RunHmi::RunHmi(const app::Config& config, int port)
@@ -57,7 +85,9 @@ RunHmi::RunHmi(const app::Config& config, int port)
       deadline_ms_(config.runtime.deadline_ms),
       feed_(kFeedCapacity),
       config_path_(config.source.empty() || config.source.front() == '(' ? std::string() : config.source),
-      grid_(app::grid_spec(config)) {
+      grid_(app::grid_spec(config)),
+      keeper_(static_cast<std::size_t>(config.hmi.keep_slots), app::scan_builder_params(config).max_points),
+      preview_keeper_(kPreviewSlots, kPreviewPoints) {
   if (port >= 0) params_.port = port;
 }
 
@@ -70,39 +100,77 @@ std::unique_ptr<RunHmi> RunHmi::attach(const app::Config& config, const app::Run
   auto hmi = std::make_unique<RunHmi>(config, options.hmi_port);
   hmi->feed_.set_next(next);
   loop.set_observer(&hmi->feed_);
+  loop.set_keeper(&hmi->keeper_, config.hmi.review_unknown);
+  loop.set_preview(&hmi->preview_keeper_);
   return hmi;
 }
 
-void RunHmi::start(const runtime::ProductionLoop& loop, const drivers::PlcLink& link, const std::string& models_dir) {
+void RunHmi::start(runtime::ProductionLoop& loop, const drivers::PlcLink& link, const std::string& models_dir,
+                   runtime::RecogniserLoader loader) {
   auto users = hmi::load_users(params_.users_file);
   if (!users) {
     CS_LOG_ERROR(kComponent, "operator's screen without accounts (viewing from this machine only): %s",
                  users.error().message.c_str());
   }
-  const int deadline_ms = deadline_ms_;
-  server_ = std::make_unique<hmi::HmiServer>(
-      params_, users ? std::move(*users) : std::vector<hmi::User>{}, &feed_,
-      [&loop, &link, deadline_ms, models_dir] { return status_of(loop, link, deadline_ms, models_dir); });
-  // The Parts and Debug pages: their long actions are this binary's own commands, run as child processes. By
-  // /proc/self/exe, not its path: an update that replaced the file still starts the program that is running.
+  loop_ = &loop;
+  loader_ = std::move(loader);
+  // The Parts, Review and Debug pages: their long actions are this binary's own commands, run as child processes.
+  // By /proc/self/exe, not its path: an update that replaced the file still starts the program that is running.
   jobs_ = std::make_unique<hmi::JobRunner>("/proc/self/exe", config_path_, models_dir);
-  std::function<void()> changed = models_changed_;
-  if (!changed) {  // TODO(issue 14, review/loop wiring): set_models_changed() from run_mode with the loop's reload
-    changed = [] { CS_LOG_INFO(kComponent, "the model database changed; the loop uses it from its next start"); };
+  review_ = std::make_unique<hmi::ReviewStore>((std::filesystem::path(models_dir) / "review").string(),
+                                               params_.review_keep, &keeper_);
+  preview_ = std::make_unique<hmi::LivePreview>(models_dir, &preview_keeper_);
+  commands_ = std::make_unique<LoopCommands>(loop);
+  review_api_ = std::make_unique<hmi::ReviewApi>(*review_, *jobs_, *commands_);
+  const int deadline_ms = deadline_ms_;
+  hmi::ReviewApi* review_api = review_api_.get();
+  server_ = std::make_unique<hmi::HmiServer>(params_, users ? std::move(*users) : std::vector<hmi::User>{}, &feed_,
+                                             [&loop, &link, deadline_ms, models_dir, review_api] {
+                                               nlohmann::json status = status_of(loop, link, deadline_ms, models_dir);
+                                               status["teach"] = review_api->teach_json();
+                                               return status;
+                                             });
+  server_->add_routes(hmi::parts_routes(*jobs_, {models_dir, grid_, [this] { models_changed(); }}));
+  server_->add_routes(review_api_->routes());
+  server_->add_routes(preview_->routes());
+  if (auto ok = review_->start(); !ok) {
+    CS_LOG_ERROR(kComponent, "review: %s; unknown scans are not kept", ok.error().message.c_str());
   }
-  server_->add_routes(hmi::parts_routes(*jobs_, {models_dir, grid_, std::move(changed)}));
+  if (auto ok = preview_->start(); !ok) CS_LOG_ERROR(kComponent, "live picture: %s", ok.error().message.c_str());
   if (auto ok = server_->start(); !ok) {
     CS_LOG_ERROR(kComponent, "no operator's screen: %s; the cell runs on without it", ok.error().message.c_str());
     server_.reset();
-    jobs_.reset();
     return;
   }
   serving_ = true;
 }
 
+void RunHmi::models_changed() {
+  if (!loader_ || loop_ == nullptr) {
+    CS_LOG_INFO(kComponent, "the model database changed; the loop uses it from its next start");
+    return;
+  }
+  auto made = loader_();
+  if (!made || *made == nullptr) {
+    CS_LOG_ERROR(kComponent, "the model database changed but cannot be loaded (%s); the loop keeps its models",
+                 made ? "no recogniser" : made.error().message.c_str());
+    return;
+  }
+  // An earlier offer the loop has not taken yet comes back and is destroyed here; the replaced recogniser comes
+  // back once the loop has swapped, to be destroyed on this thread, never the loop's.
+  (void)loop_->offer_recogniser(std::move(*made));
+  if (preview_) preview_->forget_outlines();
+  for (int i = 0; i < 600 && loop_->take_retired_recogniser() == nullptr; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  CS_LOG_INFO(kComponent, "the loop recognises with the new model database");
+}
+
 void RunHmi::stop() {
   if (server_) server_->stop();
-  jobs_.reset();  // cancels a running job and reaps it
+  jobs_.reset();  // cancels a running job and reaps it (its hooks use the review store: before it stops)
+  if (review_) review_->stop();
+  if (preview_) preview_->stop();
   serving_ = false;
 }
 

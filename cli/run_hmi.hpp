@@ -13,34 +13,52 @@
 #include "drivers/modbus/plc_link.hpp"
 #include "hmi/jobs.hpp"
 #include "hmi/live_feed.hpp"
+#include "hmi/live_preview.hpp"
+#include "hmi/review_api.hpp"
+#include "hmi/review_store.hpp"
 #include "hmi/server.hpp"
 #include "runtime/production_loop.hpp"
+#include "runtime/scan_keeper.hpp"
 
 namespace cellsight::cli {
 
 class RunHmi {
  public:
-  // Before loop.start(). Sets the loop's observer: the feed chaining `next` when the screen is on, else `next`.
+  // Before loop.start(). Sets the loop's observer (the feed chaining `next` when the screen is on, else `next`), its
+  // scan keeper (unknown and teach passes for the Review page) and its preview keeper (the live picture).
   static std::unique_ptr<RunHmi> attach(const app::Config& config, const app::RunOptions& options,
                                         runtime::ProductionLoop& loop, runtime::LoopObserver* next);
-  // After loop.start(): serves, or logs why not. `link` and `loop` outlive stop().
-  void start(const runtime::ProductionLoop& loop, const drivers::PlcLink& link, const std::string& models_dir);
-  void stop();
-  // Before start(): what the Parts page calls after a delete or a training that succeeded (on the job runner's
-  // thread), so that the loop loads the changed database. Until set: a log line only.
-  void set_models_changed(std::function<void()> fn) { models_changed_ = std::move(fn); }
+  // After loop.start(): serves, or logs why not. `link` and `loop` outlive stop(). `loader` builds a recogniser from
+  // the model database: after a retrain or a delete the new one is offered to the loop, which puts it in place
+  // between passes; empty (--sim-oracle): the loop keeps what it has.
+  void start(runtime::ProductionLoop& loop, const drivers::PlcLink& link, const std::string& models_dir,
+             runtime::RecogniserLoader loader);
+  void stop();  // the server, then a running job (cancelled and reaped), then the writer threads; idempotent
+  ~RunHmi() { stop(); }
+  RunHmi(const RunHmi&) = delete;
+  RunHmi& operator=(const RunHmi&) = delete;
   [[nodiscard]] std::string url() const { return serving_ ? server_->url() : std::string(); }
 
   RunHmi(const app::Config& config, int port);
 
  private:
+  // After a delete or a training that succeeded (job runner's thread): a new recogniser for the loop, built here.
+  void models_changed();
+
   hmi::HmiParams params_;
   int deadline_ms_;
   hmi::LiveFeed feed_;
   std::string config_path_;  // the file `run` was started with ("" with the built-in defaults)
   algo::GridSpec grid_;
-  std::function<void()> models_changed_;
+  runtime::ScanKeeper keeper_;
+  runtime::ScanKeeper preview_keeper_;  // thinned copies of every recognised pass for the live picture
+  runtime::ProductionLoop* loop_ = nullptr;
+  runtime::RecogniserLoader loader_;
+  std::unique_ptr<hmi::ReviewStore> review_;
+  std::unique_ptr<hmi::LivePreview> preview_;
   std::unique_ptr<hmi::JobRunner> jobs_;  // before server_: the routes borrow it, so it goes after the server
+  std::unique_ptr<hmi::CellCommands> commands_;
+  std::unique_ptr<hmi::ReviewApi> review_api_;
   std::unique_ptr<hmi::HmiServer> server_;
   bool serving_ = false;
 };

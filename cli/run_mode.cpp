@@ -391,7 +391,8 @@ int run_run(const std::vector<std::string>& args, const app::Config& config) {
       server.stop();
       return fail(kExitFailure, ok.error().message);
     }
-    if (hmi) hmi->start(loop, server, models_dir);  // its threads, too, leave the stop signals to this one
+    // Its threads, too, leave the stop signals to this one.
+    if (hmi) hmi->start(loop, server, models_dir, recognition->loader);
   }
   announce_ready(service, server_config.bind_address, server.bound_port(), sim, options.parts);
 

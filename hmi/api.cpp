@@ -49,6 +49,17 @@ std::string query_value(const Request& r, const char* key) {
   return value;
 }
 
+int send_png(const Request& r, const std::string& png) {
+  mg_response_header_start(r.conn, 200);
+  mg_response_header_add(r.conn, "Content-Type", "image/png", -1);
+  mg_response_header_add(r.conn, "Content-Length", std::to_string(png.size()).c_str(), -1);
+  mg_response_header_add(r.conn, "Cache-Control", "max-age=3600", -1);  // an entry's picture never changes
+  mg_response_header_add(r.conn, "X-Content-Type-Options", "nosniff", -1);
+  mg_response_header_send(r.conn);
+  if (r.method == "GET") mg_write(r.conn, png.data(), png.size());
+  return 200;
+}
+
 int send_json(mg_connection* conn, int status, const nlohmann::json& body, const std::string& extra_header_name,
               const std::string& extra_header_value) {
   const std::string text = body.dump();

@@ -5,14 +5,13 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
-#include <opencv2/imgcodecs.hpp>
-#include <opencv2/imgproc.hpp>
 #include <sstream>
 
 #include "base/atomic_file.hpp"
 #include "base/start_thread.hpp"
 #include "drivers/log.hpp"
 #include "formats/ply.hpp"
+#include "hmi/depth_image.hpp"
 
 namespace cellsight::hmi {
 namespace {
@@ -215,43 +214,7 @@ nlohmann::json ReviewStore::info_json(std::uint64_t id, const runtime::KeptScanI
 }
 
 std::string depth_png(std::span<const algo::ScanPoint> points) {
-  if (points.empty()) return {};
-  constexpr double kPxPerM = 1000.0;  // 1 px per mm
-  constexpr int kMaxSide = 1200;      // a scan is at most ~650 x 400 mm; larger is clipped
-  float x0 = points[0].x, x1 = x0, y0 = points[0].y, y1 = y0;
-  std::vector<float> depth;
-  depth.reserve(points.size());
-  for (const algo::ScanPoint& p : points) {
-    x0 = std::min(x0, p.x), x1 = std::max(x1, p.x), y0 = std::min(y0, p.y), y1 = std::max(y1, p.y);
-    depth.push_back(p.z);
-  }
-  const auto lo_it = depth.begin() + static_cast<std::ptrdiff_t>(depth.size() / 50);
-  const auto hi_it = depth.begin() + static_cast<std::ptrdiff_t>(depth.size() - 1 - depth.size() / 50);
-  std::nth_element(depth.begin(), lo_it, depth.end());
-  const float lo = *lo_it;
-  std::nth_element(depth.begin(), hi_it, depth.end());
-  const float hi = std::max(*hi_it, lo + 1e-4f);
-  const int w = std::min(kMaxSide, static_cast<int>((x1 - x0) * kPxPerM) + 1);
-  const int h = std::min(kMaxSide, static_cast<int>((y1 - y0) * kPxPerM) + 1);
-  cv::Mat level(h, w, CV_8UC1, cv::Scalar(0));
-  cv::Mat seen(h, w, CV_8UC1, cv::Scalar(0));
-  for (const algo::ScanPoint& p : points) {
-    const int c = static_cast<int>((p.x - x0) * kPxPerM), r = static_cast<int>((y1 - p.y) * kPxPerM);
-    if (c < 0 || c >= w || r < 0 || r >= h) continue;
-    const float t = std::clamp((p.z - lo) / (hi - lo), 0.0f, 1.0f);
-    level.at<std::uint8_t>(r, c) = static_cast<std::uint8_t>(1 + 254 * t);
-    seen.at<std::uint8_t>(r, c) = 255;
-  }
-  // Close the 1 mm gaps between profiles so the picture reads as a surface, then colour it; unseen stays black.
-  const cv::Mat kernel = cv::getStructuringElement(cv::MORPH_RECT, {3, 3});
-  cv::dilate(level, level, kernel);
-  cv::dilate(seen, seen, kernel);
-  cv::Mat colour;
-  cv::applyColorMap(level, colour, cv::COLORMAP_VIRIDIS);
-  colour.setTo(cv::Scalar(0, 0, 0), seen == 0);
-  std::vector<std::uint8_t> png;
-  if (!cv::imencode(".png", colour, png)) return {};
-  return {png.begin(), png.end()};
+  return encode_png(depth_image(points).colour);
 }
 
 }  // namespace cellsight::hmi

@@ -19,8 +19,8 @@ namespace cellsight::hmi {
 struct Request;
 
 struct Route {
-  std::string method;      // "GET" or "POST"
-  std::string path;        // exact, or a prefix when it ends with '/' (the handler reads the rest from r.uri)
+  std::string method;           // "GET" or "POST"
+  std::string path;             // exact, or a prefix when it ends with '/' (the handler reads the rest from r.uri)
   Role min_role = Role::kNone;  // kNone: viewing rules only (GET); a POST always needs at least kOperator
   std::function<int(const Request&)> handler;  // returns the HTTP status sent (for the access log)
 };
@@ -29,6 +29,8 @@ struct Route {
 int send_json(mg_connection* conn, int status, const nlohmann::json& body, const std::string& extra_header_name = "",
               const std::string& extra_header_value = "");
 int send_error(mg_connection* conn, int status, const std::string& message);
+// A PNG image (body omitted for HEAD); 200.
+int send_png(const Request& r, const std::string& png);
 // The request's body parsed as JSON (bounded by max_request_bytes before it is read); discarded() on failure.
 [[nodiscard]] nlohmann::json read_json_body(const Request& r);
 // ?key=value of the query string, or "" when absent.

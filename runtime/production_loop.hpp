@@ -51,6 +51,8 @@ class ProductionLoop {
   // Keep scans for the operator's screen (borrowed, outlives the loop threads): the passes of a part being taught,
   // and when keep_unknown those that come out unknown. Without a keeper ENTER_TEACH is refused.
   void set_keeper(ScanKeeper* keeper, bool keep_unknown);
+  // Every recognised pass, thinned to the preview's max_points, for the live page's depth image (borrowed).
+  void set_preview(ScanKeeper* preview) { worker_.set_preview(preview); }
 
   // ---- the screen's commands: the same path as the PLC's COMMAND register (one poster thread) ----
   // Taken by the loop at its next step, between passes (a teach mode change applies from the next pass on).

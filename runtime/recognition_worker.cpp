@@ -92,10 +92,10 @@ std::string_view RecognitionWorker::class_name(int class_index) const {
 
 // A bounded copy (memcpy of at most max_points) and no allocation; the class names are copied into fixed fields.
 void RecognitionWorker::keep(const algo::Decision& decision) {
-  if (keeper_ == nullptr) return;
   const bool unknown =
       decision.source == algo::DecisionSource::kUnknown || decision.source == algo::DecisionSource::kTimeout;
-  if (!tag_.teach && !(keep_unknown_ && unknown)) return;
+  const bool for_review = keeper_ != nullptr && (tag_.teach || (keep_unknown_ && unknown));
+  if (!for_review && preview_ == nullptr) return;
   KeptScanInfo& info = kept_info_;
   info.tag = tag_;
   timespec now{};
@@ -110,7 +110,8 @@ void RecognitionWorker::keep(const algo::Decision& decision) {
     }
     ScanKeeper::put_name(info.names[algo::kMaxReportedCandidates], recogniser_->class_name(decision.class_index));
   }
-  (void)keeper_->keep(points_, info);
+  if (for_review) (void)keeper_->keep(points_, info);
+  if (preview_ != nullptr) (void)preview_->keep_thinned(points_, info);
 }
 
 void RecognitionWorker::run() {

@@ -49,6 +49,8 @@ class RecognitionWorker {
   // Keep scans in `keeper` (borrowed, may be null): every pass posted with tag.teach, and when keep_unknown the
   // passes that come out unknown or timed out. The copy is made before the answer is published.
   void set_keeper(ScanKeeper* keeper, bool keep_unknown);
+  // Every recognised pass, thinned, for the live page's depth image (borrowed, may be null).
+  void set_preview(ScanKeeper* preview) { preview_ = preview; }
 
   [[nodiscard]] Status start();
   // Lets a running job finish, then ends the thread. Any thread except the worker itself.
@@ -85,6 +87,7 @@ class RecognitionWorker {
   std::unique_ptr<Recogniser> recogniser_;  // the worker's while a job runs; replaced only by kLoad
   RecogniserLoader loader_;
   ScanKeeper* keeper_ = nullptr;
+  ScanKeeper* preview_ = nullptr;
   bool keep_unknown_ = false;
   KeptScanInfo kept_info_;  // filled by keep() (worker thread), copied into the keeper's slot
   std::thread thread_;

@@ -28,6 +28,24 @@ bool ScanKeeper::keep(std::span<const algo::ScanPoint> points, const KeptScanInf
   return true;
 }
 
+bool ScanKeeper::keep_thinned(std::span<const algo::ScanPoint> points, const KeptScanInfo& info) {
+  const std::uint64_t head = head_.load(std::memory_order_relaxed);
+  if (head - tail_.load(std::memory_order_acquire) >= slots_.size()) {
+    dropped_.fetch_add(1, std::memory_order_relaxed);
+    return false;
+  }
+  Slot& slot = slots_[head % slots_.size()];
+  const std::size_t stride = max_points_ == 0 ? 1 : (points.size() + max_points_ - 1) / max_points_;
+  std::size_t n = 0;
+  for (std::size_t i = 0; i < points.size() && n < max_points_; i += std::max<std::size_t>(stride, 1)) {
+    slot.points[n++] = points[i];
+  }
+  slot.info = info;
+  slot.info.points = n;
+  head_.store(head + 1, std::memory_order_release);
+  return true;
+}
+
 bool ScanKeeper::peek(const KeptScanInfo*& info, std::span<const algo::ScanPoint>& points) const {
   const std::uint64_t tail = tail_.load(std::memory_order_relaxed);
   if (tail == head_.load(std::memory_order_acquire)) return false;

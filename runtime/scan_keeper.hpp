@@ -45,6 +45,8 @@ class ScanKeeper {
   // ---- producer (one thread: the recognition worker) ----
   // Copies points (cut to max_points, counted) and info into the next slot; false (counted) when it is not free.
   bool keep(std::span<const algo::ScanPoint> points, const KeptScanInfo& info);
+  // Every stride-th point (stride chosen so that at most max_points remain): a preview, never truncated.
+  bool keep_thinned(std::span<const algo::ScanPoint> points, const KeptScanInfo& info);
 
   // ---- consumer (one thread) ----
   // The oldest kept scan, or false; it stays until release().

@@ -24,7 +24,18 @@ function resultClass(r) {
   return 'fault';
 }
 
+// The picture is rendered by the server shortly after the result (a thinned copy of the scan): asked for once the
+// result is shown, and again a little later if it was not ready yet.
+function showPicture(acq, attempt) {
+  const img = $('last-picture');
+  const probe = new Image();
+  probe.onload = () => { if (shown.length && shown[0].acq_id === acq) { img.src = probe.src; img.hidden = false; } };
+  probe.onerror = () => { if (attempt < 5) setTimeout(() => showPicture(acq, attempt + 1), 300); };
+  probe.src = '/api/live/' + acq + '.png';
+}
+
 function showLast(r) {
+  if (r.code !== 'no part' && r.code !== 'bad scan') showPicture(r.acq_id, 0);
   const card = $('last');
   card.className = 'card last ' + resultClass(r);
   $('last-part').textContent = r.code === 'ok' ? r.part : r.code;
