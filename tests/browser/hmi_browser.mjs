@@ -96,7 +96,7 @@ async function until(what, fn, timeoutMs) {
   for (;;) {
     const v = await fn();
     if (v) return v;
-    if (Date.now() > end) fail(`after ${(timeoutMs / 1000).toFixed(0)} s: ${typeof what === 'function' ? what() : what}`);
+    if (Date.now() > end) fail(`after ${(timeoutMs / 1000).toFixed(0)} s: ${typeof what === 'function' ? await what() : what}`);
     await sleep(kPollMs);
   }
 }
@@ -251,6 +251,7 @@ async function logIn(page, user, role) {
   check(!(await shown(page, '#login')), 'the login dialog covers the page before #login-open was clicked');
   await page.click('#login-open');
   await page.waitForSelector('#login-user', {visible: true, timeout: 5000});
+  await page.$eval('#login-user', (e) => { e.value = ''; });  // the page keeps the last user's name
   await page.type('#login-user', user);
   await page.type('#login-password', kPassword[role]);
   await page.click('#login-submit');
