@@ -482,13 +482,30 @@ async function stepParts(page, run) {
 
 // ------------------------------------------------------------------------------------------------ main
 
+function killBrowser() {
+  const pid = browser?.process()?.pid;  // puppeteer starts Chromium as a process group of its own
+  if (pid) try { process.kill(-pid, 'SIGKILL'); } catch { /* gone already */ }
+}
+
 function cleanUp() {
   for (const c of children) if (c.exitCode === null && c.signalCode === null) c.kill('SIGKILL');
-  if (tmp && !opts.keep) fs.rmSync(tmp, {recursive: true, force: true});
+  if (!tmp || opts.keep) return;
+  try {
+    // Retries: a killed Chromium's helpers may still be writing into the profile for a moment.
+    fs.rmSync(tmp, {recursive: true, force: true, maxRetries: 20, retryDelay: 100});
+  } catch (e) {
+    console.error(`(could not remove ${tmp}: ${e.message})`);
+  }
 }
-for (const sig of ['SIGINT', 'SIGTERM']) {
-  process.on(sig, () => { console.error(`FAIL: ${sig}`); if (browser) browser.process()?.kill('SIGKILL'); cleanUp(); process.exit(1); });
+function abort(why) {
+  console.error(`FAIL: ${why}`);
+  killBrowser();
+  cleanUp();
+  process.exit(1);
 }
+for (const sig of ['SIGINT', 'SIGTERM']) process.on(sig, () => abort(sig));
+// A promise left behind when a step failed (e.g. an evaluate in a closing page) must not end the run uncleaned.
+process.on('unhandledRejection', (e) => abort(`unhandled: ${e && e.stack ? e.stack : e}`));
 
 async function stopCell(run) {
   run.plc.proc.kill('SIGTERM');
@@ -498,12 +515,8 @@ async function stopCell(run) {
 }
 
 async function main() {
-  const watchdog = setTimeout(() => {
-    console.error(`FAIL: the browser test took over ${opts['timeout-s']} s`);
-    if (browser) browser.process()?.kill('SIGKILL');
-    cleanUp();
-    process.exit(1);
-  }, Number(opts['timeout-s']) * 1000);
+  const watchdog = setTimeout(() => abort(`the browser test took over ${opts['timeout-s']} s`),
+                              Number(opts['timeout-s']) * 1000);
   let run = null;
   try {
     log(`steps: ${steps.join(', ')}; screenshots in ${screens}`);
@@ -538,7 +551,7 @@ async function main() {
     return 1;
   } finally {
     clearTimeout(watchdog);
-    if (browser) await browser.close().catch(() => browser.process()?.kill('SIGKILL'));
+    if (browser) await browser.close().catch(killBrowser);
     cleanUp();
   }
 }
