@@ -12,6 +12,7 @@
 //
 // usage: node tests/browser/hmi_browser.mjs --cellsight BIN --cell DIR [--screens DIR] [--only live,review,parts]
 //          [--unknown PART] [--timeout-s S] [--keep]
+//   --keep     keep the temporary folder (it is kept anyway after a failure, without the browser profile)
 //   --cell     the simulated cell of scripts/sim_cell.sh (cellsight.yaml, parts.yaml, calibration.yaml, models/);
 //              it is copied, never changed (teach, retrain and delete work on the copy)
 //   --unknown  a catalogue part that the cell's database does not have (its passes come out unknown)
@@ -488,20 +489,24 @@ function killBrowser() {
   if (pid) try { process.kill(-pid, 'SIGKILL'); } catch { /* gone already */ }
 }
 
-function cleanUp() {
+// After a failure the logs, the truth and the cell's copy stay for a look (as the C++ tests' scratch folders do);
+// the browser profile goes.
+function cleanUp(passed) {
   for (const c of children) if (c.exitCode === null && c.signalCode === null) c.kill('SIGKILL');
   if (!tmp || opts.keep) return;
+  const what = passed ? tmp : path.join(tmp, 'chromium');
   try {
     // Retries: a killed Chromium's helpers may still be writing into the profile for a moment.
-    fs.rmSync(tmp, {recursive: true, force: true, maxRetries: 20, retryDelay: 100});
+    fs.rmSync(what, {recursive: true, force: true, maxRetries: 20, retryDelay: 100});
   } catch (e) {
-    console.error(`(could not remove ${tmp}: ${e.message})`);
+    console.error(`(could not remove ${what}: ${e.message})`);
   }
+  if (!passed) console.error(`(kept: ${tmp}: cell.log, plc.log, truth.jsonl, the configuration and models)`);
 }
 function abort(why) {
   console.error(`FAIL: ${why}`);
   killBrowser();
-  cleanUp();
+  cleanUp(false);
   process.exit(1);
 }
 for (const sig of ['SIGINT', 'SIGTERM']) process.on(sig, () => abort(sig));
@@ -519,6 +524,7 @@ async function main() {
   const watchdog = setTimeout(() => abort(`the browser test took over ${opts['timeout-s']} s`),
                               Number(opts['timeout-s']) * 1000);
   let run = null;
+  let passed = false;
   try {
     log(`steps: ${steps.join(', ')}; screenshots in ${screens}`);
     const cell = prepareCell();
@@ -545,15 +551,15 @@ async function main() {
     await stopCell(run);
     figures.total_s = (Date.now() - t0) / 1000;
     console.log(`PASS: ${steps.join(', ')}; ${JSON.stringify(figures)}`);
+    passed = true;
     return 0;
   } catch (e) {
     console.error(e instanceof Failure ? `FAIL: ${e.message}` : `FAIL: ${e.stack || e}`);
-    if (run) console.error(`(cell log: ${run.cell.log}, PLC log: ${run.plc.log}${opts.keep ? '' : '; --keep keeps them'})`);
     return 1;
   } finally {
     clearTimeout(watchdog);
     if (browser) await browser.close().catch(killBrowser);
-    cleanUp();
+    cleanUp(passed);
   }
 }
 
