@@ -1,12 +1,14 @@
 #!/usr/bin/env bash
 # The test command (README): installs what is missing, checks the code rules (scripts/lint.sh: clang-format,
 # file and function sizes, clang-tidy on algo/ and runtime/; CELLSIGHT_LINT=0 skips it, and a run narrowed by a
-# regex skips it too), builds with AddressSanitizer + UndefinedBehaviorSanitizer and warnings as errors, and runs every test with ctest, then the timing-sensitive tests in a Release build, the
-# threaded tests under ThreadSanitizer ($CELLSIGHT_TSAN=0 skips), the soak (scripts/soak.sh --ci: 500 parts with
-# faults injected; CELLSIGHT_SOAK=0 skips it), then every fuzz target for a few seconds (scripts/fuzz.sh;
-# $CELLSIGHT_FUZZ_SECONDS each, 0 skips), and with CELLSIGHT_CROSS=1 (off by default) the ARM cross build and its
-# check under qemu. Usage: scripts/test.sh [regex]: the ctest tests, test binaries and fuzz targets it matches
-# ("soak" also matches the soak, "cross" the cross build)
+# regex skips it too), builds with AddressSanitizer + UndefinedBehaviorSanitizer and warnings as errors, and runs
+# every test with ctest, then the timing-sensitive tests in a Release build, the threaded tests under
+# ThreadSanitizer ($CELLSIGHT_TSAN=0 skips), the soak (scripts/soak.sh --ci: 500 parts with faults injected;
+# CELLSIGHT_SOAK=0 skips it), the operator's screen in Chromium (tests/browser/run.sh; CELLSIGHT_BROWSER=0 skips
+# it), then every fuzz target for a few seconds (scripts/fuzz.sh; $CELLSIGHT_FUZZ_SECONDS each, 0 skips), and with
+# CELLSIGHT_CROSS=1 (off by default) the ARM cross build and its check under qemu. Usage: scripts/test.sh [regex]:
+# the ctest tests, test binaries and fuzz targets it matches ("soak" also matches the soak, "browser" the browser
+# test, "cross" the cross build)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -68,6 +70,15 @@ fi
 if [ "${CELLSIGHT_SOAK:-1}" != 0 ] && { [ $# -eq 0 ] || [[ soak =~ $1 ]]; }; then
   CELLSIGHT_SOAK_BUILD=$RELEASE scripts/soak.sh --ci --work "$RELEASE/soak"
   stage_done soak
+fi
+# The operator's screen in a real browser (tests/browser/run.sh, README "Operator's screen"): Debian's Chromium driven
+# by puppeteer-core against `run --sim` with an acknowledging PLC, in the Release build, on the soak's cached cell:
+# login, live results, Health, the access rules, Review's teach, Parts' retrain and delete. CELLSIGHT_BROWSER=0 skips
+# it; CELLSIGHT_BROWSER_ONLY=live (or live,review) runs only those steps.
+if [ "${CELLSIGHT_BROWSER:-1}" != 0 ] && { [ $# -eq 0 ] || [[ browser =~ $1 ]]; }; then
+  tests/browser/run.sh --build "$RELEASE" --work "$RELEASE/soak" \
+    ${CELLSIGHT_BROWSER_ONLY:+--only "$CELLSIGHT_BROWSER_ONLY"}
+  stage_done browser
 fi
 scripts/fuzz.sh --ci "${CELLSIGHT_FUZZ_SECONDS:-10}" "$@"
 stage_done fuzz
