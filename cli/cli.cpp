@@ -51,7 +51,7 @@ constexpr const char* kUsage =
     "  teach --part NAME [--id N] (--sim --count K [--seed S] [--perturb SPEC] | SCAN.ply ...) [--calibration FILE]\n"
     "        store scans of a part type in the model database; the one that agrees best with the others becomes its\n"
     "        Perfect Match template\n"
-    "  train [--report DIR] [--compare] [--iterations N] [--seed S] [--progress]\n"
+    "  train [--report DIR] [--compare] [--iterations N] [--seed S] [--progress] [--calibration FILE]\n"
     "        features of every taught scan, simulated-annealing feature selection + k-fold CV, the SVM,\n"
     "        acceptance thresholds per template; --compare also trains kNN and an MLP (thesis ch. 4);\n"
     "        --progress adds lines 'progress: FRACTION WHAT' for programs (the operator's screen)\n"

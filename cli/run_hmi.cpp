@@ -106,7 +106,7 @@ std::unique_ptr<RunHmi> RunHmi::attach(const app::Config& config, const app::Run
 }
 
 void RunHmi::start(runtime::ProductionLoop& loop, const drivers::PlcLink& link, const std::string& models_dir,
-                   runtime::RecogniserLoader loader) {
+                   const std::string& calibration_path, runtime::RecogniserLoader loader) {
   auto users = hmi::load_users(params_.users_file);
   if (!users) {
     CS_LOG_ERROR(kComponent, "operator's screen without accounts (viewing from this machine only): %s",
@@ -117,6 +117,7 @@ void RunHmi::start(runtime::ProductionLoop& loop, const drivers::PlcLink& link, 
   // The Parts, Review and Debug pages: their long actions are this binary's own commands, run as child processes.
   // By /proc/self/exe, not its path: an update that replaced the file still starts the program that is running.
   jobs_ = std::make_unique<hmi::JobRunner>("/proc/self/exe", config_path_, models_dir);
+  jobs_->set_calibration(std::filesystem::absolute(calibration_path).string());
   review_ = std::make_unique<hmi::ReviewStore>((std::filesystem::path(models_dir) / "review").string(),
                                                params_.review_keep, &keeper_);
   preview_ = std::make_unique<hmi::LivePreview>(models_dir, &preview_keeper_);

@@ -32,7 +32,7 @@ class RunHmi {
   // the model database: after a retrain or a delete the new one is offered to the loop, which puts it in place
   // between passes; empty (--sim-oracle): the loop keeps what it has.
   void start(runtime::ProductionLoop& loop, const drivers::PlcLink& link, const std::string& models_dir,
-             runtime::RecogniserLoader loader);
+             const std::string& calibration_path, runtime::RecogniserLoader loader);
   void stop();  // the server, then a running job (cancelled and reaped), then the writer threads; idempotent
   ~RunHmi() { stop(); }
   RunHmi(const RunHmi&) = delete;

@@ -392,7 +392,7 @@ int run_run(const std::vector<std::string>& args, const app::Config& config) {
       return fail(kExitFailure, ok.error().message);
     }
     // Its threads, too, leave the stop signals to this one.
-    if (hmi) hmi->start(loop, server, models_dir, recognition->loader);
+    if (hmi) hmi->start(loop, server, models_dir, calibration_path, recognition->loader);
   }
   announce_ready(service, server_config.bind_address, server.bound_port(), sim, options.parts);
 

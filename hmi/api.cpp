@@ -220,6 +220,9 @@ int HmiServer::Impl::api_events(const Request& r) {
   if (streams.fetch_add(1) >= limit) {
     streams.fetch_sub(1);
     streams_refused.fetch_add(1, std::memory_order_relaxed);
+    // Closed after the answer: kept alive, each refused browser would hold one of the threads left for the other
+    // routes for the keep-alive time, and 50 of them starve the screen (seen with tests/browser/idle_clients.py).
+    mg_disable_keep_alive(r.conn);
     return send_error(r.conn, 503, "too many live views open");
   }
   mg_printf(r.conn,

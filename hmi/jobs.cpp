@@ -116,7 +116,8 @@ bool parse_progress(const std::string& line, double& fraction, std::string& text
 
 struct JobRunner::Impl {
   std::vector<std::string> prefix;
-  std::mutex start_mutex;  // one start() at a time: it may join the last job's thread
+  std::string calibration;  // set_calibration()
+  std::mutex start_mutex;   // one start() at a time: it may join the last job's thread
   mutable std::mutex mutex;
   JobView view;  // guarded by mutex
   pid_t pid = -1;
@@ -165,6 +166,10 @@ JobRunner::JobRunner(const std::string& exe, const std::string& config_path, con
     impl_->prefix.insert(impl_->prefix.end(), {"--config", ec ? config_path : absolute.string()});
   }
   impl_->prefix.insert(impl_->prefix.end(), {"--models", models_dir});
+}
+
+void JobRunner::set_calibration(std::string path) {
+  impl_->calibration = std::move(path);
 }
 
 JobRunner::JobRunner(std::vector<std::string> command_prefix) : impl_(std::make_unique<Impl>()) {
@@ -236,6 +241,9 @@ Expected<std::uint64_t> JobRunner::start(JobKind kind, std::vector<std::string> 
     d.thread.join();
     lock.lock();
     if (d.view.state == "running") return make_error("a job is running: " + d.view.title);
+  }
+  if (!d.calibration.empty() && !args.empty() && kind != JobKind::kDelete) {
+    args.insert(args.begin() + 1, {"--calibration", d.calibration});
   }
   Fd out, err;
   auto child = d.spawn(args, out, err);

@@ -57,6 +57,9 @@ class JobRunner {
   // exe: the cellsight binary (/proc/self/exe); config_path and models_dir are passed to every command
   // (config_path empty: none, the child finds the same built-in defaults the parent found).
   JobRunner(const std::string& exe, const std::string& config_path, const std::string& models_dir);
+  // The calibration `run` uses: teach, train and classify jobs get `--calibration PATH` after their mode word (they
+  // read the scans in its carrier frame). Before the first start().
+  void set_calibration(std::string path);
   // Any program: every job runs `command_prefix... args...` (tests run /bin/sh -c SCRIPT sh ARGS).
   explicit JobRunner(std::vector<std::string> command_prefix);
   ~JobRunner();  // cancels a running job and waits for it

@@ -33,6 +33,19 @@ bool is_id(const std::string& text) {
          std::all_of(text.begin(), text.end(), [](char c) { return c >= '0' && c <= '9'; });
 }
 
+// The result code the PLC was given for this decision (README "Result codes"), as the live page names it.
+const char* result_code_name(algo::DecisionSource source) {
+  switch (source) {
+    case algo::DecisionSource::kSvm:
+    case algo::DecisionSource::kPm: return "ok";
+    case algo::DecisionSource::kUnknown: return "unknown part";
+    case algo::DecisionSource::kTimeout: return "timeout";
+    case algo::DecisionSource::kBadScan: return "bad scan";
+    case algo::DecisionSource::kNoPart: return "no part";
+  }
+  return "unknown part";
+}
+
 std::string folder_name(std::uint64_t id) {
   char text[24];
   std::snprintf(text, sizeof text, "%08llu", static_cast<unsigned long long>(id));
@@ -205,6 +218,7 @@ nlohmann::json ReviewStore::info_json(std::uint64_t id, const runtime::KeptScanI
           {"time_ms", kept.wall_ms},
           {"points", kept.points},
           {"source", std::string(algo::to_string(d.source))},
+          {"code", result_code_name(d.source)},
           {"part", d.accepted() && !chosen.empty() ? nlohmann::json(chosen) : nlohmann::json(nullptr)},
           {"reason", d.unknown_reason == algo::RejectReason::kNone
                          ? nlohmann::json(nullptr)

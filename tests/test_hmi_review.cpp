@@ -107,6 +107,7 @@ TEST_CASE("review: a kept scan becomes an entry with its points, what was decide
   // What was decided, with the candidates by name and why each was refused.
   const json& info = entries[0].info;
   CHECK(info["kind"] == "unknown");
+  CHECK(info["code"] == "unknown part");
   CHECK(info["acq_id"] == 17);
   CHECK(info["points"] == points.size());
   CHECK(info["reason"] == "missing_area");

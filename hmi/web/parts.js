@@ -51,8 +51,7 @@
           el('td', {}, mb(p.template_bytes)), el('td', {class: 'thr'}, thresholdsText(p.thresholds)), el('td', {}, img));
       const del = el('button', {class: 'delete maint', onclick: (e) => { e.stopPropagation(); removePart(p.name); }},
           'Delete');
-      del.hidden = !maintenance();
-      row.append(el('td', {}, del));
+      row.append(maintenance() ? el('td', {}, del) : el('td'));  // the operator gets no delete button at all
       row.onclick = () => showPart(p.name);
       body.append(row);
     }
@@ -154,6 +153,7 @@
 
   $('retrain').onclick = async () => {
     if (!window.confirm('Train the SVM and the thresholds again? This takes a while; the cell keeps running.')) return;
+    $('job-progress').value = 0;  // the bar is the new job's from now on, not the last one's
     try {
       await cs.post('/api/retrain', {});
       startPolling();
@@ -164,7 +164,10 @@
   function applyRole() {
     document.querySelectorAll('#parts .maint').forEach((b) => { b.hidden = !maintenance(); });
   }
-  cs.onSession(applyRole);
+  cs.onSession(() => {
+    applyRole();
+    if (!$('parts').hidden) loadParts().catch(() => {});  // the rows' buttons follow the role
+  });
   cs.onTab('parts', async () => {
     applyRole();
     try {

@@ -101,12 +101,16 @@
     try {
       const [review, teach, job] = await Promise.all([cs.get('/api/review'), cs.get('/api/teach'),
         cs.get('/api/job').catch(() => null)]);
-      const keep = new Set(picked());
-      list.textContent = '';
+      // Kept entries keep their element (and the operator's ticks): only new ones are added, gone ones removed,
+      // so a click never lands on an element that a refresh replaced.
+      const existing = new Map([...list.children].map((n) => [n.dataset.id, n]));
+      const wanted = new Set(review.entries.map((e) => String(e.id)));
+      for (const [id, node] of existing) if (!wanted.has(id)) node.remove();
+      let before = list.firstChild;
       for (const e of review.entries) {
-        const node = item(e);
-        if (keep.has(e.id)) node.querySelector('.pick').checked = true;
-        list.append(node);
+        const node = existing.get(String(e.id)) || item(e);
+        if (node !== before) list.insertBefore(node, before);
+        before = node.nextSibling;
       }
       summary.textContent = review.entries.length + ' kept · ' + review.stored + ' stored since start' +
           (review.failed ? ' · ' + review.failed + ' could not be stored' : '');

@@ -305,8 +305,13 @@ async function stepLive(page, run) {
   figures.live_results_s = (Date.now() - opened) / 1000;
   check(navigations === navigationsAtLoad, `the page navigated ${navigations - navigationsAtLoad} times while results arrived`);
   // Each row says what the server kept for that result.
+  // The rows and the last-part card in one look (a result arriving between two looks changes both), then the
+  // server's history: the server is always ahead of the page, never behind it.
+  const [rows, lastPart] = await page.evaluate(() => [
+    [...document.querySelectorAll('#results tr')].map((tr) => ({
+      id: Number(tr.dataset.id), cells: [...tr.cells].map((td) => td.textContent)})),
+    document.getElementById('last-part').textContent]);
   const kept = new Map((await api(run, '/api/results')).results.map((r) => [r.id, r]));
-  const rows = await liveRows(page);
   for (const row of rows.filter((r) => seen.has(r.id))) {
     const r = kept.get(row.id);
     check(r, `row ${row.id} on the page is not among /api/results`);
@@ -314,7 +319,6 @@ async function stepLive(page, run) {
           `row ${row.id} shows '${row.cells[2]}' '${row.cells[3]}', the server kept '${r.code}' '${r.part}'`);
   }
   const newest = kept.get(rows[0].id);
-  const lastPart = await page.$eval('#last-part', (e) => e.textContent);
   check(lastPart === (newest.code === 'ok' ? newest.part : newest.code),
         `#last-part says '${lastPart}', the newest row is ${JSON.stringify(newest)}`);
   figures.live_rows_seen = seen.size;
@@ -423,15 +427,19 @@ async function stepParts(page, run) {
   // Retrain: the bar moves up and ends at the report.
   const before = (await api(run, '/api/job')).id || 0;
   const started = Date.now();
+  let confirmed = null;  // the page asks before a retrain (it takes a while)
+  page.once('dialog', async (d) => { confirmed = d.message(); await d.accept(); });
   await page.click('#retrain');
   const bar = [];
   await until(async () => `retrain: #job-state '${await page.$eval('#job-state', (e) => e.textContent)}', ` +
                           `bar ${JSON.stringify(bar.slice(-5))}, job ${JSON.stringify(await api(run, '/api/job'))}`, async () => {
+    const j = await api(run, '/api/job');
+    if (j.id <= before) return false;  // the bar still shows the last job until the new one is seen
     const v = await page.$eval('#job-progress', (e) => (e.hasAttribute('value') ? e.value / (e.max || 1) : null));
     if (v !== null && bar[bar.length - 1] !== v) bar.push(v);
-    const j = await api(run, '/api/job');
     return j.id > before && j.state !== 'running';
   }, 150000);
+  check(confirmed !== null, 'retrain: the page started a retrain without asking');
   await waitJob(page, run, 'retrain', before, '#job-state', 1000);
   figures.retrain_s = (Date.now() - started) / 1000;
   const inside = bar.filter((v) => v > 0 && v < 1);
