@@ -43,4 +43,15 @@ inline Reply http(const std::string& host, int port, const std::string& method, 
   return reply;
 }
 
+// Logs in as `user` and returns the headers a state-changing request of that session needs (cookie, CSRF token).
+inline std::map<std::string, std::string> session_headers(int port, const std::string& user,
+                                                          const std::string& password) {
+  const Reply login =
+      http("127.0.0.1", port, "POST", "/api/login", nlohmann::json{{"user", user}, {"password", password}}.dump());
+  REQUIRE(login.status == 200);
+  const std::string cookie = login.headers.at("Set-Cookie");
+  return {{"Cookie", cookie.substr(0, cookie.find(';'))},
+          {"X-CSRF-Token", login.as_json().at("csrf").get<std::string>()}};
+}
+
 }  // namespace cellsight::test

@@ -202,12 +202,7 @@ struct PartsScreen {
   [[nodiscard]] Reply post(const std::string& who, const std::string& path, const json& body) const {
     std::map<std::string, std::string> headers;
     if (!who.empty()) {
-      const Reply login =
-          http("127.0.0.1", server->port(), "POST", "/api/login",
-               json{{"user", who}, {"password", who == "max" ? "maintenance-pass" : "operator-pass"}}.dump());
-      REQUIRE(login.status == 200);
-      const std::string cookie = login.headers.at("Set-Cookie");
-      headers = {{"Cookie", cookie.substr(0, cookie.find(';'))}, {"X-CSRF-Token", login.as_json().at("csrf")}};
+      headers = test::session_headers(server->port(), who, who == "max" ? "maintenance-pass" : "operator-pass");
     }
     return http("127.0.0.1", server->port(), "POST", path, body.dump(), headers);
   }

@@ -925,13 +925,16 @@ TEST_CASE("loop: nothing is allocated inside the loop over several simulated par
   runtime::LoopConfig lc = small_loop_config(config);
   lc.max_parts = kParts;
   runtime::ProductionLoop& loop = cell.make_loop(lc);
-  // With the operator's screen the recognition thread also copies kept scans (here: every pass, teach mode).
+  // With the operator's screen the recognition thread also copies kept scans (here: every pass, teach mode) and a
+  // thinned preview of every pass for the live picture.
   runtime::ScanKeeper keeper(kParts, 20'000);
+  runtime::ScanKeeper preview(kParts, 1'000);
   bool teach = false;
   SECTION("production") {}
-  SECTION("teach mode: every pass is kept for the screen") {
+  SECTION("teach mode and the live picture: every pass is kept for the screen") {
     teach = true;
     loop.set_keeper(&keeper, true);
+    loop.set_preview(&preview);
     REQUIRE(loop.post_command(drivers::CommandCode::kEnterTeach, 9));
   }
   REQUIRE(loop.start().ok());
@@ -955,6 +958,13 @@ TEST_CASE("loop: nothing is allocated inside the loop over several simulated par
   if (teach) {
     CHECK(keeper.kept() == kParts);
     CHECK(keeper.truncated() == 0);
+    CHECK(preview.kept() == kParts);
+    const runtime::KeptScanInfo* info = nullptr;
+    std::span<const algo::ScanPoint> points;
+    REQUIRE(preview.peek(info, points));
+    CHECK(points.size() <= 1'000);
+    CHECK(points.size() > 500);
+    CHECK(points.back().frame >= 25);  // thinned evenly over the pass's 30 frames, not cut after the first 1000
   }
   loop.request_stop();
   loop.join();
