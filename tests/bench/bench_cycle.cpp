@@ -35,6 +35,7 @@
 #include "drivers/sim/sim_devices.hpp"
 #include "formats/calibration_file.hpp"
 #include "hmi/live_feed.hpp"
+#include "hmi/live_preview.hpp"
 #include "hmi/review_store.hpp"
 #include "hmi/server.hpp"
 #include "runtime/production_loop.hpp"
@@ -82,13 +83,17 @@ class FixedRecogniser final : public runtime::Recogniser {
 
 // The operator's screen as `run` attaches it (cli/run_hmi.cpp), with browsers watching the live stream.
 struct BenchScreen {
-  BenchScreen(const app::Config& config, runtime::ProductionLoop& loop, runtime::LoopObserver* next, int browsers)
+  BenchScreen(const app::Config& config, runtime::ProductionLoop& loop, runtime::LoopObserver* next, int browsers,
+              const std::string& models)
       : feed(256, next),
         keeper(static_cast<std::size_t>(config.hmi.keep_slots), app::scan_builder_params(config).max_points),
+        preview_keeper(2, 60'000),
         review((test::scratch_dir("bench-cycle") / "review").string(), config.hmi.review_keep, &keeper),
+        preview(models, &preview_keeper),
         browsers_wanted(browsers) {
     loop.set_observer(&feed);
     loop.set_keeper(&keeper, true);
+    loop.set_preview(&preview_keeper);
     hmi::HmiParams params = config.hmi;
     params.port = 0;
     server = std::make_unique<hmi::HmiServer>(params, std::vector<hmi::User>{}, &feed, [&loop] {
@@ -97,7 +102,7 @@ struct BenchScreen {
     });
   }
   bool start() {
-    if (!review.start() || !server->start()) return false;
+    if (!review.start() || !preview.start() || !server->start()) return false;
     for (int b = 0; b < browsers_wanted; ++b) {
       browsers.emplace_back([this] {
         char error[256] = {};
@@ -118,11 +123,14 @@ struct BenchScreen {
     server->stop();  // ends the live streams: the browsers' reads return
     for (std::thread& t : browsers) t.join();
     review.stop();
+    preview.stop();
   }
 
   hmi::LiveFeed feed;
   runtime::ScanKeeper keeper;
+  runtime::ScanKeeper preview_keeper;
   hmi::ReviewStore review;
+  hmi::LivePreview preview;
   std::unique_ptr<hmi::HmiServer> server;
   int browsers_wanted;
   std::vector<std::thread> browsers;
@@ -271,7 +279,7 @@ int main(int argc, char** argv) {
   loop.set_observer(&timing);
   std::unique_ptr<BenchScreen> screen;
   if (with_hmi) {
-    screen = std::make_unique<BenchScreen>(*config, loop, &timing, browsers);
+    screen = std::make_unique<BenchScreen>(*config, loop, &timing, browsers, models);
     if (!screen->start()) {
       std::fprintf(stderr, "bench_cycle: the operator's screen did not start\n");
       return 1;
@@ -332,10 +340,13 @@ int main(int argc, char** argv) {
       "%lld us)\n",
       static_cast<long long>(kPollPeriod.count()));
   if (screen) {
-    std::printf("operator's screen: on, %d browsers on the live stream, %llu scans kept, %llu dropped, %llu stored\n",
-                browsers, static_cast<unsigned long long>(screen->keeper.kept()),
-                static_cast<unsigned long long>(screen->keeper.dropped()),
-                static_cast<unsigned long long>(screen->review.stored()));
+    std::printf(
+        "operator's screen: on, %d browsers on the live stream, %llu scans kept, %llu dropped, %llu stored, "
+        "%llu live pictures\n",
+        browsers, static_cast<unsigned long long>(screen->keeper.kept()),
+        static_cast<unsigned long long>(screen->keeper.dropped()),
+        static_cast<unsigned long long>(screen->review.stored()),
+        static_cast<unsigned long long>(screen->preview.rendered()));
   } else {
     std::printf("operator's screen: off\n");
   }
