@@ -6,6 +6,8 @@
 
 #include "app/recognition.hpp"
 #include "app/scan_acquisition.hpp"
+#include "base/crc32.hpp"
+#include "base/file_read.hpp"
 #include "drivers/log.hpp"
 #include "hmi/parts_api.hpp"
 
@@ -57,6 +59,43 @@ nlohmann::json status_of(const runtime::ProductionLoop& loop, const drivers::Plc
         {"loop_stalls", l.loop_stalls}}},
       {"models", {{"dir", models_dir}}},
   };
+}
+
+// What the Health page shows of a file in force (the calibration, the model database's manifest and SVM): path,
+// last change and CRC-32 of its bytes, so a technician can tell which one the cell runs with.
+nlohmann::json file_in_force(const std::string& path) {
+  constexpr std::size_t kMaxBytes = std::size_t{64} << 20;
+  nlohmann::json j = {{"file", path}};
+  std::error_code ec;
+  const auto changed = std::filesystem::last_write_time(path, ec);
+  if (ec) {
+    j["error"] = ec.message();
+    return j;
+  }
+  const auto since_epoch =
+      std::chrono::duration_cast<std::chrono::seconds>(std::chrono::file_clock::to_sys(changed).time_since_epoch());
+  j["modified_unix_s"] = since_epoch.count();
+  if (auto bytes = base::read_file(path, kMaxBytes)) {
+    char crc[16];
+    std::snprintf(crc, sizeof crc, "%08x", base::crc32(*bytes));
+    j["crc32"] = crc;
+    j["bytes"] = bytes->size();
+  }
+  return j;
+}
+
+// The newest svm-*.model of the model database (the one `train` wrote last), or "".
+std::string newest_svm(const std::string& models_dir) {
+  std::string best;
+  std::filesystem::file_time_type best_time{};
+  std::error_code ec;
+  for (const auto& e : std::filesystem::directory_iterator(models_dir, ec)) {
+    const std::string name = e.path().filename().string();
+    if (name.rfind("svm-", 0) != 0 || e.path().extension() != ".model") continue;
+    const auto t = e.last_write_time(ec);
+    if (best.empty() || t > best_time) best = e.path().string(), best_time = t;
+  }
+  return best;
 }
 
 // The screen's commands go through the loop's mailbox (ProductionLoop::post_command), as the PLC's do.
@@ -125,10 +164,15 @@ void RunHmi::start(runtime::ProductionLoop& loop, const drivers::PlcLink& link, 
   review_api_ = std::make_unique<hmi::ReviewApi>(*review_, *jobs_, *commands_);
   const int deadline_ms = deadline_ms_;
   hmi::ReviewApi* review_api = review_api_.get();
+  models_dir_ = models_dir;
+  calibration_path_ = calibration_path;
+  note_in_force();
   server_ = std::make_unique<hmi::HmiServer>(params_, users ? std::move(*users) : std::vector<hmi::User>{}, &feed_,
-                                             [&loop, &link, deadline_ms, models_dir, review_api] {
+                                             [this, &loop, &link, deadline_ms, models_dir, review_api] {
                                                nlohmann::json status = status_of(loop, link, deadline_ms, models_dir);
                                                status["teach"] = review_api->teach_json();
+                                               const std::lock_guard<std::mutex> lock(in_force_mutex_);
+                                               status["in_force"] = in_force_;
                                                return status;
                                              });
   server_->add_routes(hmi::parts_routes(*jobs_, {models_dir, grid_, [this] { models_changed(); }}));
@@ -144,6 +188,18 @@ void RunHmi::start(runtime::ProductionLoop& loop, const drivers::PlcLink& link, 
     return;
   }
   serving_ = true;
+}
+
+void RunHmi::note_in_force() {
+  nlohmann::json facts = {
+      {"calibration", file_in_force(calibration_path_)},
+      {"manifest", file_in_force((std::filesystem::path(models_dir_) / "manifest.yaml").string())},
+  };
+  if (const std::string svm = newest_svm(models_dir_); !svm.empty()) facts["svm"] = file_in_force(svm);
+  facts["since_unix_s"] =
+      std::chrono::duration_cast<std::chrono::seconds>(std::chrono::system_clock::now().time_since_epoch()).count();
+  const std::lock_guard<std::mutex> lock(in_force_mutex_);
+  in_force_ = std::move(facts);
 }
 
 void RunHmi::models_changed() {
@@ -164,6 +220,7 @@ void RunHmi::models_changed() {
   for (int i = 0; i < 600 && loop_->take_retired_recogniser() == nullptr; ++i) {
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
   }
+  note_in_force();
   CS_LOG_INFO(kComponent, "the loop recognises with the new model database");
 }
 

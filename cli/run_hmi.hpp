@@ -6,6 +6,8 @@
 
 #include <functional>
 #include <memory>
+#include <mutex>
+#include <nlohmann/json.hpp>
 #include <string>
 
 #include "app/config.hpp"
@@ -44,6 +46,8 @@ class RunHmi {
  private:
   // After a delete or a training that succeeded (job runner's thread): a new recogniser for the loop, built here.
   void models_changed();
+  // The calibration and model files the loop runs with (path, change time, CRC-32), for the Health page.
+  void note_in_force();
 
   hmi::HmiParams params_;
   int deadline_ms_;
@@ -54,6 +58,10 @@ class RunHmi {
   runtime::ScanKeeper preview_keeper_;  // thinned copies of every recognised pass for the live picture
   runtime::ProductionLoop* loop_ = nullptr;
   runtime::RecogniserLoader loader_;
+  std::string models_dir_;
+  std::string calibration_path_;
+  std::mutex in_force_mutex_;
+  nlohmann::json in_force_;
   std::unique_ptr<hmi::ReviewStore> review_;
   std::unique_ptr<hmi::LivePreview> preview_;
   std::unique_ptr<hmi::JobRunner> jobs_;  // before server_: the routes borrow it, so it goes after the server

@@ -132,6 +132,21 @@ nlohmann::json HmiServer::Impl::status_json() {
     codes["other"] = by_code.back();
   }
   j["results_by_code"] = codes;
+  {
+    const std::lock_guard<std::mutex> lock(history_mutex);
+    nlohmann::json edges = nlohmann::json::array(), counts = nlohmann::json::array(), faults = nlohmann::json::array();
+    for (std::size_t i = 0; i < cycle_counts.size(); ++i) {
+      edges.push_back(i + 1 < kCycleEdgesMs.size() ? nlohmann::json(kCycleEdgesMs[i]) : nlohmann::json(nullptr));
+      counts.push_back(cycle_counts[i]);
+    }
+    for (auto it = fault_log.rbegin(); it != fault_log.rend(); ++it) {
+      faults.push_back({{"since_ms", it->since_ms},
+                        {"until_ms", it->until_ms != 0 ? nlohmann::json(it->until_ms) : nlohmann::json(nullptr)},
+                        {"error", drivers::to_string(it->error)}});
+    }
+    j["cycle_histogram"] = {{"upper_ms", edges}, {"counts", counts}};
+    j["fault_log"] = faults;  // newest first
+  }
   j["hmi"] = {{"results_taken", taken.load(std::memory_order_relaxed)},
               {"results_dropped", feed != nullptr ? feed->dropped() : 0},
               {"live_streams", streams.load(std::memory_order_relaxed)},

@@ -33,6 +33,14 @@ struct LiveResult {
   char part_name[kNameBytes] = {};  // the recogniser's class name, cut to fit; empty when none
 };
 
+// A change into or out of the fault state (for the Health page's fault log), with the wall-clock time.
+struct FaultEvent {
+  runtime::LoopState from = runtime::LoopState::kIdle;
+  runtime::LoopState to = runtime::LoopState::kIdle;
+  drivers::ErrorCode error = drivers::ErrorCode::kNone;
+  std::int64_t wall_ms = 0;
+};
+
 class LiveFeed final : public runtime::LoopObserver {
  public:
   // capacity: records the HMI may fall behind by before the newest are dropped (counted); next: an observer that
@@ -50,11 +58,13 @@ class LiveFeed final : public runtime::LoopObserver {
 
   // ---- the HMI's thread (one consumer) ----
   bool take(LiveResult& out) { return ring_.try_pop(out); }
+  bool take(FaultEvent& out) { return faults_.try_pop(out); }
   [[nodiscard]] std::uint64_t dropped() const { return ring_.dropped(); }
   [[nodiscard]] std::uint64_t passes_started() const { return passes_.load(std::memory_order_relaxed); }
 
  private:
   base::SpscRing<LiveResult> ring_;
+  base::SpscRing<FaultEvent> faults_{64};
   runtime::LoopObserver* next_;
   std::atomic<std::uint64_t> passes_{0};
 };

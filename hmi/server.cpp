@@ -47,14 +47,31 @@ void HmiServer::Impl::pump_loop() {
     while (feed != nullptr && feed->take(r)) {
       history.emplace_back(++last_id, r);
       ++by_code[std::min<std::size_t>(static_cast<std::size_t>(r.plc.code), by_code.size() - 1)];
+      std::size_t bucket = 0;
+      while (bucket + 1 < kCycleEdgesMs.size() && r.cycle_ms > kCycleEdgesMs[bucket]) ++bucket;
+      ++cycle_counts[bucket];
       while (history.size() > static_cast<std::size_t>(params.history)) history.pop_front();
       taken.fetch_add(1, std::memory_order_relaxed);
       any = true;
     }
+    take_faults();
     if (any) history_changed.notify_all();
     history_changed.wait_for(lock, kPumpPeriod);
   }
   history_changed.notify_all();
+}
+
+void HmiServer::Impl::take_faults() {
+  constexpr std::size_t kKeep = 50;
+  FaultEvent e;
+  while (feed != nullptr && feed->take(e)) {
+    if (e.to == runtime::LoopState::kFault) {
+      fault_log.push_back({e.wall_ms, 0, e.error});
+      while (fault_log.size() > kKeep) fault_log.pop_front();
+    } else if (!fault_log.empty() && fault_log.back().until_ms == 0) {
+      fault_log.back().until_ms = e.wall_ms;
+    }
+  }
 }
 
 int HmiServer::Impl::dispatch(mg_connection* conn) {

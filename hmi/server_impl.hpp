@@ -53,6 +53,16 @@ struct HmiServer::Impl {
   std::deque<std::pair<std::uint64_t, LiveResult>> history;
   std::uint64_t last_id = 0;
   std::array<std::uint64_t, 8> by_code{};  // results taken, per ResultCode (0-6; 7: any other value)
+  // Cycle times of every result since start, counted per bucket (upper edges kCycleEdgesMs, the last open).
+  static constexpr std::array<double, 10> kCycleEdgesMs = {5, 10, 20, 50, 100, 200, 500, 1000, 3000, 1e300};
+  std::array<std::uint64_t, 10> cycle_counts{};
+  // The last faults: when the loop went into fault, why, and when it came out (0: not yet).
+  struct FaultEntry {
+    std::int64_t since_ms = 0;
+    std::int64_t until_ms = 0;
+    drivers::ErrorCode error = drivers::ErrorCode::kNone;
+  };
+  std::deque<FaultEntry> fault_log;
   std::atomic<std::uint64_t> taken{0};
   std::atomic<bool> stopping{false};
   std::atomic<int> streams{0};
@@ -67,6 +77,7 @@ struct HmiServer::Impl {
   std::vector<Route> routes;  // the modules' (add_routes), matched after the built-in ones
 
   void pump_loop();
+  void take_faults();  // with history_mutex held
   // server.cpp
   int dispatch(mg_connection* conn);
   int serve_asset(const Request& r);

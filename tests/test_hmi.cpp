@@ -350,3 +350,36 @@ TEST_CASE("hmi: the status event is built once per second however many live view
   CHECK(during >= 3);
   CHECK(during <= 5);
 }
+
+TEST_CASE("hmi: Health's cycle histogram counts every result, the fault log has each fault with its recovery",
+          "[hmi][health]") {
+  Screen screen;
+  using runtime::LoopState;
+  screen.feed.on_state(LoopState::kIdle, LoopState::kScanning, drivers::ErrorCode::kNone);  // not a fault: not logged
+  screen.feed.on_state(LoopState::kScanning, LoopState::kFault, drivers::ErrorCode::kCameraTimeout);
+  screen.feed.on_state(LoopState::kFault, LoopState::kIdle, drivers::ErrorCode::kNone);
+  screen.feed.on_state(LoopState::kIdle, LoopState::kFault, drivers::ErrorCode::kEncoderFault);
+  for (const double ms : {3.0, 21.5, 22.0, 140.0, 4000.0}) {
+    runtime::PartRecord r = record(7, "plate_5h", 2);
+    r.cycle_ms = ms;
+    screen.feed.on_part_done(r);
+  }
+  json status;
+  for (int i = 0; i < 100; ++i) {  // the pump takes the feed every 50 ms
+    status = http("127.0.0.1", screen.port(), "GET", "/api/status").as_json();
+    if (status["hmi"]["results_taken"] == 5 && status["fault_log"].size() == 2) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  REQUIRE(status["hmi"]["results_taken"] == 5);
+  const json& h = status["cycle_histogram"];
+  REQUIRE(h["counts"].size() == h["upper_ms"].size());
+  CHECK(h["upper_ms"][0] == 5.0);
+  CHECK(h["upper_ms"].back().is_null());  // the last bucket is open
+  CHECK(h["counts"] == json::array({1, 0, 0, 2, 0, 1, 0, 0, 0, 1}));
+  const json& faults = status["fault_log"];
+  REQUIRE(faults.size() == 2);
+  CHECK(faults[0]["error"] == "encoder fault");  // newest first, not recovered yet
+  CHECK(faults[0]["until_ms"].is_null());
+  CHECK(faults[1]["error"] == "camera timeout");
+  CHECK(faults[1]["until_ms"].get<std::int64_t>() >= faults[1]["since_ms"].get<std::int64_t>());
+}

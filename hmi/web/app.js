@@ -128,8 +128,52 @@ function showStatus(s) {
     ['results acknowledged', p.results_acked], ['queue depth', p.queue_depth], ['PLC heartbeat losses',
       p.heartbeat_losses], ['clients evicted', p.clients_evicted], ['requests served', p.requests_served]]);
   const h = s.hmi || {};
+  showHistogram(s.cycle_histogram);
+  showFaults(s.fault_log);
+  showInForce(s.in_force);
   table('health-hmi', [['live views', h.live_streams], ['sessions', h.sessions], ['results taken', h.results_taken],
     ['results dropped', h.results_dropped]]);
+}
+
+function showHistogram(h) {
+  const box = $('health-histogram');
+  box.textContent = '';
+  if (!h || !h.counts) return;
+  const most = Math.max(1, ...h.counts);
+  h.counts.forEach((n, i) => {
+    const low = i === 0 ? 0 : h.upper_ms[i - 1];
+    const label = h.upper_ms[i] === null ? '> ' + low + ' ms' : low + '–' + h.upper_ms[i] + ' ms';
+    const bar = cs.el('span', {class: 'bar'});
+    bar.style.width = (100 * n / most) + '%';
+    box.append(cs.el('div', {class: 'hist-row'}, cs.el('span', {class: 'hist-label'}, label),
+        cs.el('span', {class: 'hist-bar'}, bar), cs.el('span', {class: 'hist-count'}, String(n))));
+  });
+}
+
+function showFaults(list) {
+  const t = $('health-faults');
+  t.textContent = '';
+  if (!list || !list.length) { t.append(cs.el('tr', {}, cs.el('td', {}, 'none since start'))); return; }
+  t.append(cs.el('tr', {}, cs.el('th', {}, 'since'), cs.el('th', {}, 'error'), cs.el('th', {}, 'recovered after')));
+  for (const f of list) {
+    const after = f.until_ms === null ? 'not yet' : ((f.until_ms - f.since_ms) / 1000).toFixed(1) + ' s';
+    t.append(cs.el('tr', {}, cs.el('td', {}, new Date(f.since_ms).toLocaleString()), cs.el('td', {}, f.error),
+        cs.el('td', {}, after)));
+  }
+}
+
+function showInForce(f) {
+  if (!f) return;
+  const rows = [];
+  for (const [name, label] of [['calibration', 'calibration'], ['manifest', 'model database'], ['svm', 'SVM']]) {
+    const x = f[name];
+    if (!x) continue;
+    rows.push([label, x.file]);
+    rows.push(['  changed', x.modified_unix_s ? new Date(x.modified_unix_s * 1000).toLocaleString() : x.error]);
+    rows.push(['  CRC-32', x.crc32]);
+  }
+  if (f.since_unix_s) rows.push(['in force since', new Date(f.since_unix_s * 1000).toLocaleString()]);
+  table('health-inforce', rows);
 }
 
 function connect() {
