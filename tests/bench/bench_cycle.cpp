@@ -83,14 +83,14 @@ class FixedRecogniser final : public runtime::Recogniser {
 
 // The operator's screen as `run` attaches it (cli/run_hmi.cpp), with browsers watching the live stream.
 struct BenchScreen {
-  BenchScreen(const app::Config& config, runtime::ProductionLoop& loop, runtime::LoopObserver* next, int browsers,
+  BenchScreen(const app::Config& config, runtime::ProductionLoop& loop, runtime::LoopObserver* next, int browser_count,
               const std::string& models)
       : feed(256, next),
         keeper(static_cast<std::size_t>(config.hmi.keep_slots), app::scan_builder_params(config).max_points),
         preview_keeper(2, 60'000),
         review((test::scratch_dir("bench-cycle") / "review").string(), config.hmi.review_keep, &keeper),
         preview(models, &preview_keeper),
-        browsers_wanted(browsers) {
+        browsers_wanted(browser_count) {
     loop.set_observer(&feed);
     loop.set_keeper(&keeper, true);
     loop.set_preview(&preview_keeper);
