@@ -131,7 +131,11 @@ function prepareCell() {
   };
   fs.writeFileSync(cell.config, patched);
   fs.copyFileSync(path.join(opts.cell, 'parts.yaml'), path.join(tmp, 'parts.yaml'));
-  fs.cpSync(path.join(opts.cell, 'models'), cell.models, {recursive: true});
+  // Without the Review ring: scans another run kept there (the soak runs on the same cached cell) have acquisition
+  // ids of that run, which this run's truth log would misname.
+  const ring = path.join(opts.cell, 'models', 'review');
+  fs.cpSync(path.join(opts.cell, 'models'), cell.models,
+            {recursive: true, filter: (src) => src !== ring && !src.startsWith(ring + path.sep)});
   for (const [user, role] of [['op', 'operator'], ['maint', 'maintenance']]) {
     const r = spawnSync(opts.cellsight, ['--config', cell.config, 'hmi-user', user, '--role', role],
                         {input: kPassword[role] + '\n', encoding: 'utf8'});
