@@ -62,7 +62,7 @@ void ScanKeeper::release() {
 
 void ScanKeeper::put_name(std::array<char, KeptScanInfo::kNameBytes>& field, std::string_view name) {
   const std::size_t n = std::min(name.size(), field.size() - 1);
-  std::memcpy(field.data(), name.data(), n);
+  if (n > 0) std::memcpy(field.data(), name.data(), n);  // an empty view may have no data pointer at all
   field[n] = '\0';
 }
 

@@ -4,15 +4,16 @@
 #              (default origin/main, when that ref exists), then every tracked .cpp/.hpp
 #   2. size    scripts/check_size.py: no file under app/, runtime/, cli/ over 600 lines, no function outside
 #              tests/ over 100 lines
-#   3. tidy    clang-tidy (.clang-tidy) on the pure and real-time layers, algo/ and runtime/, every finding an
+#   3. names   scripts/check_test_names.py: no ';' in a Catch2 test name (ctest would split it and run nothing)
+#   4. tidy    clang-tidy (.clang-tidy) on the pure and real-time layers, algo/ and runtime/, every finding an
 #              error; a clang compile database configured (not built) in $CELLSIGHT_LINT_BUILD (build-lint)
-# Usage: scripts/lint.sh [format|size|tidy]...   (default: all three). Exit 1 when a rule is broken; every
+# Usage: scripts/lint.sh [format|size|names|tidy]...   (default: all four). Exit 1 when a rule is broken; every
 # stage runs, so one run shows every finding.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 stages=("$@")
-[ ${#stages[@]} -gt 0 ] || stages=(format size tidy)
+[ ${#stages[@]} -gt 0 ] || stages=(format size names tidy)
 BUILD=${CELLSIGHT_LINT_BUILD:-build-lint}
 TIDY_DIRS=(algo runtime)
 failed=()
@@ -68,8 +69,9 @@ for stage in "${stages[@]}"; do
   case $stage in
     format) check_format || failed+=(format) ;;
     size) python3 scripts/check_size.py "${all_files[@]}" || failed+=(size) ;;
+    names) python3 scripts/check_test_names.py $(git ls-files 'tests/*.cpp') || failed+=(names) ;;
     tidy) check_tidy || failed+=(tidy) ;;
-    *) echo "lint: unknown stage '$stage' (format, size, tidy)" >&2; exit 2 ;;
+    *) echo "lint: unknown stage '$stage' (format, size, names, tidy)" >&2; exit 2 ;;
   esac
   echo "lint: $stage took $((SECONDS - start)) s"
 done

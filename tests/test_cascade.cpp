@@ -1565,7 +1565,7 @@ std::array<double, algo::kPoseAxes> true_full_pose(const sim::PartSpec& spec, co
 
 }  // namespace
 
-SCENARIO("An accepted part gets its full pose and a 1-sigma per axis; an axis its geometry does not fix is invalid",
+SCENARIO("An accepted part gets its full pose and a 1-sigma per axis, an axis its geometry does not fix is invalid",
          "[cascade][full_pose]") {
   using algo::PoseAxis;
   constexpr sim::PartPose kSwungPose{-0.017, 0.012, 2.1 * kDeg, 2.6 * kDeg, -1.2 * kDeg, 0.003};

@@ -73,7 +73,7 @@ TEST_CASE(
 }
 
 TEST_CASE(
-    "Given the same seed twice, when `cellsight sim` runs, then the outputs are byte-identical; another seed "
+    "Given the same seed twice, when `cellsight sim` runs, then the outputs are byte-identical, another seed "
     "gives another pose") {
   const fs::path a = fresh_dir("seed-a"), b = fresh_dir("seed-b"), c = fresh_dir("seed-c");
   REQUIRE(run("sim --part plate_5h --seed 21 --out " + a.string()).exit_code == 0);

@@ -586,7 +586,7 @@ Probe probe(const RangedKey& key) {
 
 TEST_CASE(
     "Given each numeric key just outside its range, when the config is loaded, then it is refused with file, "
-    "line, column, key, value and range; at each bound it is accepted") {
+    "line, column, key, value and range, at each bound it is accepted") {
   const fs::path dir = test::scratch_dir("config-ranges");
   const std::string file = (dir / "c.yaml").string();
   auto load = [&](const KeyFile& f) {

@@ -139,7 +139,7 @@ TEST_CASE("hmi: accounts are stored as salted yescrypt hashes in a private file 
   CHECK_FALSE(hmi::set_user(path, "carl", hmi::Role::kNone, "long enough").ok());
 }
 
-TEST_CASE("hmi: a damaged accounts file is refused naming file and line; a missing one means no accounts",
+TEST_CASE("hmi: a damaged accounts file is refused naming file and line, a missing one means no accounts",
           "[hmi][users]") {
   const auto dir = test::scratch_dir("hmi-users-bad");
   CHECK(hmi::load_users((dir / "none").string())->empty());
@@ -236,7 +236,7 @@ TEST_CASE("hmi: results from the loop's feed appear in /api/results and the live
   CHECK(stream.find("\"ribbed_v4\"") == std::string::npos);  // the browser had it already
 }
 
-TEST_CASE("hmi: state-changing requests need a session (401) and its CSRF token (403); bodies are bounded (413)",
+TEST_CASE("hmi: state-changing requests need a session (401) and its CSRF token (403), bodies are bounded (413)",
           "[hmi][server][security]") {
   const Screen screen;
   const int port = screen.port();
@@ -283,7 +283,7 @@ TEST_CASE("hmi: after max_failed_logins wrong passwords the address is locked ou
   CHECK(std::stoi(eleventh.headers.at("Retry-After")) <= 60);
 }
 
-TEST_CASE("hmi: from another machine nothing is shown without a login; from this one viewing needs none",
+TEST_CASE("hmi: from another machine nothing is shown without a login, from this one viewing needs none",
           "[hmi][server][security]") {
   const std::string other = non_loopback_address();
   REQUIRE_FALSE(other.empty());

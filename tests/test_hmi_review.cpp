@@ -302,7 +302,7 @@ struct ReviewScreen {
 
 }  // namespace
 
-TEST_CASE("review routes: picked scans are taught as a part by a teach job and leave the ring; the rules hold",
+TEST_CASE("review routes: picked scans are taught as a part by a teach job and leave the ring, the rules hold",
           "[hmi][review]") {
   ReviewScreen screen;
   screen.keep(4);

@@ -356,7 +356,7 @@ TEST_CASE("a part's limits go from the manifest to the cascade and back field by
   CHECK(text_of(app::part_thresholds(t, true)) == text_of(p));
 }
 
-TEST_CASE("a part taught with few scans lowers the folds; too few for any test is refused with the count needed",
+TEST_CASE("a part taught with few scans lowers the folds, too few for any test is refused with the count needed",
           "[cycle]") {
   const SmallCell cell = SmallCell::named("few");  // 3-fold CV configured
   REQUIRE(cell.run("teach --sim --part plate_4h --count 3").exit_code == 0);
@@ -520,7 +520,7 @@ TEST_CASE("parts list checks every template and the SVM as loading them does, ma
 }
 
 TEST_CASE(
-    "a teach and a train killed between their files and the manifest leave the database as it was; the next "
+    "a teach and a train killed between their files and the manifest leave the database as it was, the next "
     "writer removes what they wrote",
     "[model_db][crash]") {
   const SmallCell cell = SmallCell::named("killed");
@@ -598,7 +598,7 @@ TEST_CASE(
 }
 
 TEST_CASE(
-    "parts rebuild: an old-format template is refused naming the command; rebuild gives teach's template back "
+    "parts rebuild: an old-format template is refused naming the command, rebuild gives teach's template back "
     "and asks for train",
     "[model_db]") {
   const SmallCell cell = SmallCell::named("rebuild");
@@ -726,7 +726,7 @@ void make_legacy_ply_database(const SmallCell& cell) {
 }  // namespace
 
 TEST_CASE(
-    "taught scans are stored compactly and recognised; parts export gives PLY files another cell can teach; a "
+    "taught scans are stored compactly and recognised, parts export gives PLY files another cell can teach, a "
     "database of PLY scans still trains",
     "[model_db][scan_file]") {
   const SmallCell cell = SmallCell::named("compact");

@@ -137,7 +137,7 @@ SCENARIO("A neighbour's part at the field's edge and loose specks are separated 
   }
 }
 
-SCENARIO("The chain the part hangs from is cut off where it meets the part; the part's own features stay",
+SCENARIO("The chain the part hangs from is cut off where it meets the part, the part's own features stay",
          "[isolation]") {
   algo::PartIsolator isolator(grid(), algo::IsolationParams{});
   constexpr std::uint16_t kChain = 4, kTab = 5;
@@ -201,7 +201,7 @@ SCENARIO("The chain the part hangs from is cut off where it meets the part; the 
   }
 }
 
-SCENARIO("A ghost of the stripe in front of the part is dropped; the part's own relief and flanges stay",
+SCENARIO("A ghost of the stripe in front of the part is dropped, the part's own relief and flanges stay",
          "[isolation]") {
   algo::PartIsolator isolator(grid(), algo::IsolationParams{});
   constexpr std::uint16_t kRelief = 4;

@@ -174,7 +174,7 @@ TEST_CASE("pass acquirer: laser on for the pass, start exposure, every frame in 
   CHECK_FALSE(rig.io.laser);
 }
 
-TEST_CASE("pass acquirer: one step waits at most one poll slice; a silent camera aborts after the frame timeout",
+TEST_CASE("pass acquirer: one step waits at most one poll slice, a silent camera aborts after the frame timeout",
           "[pass_acquirer]") {
   Rig rig;  // the camera returns "timeout" at once, like the simulated cell
   auto acquirer = rig.acquirer();
@@ -285,7 +285,7 @@ TEST_CASE("pass acquirer: a whole pass allocates nothing", "[pass_acquirer][allo
 }
 
 // The blocking loop of scan, teach and calibrate support around the same acquirer.
-TEST_CASE("acquire_pass: a whole pass is ok and leaves the laser off; a laser that will not switch off is an I/O fault",
+TEST_CASE("acquire_pass: a whole pass is ok and leaves the laser off, a laser that will not switch off is an I/O fault",
           "[pass_acquirer]") {
   Rig rig;
   rig.camera.otherwise = DeviceStatus::kOk;

@@ -902,7 +902,7 @@ SCENARIO("The full pose of a part moved on all six axes is recovered, each axis 
   }
 }
 
-SCENARIO("A flat sheet fixes its tilt through its height; a strip a few millimetres high does not",
+SCENARIO("A flat sheet fixes its tilt through its height, a strip a few millimetres high does not",
          "[perfect_match][full_pose]") {
   using algo::PoseAxis;
   GIVEN("a flat 450 x 600 mm plate and a flat 450 x 12 mm strip, no relief, each tilted by 1 deg and swung by 2 deg") {

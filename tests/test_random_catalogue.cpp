@@ -159,7 +159,7 @@ void check_relation(const sim::PartSpec& base, const sim::PartSpec& twin, sim::T
 }  // namespace
 
 TEST_CASE(
-    "Given a seed, when the catalogue is generated twice, then the files are byte-identical; another seed "
+    "Given a seed, when the catalogue is generated twice, then the files are byte-identical, another seed "
     "gives another catalogue") {
   const std::string first = app::catalogue_yaml(sim::random_catalogue(12, 7), "");
   const std::string again = app::catalogue_yaml(sim::random_catalogue(12, 7), "");
@@ -300,7 +300,7 @@ TEST_CASE(
 }
 
 TEST_CASE(
-    "Given a generated catalogue, when it is written and loaded back, then the specs are exactly the same; "
+    "Given a generated catalogue, when it is written and loaded back, then the specs are exactly the same, "
     "the CLI path refuses to overwrite") {
   const app::Config config = shipped_config();
   const fs::path dir = fresh_dir();

@@ -71,7 +71,7 @@ TEST_CASE("recognition worker: a posted scan comes back as the recogniser's deci
 }
 
 TEST_CASE(
-    "recognition worker: busy until the answer is published; a second job is refused meanwhile; the wait wakes "
+    "recognition worker: busy until the answer is published, a second job is refused meanwhile, the wait wakes "
     "at the answer, not at its limit",
     "[recognition_worker][thread]") {
   auto owned = std::make_unique<GatedRecogniser>();
@@ -133,7 +133,7 @@ TEST_CASE("recognition worker: many jobs in a row, each answered once and in tur
   worker.stop();
 }
 
-TEST_CASE("recognition worker: a load job puts the loader's recogniser in place; a failed load keeps none",
+TEST_CASE("recognition worker: a load job puts the loader's recogniser in place, a failed load keeps none",
           "[recognition_worker][thread]") {
   RecognitionWorker worker;
   bool fail_next = true;
@@ -162,7 +162,7 @@ TEST_CASE("recognition worker: a load job puts the loader's recogniser in place;
   worker.stop();
 }
 
-TEST_CASE("recognition worker: without a recogniser a scan is 'unknown'; stop() ends an idle worker at once",
+TEST_CASE("recognition worker: without a recogniser a scan is 'unknown', stop() ends an idle worker at once",
           "[recognition_worker][thread]") {
   RecognitionWorker worker;
   REQUIRE(worker.start());

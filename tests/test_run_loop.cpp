@@ -1706,7 +1706,7 @@ std::vector<std::pair<runtime::KeptScanInfo, std::vector<algo::ScanPoint>>> drai
 }  // namespace
 
 TEST_CASE(
-    "loop: unknown passes and the passes of a part being taught are kept; teach mode is a command between "
+    "loop: unknown passes and the passes of a part being taught are kept, teach mode is a command between "
     "passes and shows in STATUS",
     "[run][loop][keep]") {
   const app::Config config = small_config();
@@ -1766,7 +1766,7 @@ TEST_CASE(
   CHECK(keeper.dropped() == 0);
 }
 
-TEST_CASE("loop: without a keeper ENTER_TEACH is refused; a full keeper drops the scan and never waits",
+TEST_CASE("loop: without a keeper ENTER_TEACH is refused, a full keeper drops the scan and never waits",
           "[run][loop][keep]") {
   const app::Config config = small_config();
   Script unknown;
@@ -1797,7 +1797,7 @@ TEST_CASE("loop: without a keeper ENTER_TEACH is refused; a full keeper drops th
   }
 }
 
-TEST_CASE("loop: an offered recogniser is put in place between passes; the replaced one is handed back",
+TEST_CASE("loop: an offered recogniser is put in place between passes, the replaced one is handed back",
           "[run][loop][keep]") {
   const app::Config config = small_config();
   Cell cell(config, {Script{}});

@@ -139,7 +139,7 @@ TEST_CASE("with a real sensor's noise on every point the file is still at least 
   CHECK(compression_ratio(scan, "with 0.25 mm sensor noise") >= 3.0);
 }
 
-TEST_CASE("awkward values, one point and no point round-trip; a coarser step keeps its own bound", "[scan_file]") {
+TEST_CASE("awkward values, one point and no point round-trip, a coarser step keeps its own bound", "[scan_file]") {
   const std::vector<algo::ScanPoint> points = awkward_points();
   auto file = formats::write_scan_file(points);
   REQUIRE(file.ok());
@@ -226,7 +226,7 @@ TEST_CASE("a damaged compressed byte is refused wherever it lies", "[scan_file]"
   CHECK(contains(refusal(last), "the compressed data is damaged"));
 }
 
-TEST_CASE("a point count above the limit is refused before anything is allocated; forged sizes are refused",
+TEST_CASE("a point count above the limit is refused before anything is allocated, forged sizes are refused",
           "[scan_file]") {
   const std::vector<algo::ScanPoint> points = awkward_points();
   const std::string file = *formats::write_scan_file(points);

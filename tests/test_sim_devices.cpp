@@ -97,7 +97,7 @@ TEST_CASE(
   CHECK(io.wait_edge(edge, 0) == DeviceStatus::kTimeout);
 }
 
-TEST_CASE("Given the laser switched off, when a frame is grabbed, then it shows no stripe; with the laser on it does") {
+TEST_CASE("Given the laser switched off, when a frame is grabbed, then it shows no stripe, with the laser on it does") {
   Cell c = shipped();
   sim::SimLine line(c.cell);
   sim::SimCamera camera(line, 4, 1500);
@@ -196,7 +196,7 @@ int grab_rest_of_pass(sim::SimCamera& camera) {
 
 TEST_CASE(
     "Given photo-eye chatter inside the debounce window, when a pass goes by, then the input delivers one "
-    "rising and one falling edge and counts the bounces; without a window every bounce is an edge") {
+    "rising and one falling edge and counts the bounces, without a window every bounce is an edge") {
   Cell c = shipped();
   sim::PassFaults chatter;
   chatter.bounce_pairs = 3;

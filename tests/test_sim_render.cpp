@@ -212,7 +212,7 @@ TEST_CASE(
 }
 
 TEST_CASE(
-    "Given the same frame request twice, when rendered with noise, then the images are identical; a new "
+    "Given the same frame request twice, when rendered with noise, then the images are identical, a new "
     "seed changes the noise") {
   sim::RigParams params = sim::default_rig_params();
   const sim::Rig rig = sim::make_rig(params);

@@ -121,7 +121,7 @@ TEST_CASE(
 }
 
 TEST_CASE(
-    "Given a laser plane behind the camera, when pixels are triangulated, then no point is returned; the same "
+    "Given a laser plane behind the camera, when pixels are triangulated, then no point is returned, the same "
     "plane in front gives points at its distance") {
   const sim::Rig rig = sim::make_rig(sim::default_rig_params());
   algo::SensorCalibration calibration = test::true_calibration(rig);
