@@ -27,8 +27,9 @@ Phases (each checked; exit 0 only when every check holds):
             pose (oracle) or the taught part or "unknown" (recogniser, wrong ids counted); ERROR_CODE episodes seen
             by the PLC match the injected faults one for one, RESULT_VALID is never set while ERROR is, no result's
             TIMESTAMP is older than the previous; 0 timeouts and late decisions (the loop's own counters), 0 missed
-            triggers, the bounces filtered equal the bounces injected; RSS and non-socket fds of the first and the
-            last window of parts (1000, or N/5 when N < 5000) within 1 %, sockets never above max_clients + 1 + the HMI's
+            triggers, the bounces filtered equal the bounces injected; RSS and non-socket fds of the first window of
+            parts after 250 (the screen's bounded buffers fill until part 200) and the last window (1000 parts, or
+            N/5 when N < 5000) within 1 %, sockets never above max_clients + 1 + the HMI's
             listener and the viewer's two connections.
 Prints one JSON summary (and one line per problem); --json FILE writes it too.
 
@@ -51,6 +52,8 @@ import sys
 import tempfile
 import threading
 import time
+
+SCREEN_WARM_UP_PARTS = 250  # parts before the first memory window (see the RSS check)
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 try:
@@ -911,9 +914,14 @@ def main_phase(args, work, problems, summary):
 
     # ---- memory and fds ----
     window = min(1000, max(1, args.parts // 5))
-    first = [s for s in samples if s[0] <= window]
+    # The first window starts after the operator's screen has filled its bounded buffers (200 results of history,
+    # 16 live pictures, the review ring's list): they fill during the first 200 parts and then stay, which a window
+    # from part 1 would read as growth. A leak keeps growing after that.
+    warm_up = min(SCREEN_WARM_UP_PARTS, max(0, args.parts - 2 * window))
+    first = [s for s in samples if warm_up < s[0] <= warm_up + window]
     last = [s for s in samples if s[0] > args.parts - window]
-    mem = {"window_parts": window, "samples": len(samples)}
+    mem_first_window = (warm_up + 1, warm_up + window)
+    mem = {"window_parts": window, "first_window": mem_first_window, "samples": len(samples)}
     if first and last:
         for i, name in ((1, "vm_rss_kb"), (2, "rss_anon_kb"), (3, "rss_file_kb"), (4, "rss_shmem_kb"), (5, "fds")):
             f_med, l_med = statistics.median(s[i] for s in first), statistics.median(s[i] for s in last)
