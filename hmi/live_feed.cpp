@@ -1,25 +1,16 @@
 #include "hmi/live_feed.hpp"
 
 #include <algorithm>
-#include <ctime>
+
+#include "base/local_time.hpp"
 
 namespace cellsight::hmi {
-namespace {
-
-std::int64_t wall_ms_now() {
-  timespec now{};
-  ::clock_gettime(CLOCK_REALTIME, &now);  // vDSO: no system call, no allocation
-  constexpr std::int64_t kMsPerS = 1000, kNsPerMs = 1'000'000;
-  return static_cast<std::int64_t>(now.tv_sec) * kMsPerS + now.tv_nsec / kNsPerMs;
-}
-
-}  // namespace
 
 LiveFeed::LiveFeed(std::size_t capacity, runtime::LoopObserver* next) : ring_(capacity), next_(next) {}
 
 void LiveFeed::on_state(runtime::LoopState from, runtime::LoopState to, drivers::ErrorCode error) {
   if (to == runtime::LoopState::kFault || from == runtime::LoopState::kFault) {
-    faults_.try_push(FaultEvent{from, to, error, wall_ms_now()});
+    faults_.try_push(FaultEvent{from, to, error, base::wall_clock_ms()});
   }
   if (next_ != nullptr) next_->on_state(from, to, error);
 }
@@ -47,7 +38,7 @@ void LiveFeed::on_part_done(const runtime::PartRecord& record) {
   r.cycle_ms = record.cycle_ms;
   r.recognise_ms = record.recognise_ms;
   r.probability = record.decision.probability;
-  r.wall_ms = wall_ms_now();
+  r.wall_ms = base::wall_clock_ms();
   const std::size_t n = std::min(record.class_name.size(), LiveResult::kNameBytes - 1);
   std::copy_n(record.class_name.data(), n, r.part_name);
   r.part_name[n] = '\0';

@@ -69,8 +69,7 @@ void ProductionLoop::start_pass(TriggerSource trigger, Clock::time_point now) {
   link_.set_trigger_counters(trigger_count_, missed_count_);
   triggers_.fetch_add(1, std::memory_order_relaxed);
   pass_trigger_ = trigger;
-  pass_teach_ = teach_part_id_ != 0;  // latched: a mode change takes effect at the next pass, never in this one
-  pass_teach_part_id_ = teach_part_id_;
+  pass_teach_part_id_ = teach_part_id_;  // latched: a mode change takes effect at the next pass, never in this one
   timeout_published_ = false;
   exposure_at_limit_ = false;
   CS_QLOG_DEBUG(log_, kComponent, "acq %u: pass started (%s)", acq_id_, loop_detail::trigger_name(trigger));
@@ -110,7 +109,8 @@ void ProductionLoop::finish_scan(Clock::time_point cycle_start) {
   cycle_start_ = cycle_start;
   deadline_ = cycle_start + std::chrono::milliseconds(config_.deadline_ms);
   // The worker is idle here: the state machine enters scanning only after the previous answer came back.
-  (void)worker_.post_recognise(builder_.scan().points(), deadline_, KeepTag{acq_id_, pass_teach_, pass_teach_part_id_});
+  (void)worker_.post_recognise(builder_.scan().points(), deadline_,
+                               KeepTag{acq_id_, pass_teach_part_id_ != 0, pass_teach_part_id_});
   enter(LoopState::kRecognising);
 }
 

@@ -93,7 +93,7 @@ bool trigger_allowed(const TriggerGate& gate) {
   return !(gate.hold_when_queue_full && gate.queue_full);
 }
 
-std::uint16_t loop_status_flags(LoopState state, bool trigger_allowed, bool timeout_published) {
+std::uint16_t loop_status_flags(LoopState state, bool trigger_allowed, bool timeout_published, bool teaching) {
   const bool in_pass = state == LoopState::kScanning || (state == LoopState::kRecognising && !timeout_published);
   const bool busy = state == LoopState::kScanning || state == LoopState::kRecognising;
   std::uint16_t flags = 0;
@@ -104,6 +104,7 @@ std::uint16_t loop_status_flags(LoopState state, bool trigger_allowed, bool time
   put(drivers::StatusFlag::kTriggerReady, trigger_allowed);
   put(drivers::StatusFlag::kTriggerAck, in_pass);
   put(drivers::StatusFlag::kBusy, busy);
+  put(drivers::StatusFlag::kTeachMode, teaching);
   return flags;
 }
 

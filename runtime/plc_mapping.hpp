@@ -34,14 +34,16 @@ struct TriggerGate {
 };
 [[nodiscard]] bool trigger_allowed(const TriggerGate& gate);
 
-// The STATUS bits the loop owns (READY, TRIGGER_READY, TRIGGER_ACK, BUSY) as a StatusFlag mask.
+// The STATUS bits the loop owns (READY, TRIGGER_READY, TRIGGER_ACK, BUSY, TEACH_MODE) as a StatusFlag mask.
 //  READY: not in fault and not stopped. BUSY: scanning or recognising. TRIGGER_ACK: a pass is in progress, i.e.
 //  scanning, or recognising before "timeout" went out (after it the PLC has its answer for that part).
-[[nodiscard]] std::uint16_t loop_status_flags(LoopState state, bool trigger_allowed, bool timeout_published);
+//  TEACH_MODE: a part is being taught (ENTER_TEACH until LEAVE_TEACH).
+[[nodiscard]] std::uint16_t loop_status_flags(LoopState state, bool trigger_allowed, bool timeout_published,
+                                              bool teaching = false);
 // The bits loop_status_flags() decides, for a caller that sends only the changed ones.
 inline constexpr drivers::StatusFlag kLoopStatusFlags[] = {
     drivers::StatusFlag::kReady, drivers::StatusFlag::kTriggerReady, drivers::StatusFlag::kTriggerAck,
-    drivers::StatusFlag::kBusy};
+    drivers::StatusFlag::kBusy, drivers::StatusFlag::kTeachMode};
 
 // WARNING_CODE after a published part: a trigger missed since the last result first, then (for a part that was
 // scanned to its end) exposure pinned at a limit, then a cycle slower than cycle_slow_ms; otherwise none.

@@ -17,7 +17,6 @@ namespace {
 constexpr std::int64_t kHealthyIterationNs = 1'000'000'000;
 // An edge stamped more than this before it was seen is not trusted as the cycle start (another clock, a stale edge).
 constexpr auto kEdgeTimestampWindow = std::chrono::seconds(1);
-constexpr std::uint16_t kTeachBit = static_cast<std::uint16_t>(drivers::StatusFlag::kTeachMode);
 }  // namespace
 
 // =================================================================================================== set-up
@@ -220,15 +219,13 @@ bool ProductionLoop::trigger_allowed() const {
 }
 
 void ProductionLoop::update_flags() {
-  const std::uint16_t flags =
-      loop_status_flags(state_.load(std::memory_order_relaxed), trigger_allowed(), timeout_published_);
+  const std::uint16_t flags = loop_status_flags(state_.load(std::memory_order_relaxed), trigger_allowed(),
+                                                timeout_published_, teach_part_id_ != 0);
   for (const auto flag : kLoopStatusFlags) {
     const auto bit = static_cast<std::uint16_t>(flag);
     if (!flags_sent_ || ((flags ^ flags_) & bit) != 0) link_.set_flag(flag, (flags & bit) != 0);
   }
-  const bool teach_changed = !flags_sent_ || ((flags_ & kTeachBit) != 0) != (teach_part_id_ != 0);
-  if (teach_changed) link_.set_flag(drivers::StatusFlag::kTeachMode, teach_part_id_ != 0);
-  flags_ = static_cast<std::uint16_t>(flags | (teach_part_id_ != 0 ? kTeachBit : 0));
+  flags_ = flags;
   flags_sent_ = true;
 }
 

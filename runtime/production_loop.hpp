@@ -185,7 +185,7 @@ class ProductionLoop {
   std::uint32_t trigger_count_ = 0;
   std::uint32_t missed_count_ = 0;        // MISSED_TRIGGERS (reset by RESET_COUNTERS)
   std::uint16_t teach_part_id_ = 0;       // teach mode: the PLC id being taught (0: production)
-  std::uint16_t pass_teach_part_id_ = 0;  // ... as latched when the pass started
+  std::uint16_t pass_teach_part_id_ = 0;  // ... as latched when the pass started (0: a production pass)
   int consecutive_timeouts_ = 0;
   drivers::ErrorCode fault_cause_ = drivers::ErrorCode::kNone;
   drivers::ErrorCode error_ = drivers::ErrorCode::kNone;  // what ERROR_CODE shows
@@ -193,7 +193,6 @@ class ProductionLoop {
   std::uint16_t flags_ = 0;  // StatusFlag bits as last sent
   TriggerSource pass_trigger_ = TriggerSource::kPartPresent;
   bool flags_sent_ = false;
-  bool pass_teach_ = false;
   bool trigger_enable_ = false;
   bool clear_requested_ = false;
   bool models_reload_requested_ = false;

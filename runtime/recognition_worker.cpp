@@ -1,8 +1,7 @@
 // The recognition thread: mailbox protocol and job execution.
 #include "runtime/recognition_worker.hpp"
 
-#include <ctime>
-
+#include "base/local_time.hpp"
 #include "base/start_thread.hpp"
 #include "drivers/log.hpp"
 #include "runtime/futex.hpp"
@@ -98,9 +97,7 @@ void RecognitionWorker::keep(const algo::Decision& decision) {
   if (!for_review && preview_ == nullptr) return;
   KeptScanInfo& info = kept_info_;
   info.tag = tag_;
-  timespec now{};
-  clock_gettime(CLOCK_REALTIME, &now);
-  info.wall_ms = static_cast<std::int64_t>(now.tv_sec) * 1000 + now.tv_nsec / 1'000'000;
+  info.wall_ms = base::wall_clock_ms();
   info.decision = decision;
   for (auto& name : info.names) name[0] = '\0';
   if (recogniser_ != nullptr) {

@@ -12,37 +12,39 @@ ScanKeeper::ScanKeeper(std::size_t slots, std::size_t max_points)
   for (Slot& slot : slots_) slot.points.resize(max_points_);
 }
 
-bool ScanKeeper::keep(std::span<const algo::ScanPoint> points, const KeptScanInfo& info) {
+ScanKeeper::Slot* ScanKeeper::claim() {
   const std::uint64_t head = head_.load(std::memory_order_relaxed);
   if (head - tail_.load(std::memory_order_acquire) >= slots_.size()) {
     dropped_.fetch_add(1, std::memory_order_relaxed);
-    return false;
+    return nullptr;
   }
-  Slot& slot = slots_[head % slots_.size()];
+  return &slots_[head % slots_.size()];
+}
+
+void ScanKeeper::publish(Slot& slot, const KeptScanInfo& info, std::size_t points) {
+  slot.info = info;
+  slot.info.points = points;
+  head_.store(head_.load(std::memory_order_relaxed) + 1, std::memory_order_release);
+}
+
+bool ScanKeeper::keep(std::span<const algo::ScanPoint> points, const KeptScanInfo& info) {
+  Slot* slot = claim();
+  if (slot == nullptr) return false;
   const std::size_t n = std::min(points.size(), max_points_);
   if (n < points.size()) truncated_.fetch_add(1, std::memory_order_relaxed);
-  if (n > 0) std::memcpy(slot.points.data(), points.data(), n * sizeof(algo::ScanPoint));
-  slot.info = info;
-  slot.info.points = n;
-  head_.store(head + 1, std::memory_order_release);
+  if (n > 0) std::memcpy(slot->points.data(), points.data(), n * sizeof(algo::ScanPoint));
+  publish(*slot, info, n);
   return true;
 }
 
 bool ScanKeeper::keep_thinned(std::span<const algo::ScanPoint> points, const KeptScanInfo& info) {
-  const std::uint64_t head = head_.load(std::memory_order_relaxed);
-  if (head - tail_.load(std::memory_order_acquire) >= slots_.size()) {
-    dropped_.fetch_add(1, std::memory_order_relaxed);
-    return false;
-  }
-  Slot& slot = slots_[head % slots_.size()];
-  const std::size_t stride = max_points_ == 0 ? 1 : (points.size() + max_points_ - 1) / max_points_;
+  Slot* slot = claim();
+  if (slot == nullptr) return false;
+  const std::size_t stride =
+      max_points_ == 0 ? 1 : std::max<std::size_t>(1, (points.size() + max_points_ - 1) / max_points_);
   std::size_t n = 0;
-  for (std::size_t i = 0; i < points.size() && n < max_points_; i += std::max<std::size_t>(stride, 1)) {
-    slot.points[n++] = points[i];
-  }
-  slot.info = info;
-  slot.info.points = n;
-  head_.store(head + 1, std::memory_order_release);
+  for (std::size_t i = 0; i < points.size() && n < max_points_; i += stride) slot->points[n++] = points[i];
+  publish(*slot, info, n);
   return true;
 }
 

@@ -67,6 +67,10 @@ class ScanKeeper {
     KeptScanInfo info;
     std::vector<algo::ScanPoint> points;  // max_points, allocated once
   };
+  // Producer: the next slot when free (else counted as dropped), and making a filled one visible to the consumer.
+  Slot* claim();
+  void publish(Slot& slot, const KeptScanInfo& info, std::size_t points);
+
   std::size_t max_points_;
   std::vector<Slot> slots_;
   std::atomic<std::uint64_t> head_{0};  // slots filled (producer)

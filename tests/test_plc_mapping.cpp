@@ -283,8 +283,10 @@ TEST_CASE("plc mapping: results without a pose carry the invalid marker in every
   }
 }
 
-TEST_CASE("plc mapping: STATUS bits of each loop state (README: b0 READY, b1 TRIGGER_READY, b2 TRIGGER_ACK, b3 BUSY)",
-          "[plc_mapping]") {
+TEST_CASE(
+    "plc mapping: STATUS bits of each loop state (README: b0 READY, b1 TRIGGER_READY, b2 TRIGGER_ACK, b3 BUSY, "
+    "b11 TEACH_MODE)",
+    "[plc_mapping]") {
   using runtime::loop_status_flags;
   CHECK(loop_status_flags(LoopState::kIdle, true, false) == 0x0003);          // READY | TRIGGER_READY
   CHECK(loop_status_flags(LoopState::kIdle, false, false) == 0x0001);         // READY
@@ -294,10 +296,12 @@ TEST_CASE("plc mapping: STATUS bits of each loop state (README: b0 READY, b1 TRI
   CHECK(loop_status_flags(LoopState::kPublishing, false, false) == 0x0001);
   CHECK(loop_status_flags(LoopState::kFault, false, false) == 0x0000);
   CHECK(loop_status_flags(LoopState::kStopped, false, false) == 0x0000);
+  CHECK(loop_status_flags(LoopState::kIdle, true, false, true) == 0x0803);  // teaching: TEACH_MODE as well
+  CHECK(loop_status_flags(LoopState::kScanning, false, false, true) == 0x080D);
   std::uint16_t all = 0;
   for (const StatusFlag flag : runtime::kLoopStatusFlags)
     all = static_cast<std::uint16_t>(all | static_cast<std::uint16_t>(flag));
-  CHECK(all == 0x000F);  // exactly the four bits the loop owns
+  CHECK(all == 0x080F);  // exactly the five bits the loop owns (b0-b3, b11 TEACH_MODE)
 }
 
 TEST_CASE("plc mapping: a trigger is allowed only when idle, loaded, enabled and (when asked) the queue has room",
