@@ -3,7 +3,6 @@
 
 #include <filesystem>
 
-#include "base/start_thread.hpp"
 #include "drivers/log.hpp"
 #include "hmi/server_impl.hpp"
 
@@ -21,44 +20,17 @@ LivePreview::~LivePreview() {
 }
 
 Status LivePreview::start() {
-  if (preview_ == nullptr) return {};
-  {
-    const std::lock_guard<std::mutex> lock(mutex_);
-    stopping_ = false;
-  }
-  return base::start_thread(thread_, "cs-preview", [this] { run(); });
+  return drain_.start(
+      "cs-preview", preview_, kPoll,
+      [this](const runtime::KeptScanInfo& info, std::span<const algo::ScanPoint> points) { render(info, points); });
 }
 
 void LivePreview::stop() {
-  {
-    const std::lock_guard<std::mutex> lock(mutex_);
-    stopping_ = true;
-  }
-  wake_.notify_all();
-  if (thread_.joinable()) thread_.join();
+  drain_.stop();
 }
 
 void LivePreview::forget_outlines() {
-  const std::lock_guard<std::mutex> lock(mutex_);
-  forget_ = true;
-}
-
-void LivePreview::run() {
-  for (;;) {
-    const runtime::KeptScanInfo* info = nullptr;
-    std::span<const algo::ScanPoint> points;
-    // Only the newest matters: older previews waiting behind it are skipped.
-    while (preview_->peek(info, points)) {
-      render(*info, points);
-      preview_->release();
-    }
-    std::unique_lock<std::mutex> lock(mutex_);
-    if (forget_) {
-      outlines_.clear();
-      forget_ = false;
-    }
-    if (wake_.wait_for(lock, kPoll, [this] { return stopping_; })) return;
-  }
+  forget_.store(true, std::memory_order_relaxed);
 }
 
 const Outline* LivePreview::outline(const std::string& part) {
@@ -76,6 +48,7 @@ const Outline* LivePreview::outline(const std::string& part) {
 }
 
 void LivePreview::render(const runtime::KeptScanInfo& info, std::span<const algo::ScanPoint> points) {
+  if (forget_.exchange(false, std::memory_order_relaxed)) outlines_.clear();  // the models changed: read again
   DepthImage image = depth_image(points);
   const algo::Decision& d = info.decision;
   const std::string part(info.names[algo::kMaxReportedCandidates].data());

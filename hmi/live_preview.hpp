@@ -4,18 +4,18 @@
 // and keeps the last few for GET /api/live/ACQ.png.
 #pragma once
 
-#include <condition_variable>
+#include <atomic>
 #include <cstdint>
 #include <deque>
 #include <map>
 #include <mutex>
 #include <string>
-#include <thread>
 #include <utility>
 #include <vector>
 
 #include "base/result.hpp"
 #include "hmi/depth_image.hpp"
+#include "hmi/keeper_drain.hpp"
 #include "hmi/routes.hpp"
 #include "runtime/scan_keeper.hpp"
 
@@ -42,20 +42,17 @@ class LivePreview {
   [[nodiscard]] std::uint64_t rendered() const;
 
  private:
-  void run();
   void render(const runtime::KeptScanInfo& info, std::span<const algo::ScanPoint> points);
   const Outline* outline(const std::string& part);
 
   std::string models_dir_;
   runtime::ScanKeeper* preview_;
-  std::map<std::string, Outline> outlines_;  // this thread's; an empty one: the template could not be read
+  std::map<std::string, Outline> outlines_;  // the drain thread's; an empty one: the template could not be read
+  std::atomic<bool> forget_{false};          // forget_outlines() -> the drain thread
   mutable std::mutex mutex_;
   std::deque<std::pair<std::uint32_t, std::string>> pictures_;
   std::uint64_t rendered_ = 0;
-  bool forget_ = false;
-  bool stopping_ = false;
-  std::condition_variable wake_;
-  std::thread thread_;
+  KeeperDrain drain_;
 };
 
 }  // namespace cellsight::hmi

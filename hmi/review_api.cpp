@@ -2,10 +2,9 @@
 #include "hmi/review_api.hpp"
 
 #include <chrono>
-#include <fstream>
-#include <sstream>
 #include <thread>
 
+#include "base/file_read.hpp"
 #include "formats/manifest.hpp"
 #include "hmi/server_impl.hpp"
 
@@ -77,10 +76,9 @@ int ReviewApi::image(const Request& r) {
   }
   const std::uint64_t id = std::stoull(rest.substr(0, slash));
   if (!store_.find(id)) return send_error(r.conn, 404, "no review entry " + std::to_string(id));
-  std::ifstream in(store_.image_path(id), std::ios::binary);
-  std::ostringstream bytes;
-  bytes << in.rdbuf();
-  const std::string png = bytes.str();
+  constexpr std::size_t kMaxImageBytes = std::size_t{8} << 20;  // a 1200 x 1200 picture is well below
+  const auto read = base::read_file(store_.image_path(id), kMaxImageBytes);
+  const std::string png = read ? *read : std::string();
   if (png.empty()) return send_error(r.conn, 404, "entry " + std::to_string(id) + " has no image");
   return send_png(r, png);
 }

@@ -4,20 +4,20 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
-#include <fstream>
-#include <sstream>
 
 #include "base/atomic_file.hpp"
-#include "base/start_thread.hpp"
+#include "base/file_read.hpp"
 #include "drivers/log.hpp"
 #include "formats/ply.hpp"
 #include "hmi/depth_image.hpp"
+#include "runtime/plc_mapping.hpp"
 
 namespace cellsight::hmi {
 namespace {
 
 namespace fs = std::filesystem;
 constexpr const char* kComponent = "hmi";
+constexpr std::size_t kMaxInfoBytes = 1 << 20;          // an entry's info.json is ~1-2 KB
 constexpr auto kPoll = std::chrono::milliseconds(100);  // the keeper has no bell: the writer looks this often
 
 nlohmann::json finite_or_null(double v, double scale = 1.0) {
@@ -31,19 +31,6 @@ std::string name_of(const std::array<char, runtime::KeptScanInfo::kNameBytes>& f
 bool is_id(const std::string& text) {
   return !text.empty() && text.size() <= 12 &&
          std::all_of(text.begin(), text.end(), [](char c) { return c >= '0' && c <= '9'; });
-}
-
-// The result code the PLC was given for this decision (README "Result codes"), as the live page names it.
-const char* result_code_name(algo::DecisionSource source) {
-  switch (source) {
-    case algo::DecisionSource::kSvm:
-    case algo::DecisionSource::kPm: return "ok";
-    case algo::DecisionSource::kUnknown: return "unknown part";
-    case algo::DecisionSource::kTimeout: return "timeout";
-    case algo::DecisionSource::kBadScan: return "bad scan";
-    case algo::DecisionSource::kNoPart: return "no part";
-  }
-  return "unknown part";
 }
 
 std::string folder_name(std::uint64_t id) {
@@ -64,8 +51,9 @@ ReviewStore::ReviewStore(std::string dir, int keep, runtime::ScanKeeper* keeper)
     if (!item.is_directory() || !is_id(name)) continue;
     const std::uint64_t id = std::stoull(name);
     next_id_ = std::max(next_id_, id + 1);
-    std::ifstream in(item.path() / "info.json");
-    nlohmann::json info = nlohmann::json::parse(in, nullptr, false);
+    auto text = base::read_file((item.path() / "info.json").string(), kMaxInfoBytes);
+    nlohmann::json info =
+        text ? nlohmann::json::parse(*text, nullptr, false) : nlohmann::json(nlohmann::json::value_t::discarded);
     if (info.is_discarded() || !fs::exists(item.path() / "scan.ply")) {
       fs::remove_all(item.path(), ec);  // half-written when the cell stopped: the loop had moved on anyway
       continue;
@@ -85,34 +73,13 @@ void ReviewStore::set_on_stored(std::function<void(const ReviewEntry&)> on_store
 }
 
 Status ReviewStore::start() {
-  if (keeper_ == nullptr) return {};
-  {
-    const std::lock_guard<std::mutex> lock(mutex_);
-    stopping_ = false;
-  }
-  return base::start_thread(thread_, "cs-review", [this] { run(); });
+  return drain_.start(
+      "cs-review", keeper_, kPoll,
+      [this](const runtime::KeptScanInfo& kept, std::span<const algo::ScanPoint> points) { store(kept, points); });
 }
 
 void ReviewStore::stop() {
-  {
-    const std::lock_guard<std::mutex> lock(mutex_);
-    stopping_ = true;
-  }
-  wake_.notify_all();
-  if (thread_.joinable()) thread_.join();
-}
-
-void ReviewStore::run() {
-  for (;;) {
-    const runtime::KeptScanInfo* kept = nullptr;
-    std::span<const algo::ScanPoint> points;
-    while (keeper_->peek(kept, points)) {
-      store(*kept, points);
-      keeper_->release();
-    }
-    std::unique_lock<std::mutex> lock(mutex_);
-    if (wake_.wait_for(lock, kPoll, [this] { return stopping_; })) return;
-  }
+  drain_.stop();
 }
 
 void ReviewStore::store(const runtime::KeptScanInfo& kept, std::span<const algo::ScanPoint> points) {
@@ -129,7 +96,7 @@ void ReviewStore::store(const runtime::KeptScanInfo& kept, std::span<const algo:
   // that the next start ignores and prune() removes).
   Status ok = base::write_file_atomic((folder / "scan.ply").string(), formats::write_ply_binary(points));
   if (ok) {
-    const std::string png = depth_png(points);
+    const std::string png = encode_png(depth_image(points).colour);
     if (!png.empty()) ok = base::write_file_atomic((folder / "depth.png").string(), png);
   }
   if (ok) ok = base::write_file_atomic((folder / "info.json").string(), entry.info.dump(1));
@@ -218,17 +185,13 @@ nlohmann::json ReviewStore::info_json(std::uint64_t id, const runtime::KeptScanI
           {"time_ms", kept.wall_ms},
           {"points", kept.points},
           {"source", std::string(algo::to_string(d.source))},
-          {"code", result_code_name(d.source)},
+          {"code", drivers::to_string(runtime::to_plc_result(d, 0, 0, 0.0).code)},  // what the PLC was given
           {"part", d.accepted() && !chosen.empty() ? nlohmann::json(chosen) : nlohmann::json(nullptr)},
           {"reason", d.unknown_reason == algo::RejectReason::kNone
                          ? nlohmann::json(nullptr)
                          : nlohmann::json(std::string(algo::to_string(d.unknown_reason)))},
           {"probability", d.probability},
           {"candidates", candidates}};
-}
-
-std::string depth_png(std::span<const algo::ScanPoint> points) {
-  return encode_png(depth_image(points).colour);
 }
 
 }  // namespace cellsight::hmi

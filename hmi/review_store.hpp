@@ -6,17 +6,16 @@
 #pragma once
 
 #include <atomic>
-#include <condition_variable>
 #include <cstdint>
 #include <functional>
 #include <mutex>
 #include <nlohmann/json.hpp>
 #include <optional>
 #include <string>
-#include <thread>
 #include <vector>
 
 #include "base/result.hpp"
+#include "hmi/keeper_drain.hpp"
 #include "runtime/scan_keeper.hpp"
 
 namespace cellsight::hmi {
@@ -55,7 +54,6 @@ class ReviewStore {
   [[nodiscard]] static nlohmann::json info_json(std::uint64_t id, const runtime::KeptScanInfo& kept);
 
  private:
-  void run();
   void store(const runtime::KeptScanInfo& kept, std::span<const algo::ScanPoint> points);
   void prune();
 
@@ -66,15 +64,9 @@ class ReviewStore {
   mutable std::mutex mutex_;          // entries_ and the folders (the writer and the routes)
   std::vector<ReviewEntry> entries_;  // oldest first
   std::uint64_t next_id_ = 1;
-  std::condition_variable wake_;
-  bool stopping_ = false;
-  std::thread thread_;
+  KeeperDrain drain_;  // the writer thread
   std::atomic<std::uint64_t> stored_{0};
   std::atomic<std::uint64_t> failed_{0};
 };
-
-// A depth image of a scan seen from the camera (x right, y down the image as the sensor sees it), 1 px per mm,
-// coloured by depth between its 2nd and 98th percentile; PNG bytes, or empty when there are no points.
-[[nodiscard]] std::string depth_png(std::span<const algo::ScanPoint> points);
 
 }  // namespace cellsight::hmi
