@@ -10,6 +10,8 @@
 # usage: scripts/eval_catalogue.sh SEED [N=12] [SCANS=12] [EVAL_COUNT=20] [EVAL_SEED=100001]
 # environment: CELLSIGHT_BIN  the cellsight executable (default: build/app/cellsight)
 #              WORK           the work folder (default: out/eval_catalogue/seedSEED-nN); it must not exist yet
+#              PERTURB        a --perturb SPEC for the taught and the evaluated passes alike (e.g. mixed; see
+#                             README "Robustness")
 #              SITE_EXTRA     YAML appended to the site config (e.g. $'cascade:\n  verify_budget_ms: 1000' to judge
 #                             accuracy apart from a loaded machine's timing)
 set -euo pipefail
@@ -66,7 +68,7 @@ for part in $TAUGHT; do
   taught=0
   for first_seed in 1 1001; do
     if "$BIN" --config "$CONFIG" --models "$MODELS" teach --part "$part" --id "$id" --sim --count "$SCANS" \
-      --seed "$first_seed" --calibration "$CAL" >>"$WORK/teach.log" 2>&1; then
+      --seed "$first_seed" --calibration "$CAL" ${PERTURB:+--perturb "$PERTURB"} >>"$WORK/teach.log" 2>&1; then
       taught=1
       break
     fi
@@ -81,6 +83,6 @@ step "   training"
 
 step "4. eval: $EVAL_COUNT passes of each of the $N parts, seeds $EVAL_SEED.."
 "$BIN" --config "$CONFIG" --models "$MODELS" eval --sim --count "$EVAL_COUNT" --seed "$EVAL_SEED" --parts "$ALL" \
-  --scans "$WORK/eval_scans" --calibration "$CAL" 2>"$WORK/eval.log" | tee "$WORK/eval.txt"
+  --scans "$WORK/eval_scans" --calibration "$CAL" ${PERTURB:+--perturb "$PERTURB"} 2>"$WORK/eval.log" | tee "$WORK/eval.txt"
 [ ${#REFUSED[@]} -eq 0 ] || echo "NOTE: not taught after two refused batches (counted as untaught): ${REFUSED[*]}"
-step "done: $WORK (catalogue seed $SEED, N $N, $SCANS teach passes, $EVAL_COUNT eval passes, eval seed $EVAL_SEED)"
+step "done: $WORK (catalogue seed $SEED, N $N, $SCANS teach passes, $EVAL_COUNT eval passes, eval seed $EVAL_SEED${PERTURB:+, perturb $PERTURB})"
