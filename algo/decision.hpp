@@ -97,6 +97,7 @@ struct CandidateOutcome {
   double outliers = std::numeric_limits<double>::quiet_NaN();     // share of the scan its template does not explain
   double size_dev_m = std::numeric_limits<double>::quiet_NaN();   // outer size off its template's (TemplateThresholds)
   double hole_pattern_m2 = std::numeric_limits<double>::quiet_NaN();  // MatchReport::hole_pattern_m2
+  PlanarPose check_pose{};  // the pose its two-way check ran at (diagnosis: a refused candidate's pose)
   double ms = 0.0;
 };
 

@@ -114,7 +114,12 @@ std::string decision_json(const std::string& scan, const algo::Decision& d, std:
       << ", \"pm_error\": " << json_number(c.pm_error) << ", \"missing_mm2\": " << json_number(c.missing_area_m2 * 1e6)
       << ", \"extra_mm2\": " << json_number(c.extra_area_m2 * 1e6) << ", \"coverage\": " << json_number(c.coverage)
       << ", \"outliers\": " << json_number(c.outliers) << ", \"size_dev_mm\": " << json_number(c.size_dev_m * 1e3)
-      << ", \"hole_pattern_mm2\": " << json_number(c.hole_pattern_m2 * 1e6) << ", \"ms\": " << json_number(c.ms) << "}";
+      << ", \"hole_pattern_mm2\": " << json_number(c.hole_pattern_m2 * 1e6);
+    if (c.verified) {
+      o << ", \"check_pose\": {\"x\": " << json_number(c.check_pose.x_m) << ", \"y\": " << json_number(c.check_pose.y_m)
+        << ", \"theta_deg\": " << json_number(c.check_pose.theta_rad * kRadToDeg) << "}";
+    }
+    o << ", \"ms\": " << json_number(c.ms) << "}";
   }
   o << "]}";
   return o.str();
