@@ -312,6 +312,7 @@ class Cascade {
   // of them by far at Perfect Match's pose is not retried there, as decide() does with the learnt thresholds: train
   // passes a template's own-class limits, which learn_thresholds() only ever lowers, so decide() skips the retry of
   // that scan too and sees the same figures (issue 11: 10.7 instead of 17.6 min of rival matching at 297 parts).
+  // decide() retries its first candidate even so; train passes no limits for a scan's closest rival likewise.
   [[nodiscard]] MatchReport evaluate(const TemplateModel& model, std::span<const ScanPoint> scan,
                                      const TemplateThresholds* gross_limits = nullptr);
   // The same for one scan against several templates (training's rival matching): set_scan() once, then
@@ -366,14 +367,15 @@ class Cascade {
   void report_timeout(DecideState& s);
   void report_candidates(DecideState& s, const Candidate* winner, bool ambiguous) const;
   // Perfect Match + check of the scan set in matcher_; false when the deadline passed before it could start.
+  // first_ranked: the SVM's most probable candidate, checked without the gross-failure shortcut (check_prepared).
   bool evaluate_candidate(std::span<const TemplateModel> templates, std::span<const ScanPoint> scan,
-                          std::chrono::steady_clock::time_point deadline, Candidate& out);
+                          std::chrono::steady_clock::time_point deadline, bool first_ranked, Candidate& out);
   // The check proper (takes the scan's outline when it first needs it and outline_valid_ is false). With
-  // thresholds, a gross failure at `pose` ends it, and so does a pass when settle_on_pass (the outline pose is only
-  // tried when the given one fails).
+  // thresholds, a gross failure at `pose` ends it when settle_on_gross, and so does a pass when settle_on_pass (the
+  // outline pose is only tried when the given one fails).
   [[nodiscard]] MatchReport check_prepared(const TemplateModel& model, std::span<const ScanPoint> scan,
                                            const PlanarPose& pose, const TemplateThresholds* thresholds,
-                                           bool settle_on_pass = true);
+                                           bool settle_on_pass = true, bool settle_on_gross = true);
   void prepare_scan_outline(std::span<const ScanPoint> scan);
   [[nodiscard]] bool prepare_template_outline(const Roi& template_box);
   [[nodiscard]] double outline_cost(const Eigen::Vector2d& centre_m, const PlanarPose& pose, double cutoff_m,
@@ -407,6 +409,9 @@ class Cascade {
   [[nodiscard]] CellGroup grow_group(const Roi& roi, std::size_t seed, double typical);
   [[nodiscard]] bool is_lost_data(const CellGroup& group) const;
   void mark_group_lost(const CellGroup& group);
+  void join_band_pieces(const Roi& roi);
+  struct LostBand;
+  void mark_band_strip(const Roi& roi, const LostBand& band, double t_lo, double t_hi, double half_width);
   void mark_laser_shadow(const Roi& roi);
   // The largest of the template's holes (cells) that the scan's material covers, densely or porously (after
   // mark_lost_data, before blob_evidence): see the definition.
@@ -460,7 +465,19 @@ class Cascade {
   std::size_t outline_count_ = 0;
   std::vector<Candidate> candidates_;     // the pm_candidates most probable classes of a decision
   std::vector<std::int32_t> blob_cells_;  // cells of the blob being weighed
-  bool outline_valid_ = false;            // outline_ belongs to the current scan
+  // The lost bands mark_lost_data() found in this check (cells: axis, half width, extent along the axis), for
+  // join_band_pieces(). Fixed capacity: a scan has a few glare bands, not dozens.
+  struct LostBand {
+    Eigen::Vector2d centre{0.0, 0.0};
+    Eigen::Vector2d normal{0.0, 0.0};
+    double half_width = 0.0;
+    double along_lo = 0.0;
+    double along_hi = 0.0;
+  };
+  static constexpr int kMaxLostBands = 8;
+  std::array<LostBand, kMaxLostBands> lost_bands_{};
+  int lost_band_count_ = 0;
+  bool outline_valid_ = false;  // outline_ belongs to the current scan
 };
 
 }  // namespace cellsight::algo
