@@ -5,11 +5,8 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
-#include <cstdio>
-#include <cstdlib>
 #include <limits>
 #include <numbers>
-#include <string>
 #include <utility>
 
 namespace cellsight::algo {
@@ -37,9 +34,9 @@ constexpr double kMinPorosity = 0.005;
 constexpr std::size_t kMinLostPoints = 5;
 constexpr int kMinLostGroupCells = 12;
 constexpr double kBandFringeCells = 1.5;
-// join_band_pieces: a cross-section of a band's strip is the band's when at least this share of the template there is
-// missing without a scan point; the band goes on over at most kBandBridgeCells of other cross-sections (a relief wall).
-constexpr double kBandJoinShare = 0.6;
+// follow_lost_bands: a cross-section of a band's strip is the band's when at least this share of the template there
+// has no scan point; the band goes on over at most kBandBridgeCells of other cross-sections (a relief wall).
+constexpr double kBandFollowShare = 0.6;
 constexpr int kBandBridgeCells = 2;
 // mark_lost_data: a template depth step this high within the window is a relief wall, whose foot the laser shadow
 // hides in some poses and not in others (ribs rise 10 mm or more; a sheet's depth spread in a cell is ~2 mm).
@@ -798,8 +795,8 @@ MatchReport Cascade::check_prepared(const TemplateModel& model, std::span<const 
   // outline alignment would only double the cost of rejecting an unrelated candidate). Not for the SVM's first
   // candidate (settle_on_gross false): on a periodic part (a perforation field) Perfect Match can settle on the
   // lattice of holes off the part's place, which fails the hole pattern and the edges by far, and the outline pose
-  // finds the part again
-  // (mixed, perforated_fine s600005: 10.5 mm off in y, 27 433 mm2 of hole pattern; at the outline pose 0).
+  // finds the part again (mixed, perforated_fine s600005: 10.5 mm off in y, 27 433 mm2 of hole pattern; at the
+  // outline pose 0).
   const bool gross = thresholds != nullptr && settle_on_gross &&
                      (best.missing_area_m2 > kGrossFailure * thresholds->max_missing_area_m2 ||
                       best.extra_area_m2 > kGrossFailure * thresholds->max_extra_area_m2 ||
@@ -1760,7 +1757,7 @@ void Cascade::mark_lost_data(const Roi& roi) {
       if (is_lost_data(group)) mark_group_lost(group);
     }
   }
-  join_band_pieces(roi);
+  follow_lost_bands(roi);
   mark_laser_shadow(roi);
 }
 
@@ -1933,7 +1930,7 @@ void Cascade::mark_group_lost(const CellGroup& g) {
     std::nth_element(tmp_lo_.begin(), mid, tmp_lo_.begin() + static_cast<std::ptrdiff_t>(g.count));
     half_width = 2.0 * static_cast<double>(*mid) + kBandFringeCells;
   }
-  CellMoments lost;  // the cells it marks: a band's piece when elongated (kept for join_band_pieces)
+  CellMoments lost;  // the cells it marks: a band's piece when elongated (kept for follow_lost_bands)
   for (std::size_t j = 0; j < g.count; ++j) {
     std::uint8_t& f = flags_[static_cast<std::size_t>(blob_cells_[j])];
     if ((f & kMissing) != 0 && across(blob_cells_[j]) <= half_width) {
@@ -1961,12 +1958,12 @@ void Cascade::mark_group_lost(const CellGroup& g) {
   }
 }
 
-void Cascade::join_band_pieces(const Roi& roi) {
+void Cascade::follow_lost_bands(const Roi& roi) {
   // A glare band that crosses relief (ribs, louvres) is cut into pieces at the relief walls, whose faces keep a line
   // of points: the pieces between two walls touch neither the outside nor any residue, so each looks like an
   // enclosed hole (10201 mixed, pass 620002: a 25 mm band across five ribs left four such pieces of 400-1 400 cells,
   // and three parts unknown). So from each lost band piece the band is followed along its axis, cross-section by
-  // cross-section of its width: on while most of the template there is missing without a scan point, over at most
+  // cross-section of its width: on while most of the template there has no scan point, over at most
   // kBandBridgeCells of anything else (a wall), to the template's outside; the missing cells without a scan point on
   // the way are lost data. A band is one straight strip: a hole wholly inside it is under the glare. Material seen
   // across the strip for more than a wall's width ends it, so a hole beyond it counts.
@@ -1999,7 +1996,7 @@ void Cascade::join_band_pieces(const Roi& roi) {
           last = t;
           break;
         }
-        if (template_cells > 0 && static_cast<double>(lost_cells) >= kBandJoinShare * template_cells) {
+        if (template_cells > 0 && static_cast<double>(lost_cells) >= kBandFollowShare * template_cells) {
           last = t;
           bridge = 0;
         } else {
@@ -2010,6 +2007,7 @@ void Cascade::join_band_pieces(const Roi& roi) {
     }
   }
 }
+
 void Cascade::mark_band_strip(const Roi& roi, const LostBand& a, double t_lo, double t_hi, double hw) {
   // The strip of a's axis between t_lo and t_hi, hw either side: its missing cells without a scan point become lost.
   const int wi = width_;
@@ -2036,6 +2034,7 @@ void Cascade::mark_band_strip(const Roi& roi, const LostBand& a, double t_lo, do
     }
   }
 }
+
 void Cascade::mark_laser_shadow(const Roi& roi) {
   // Laser shadow: beside a relief wall (a rib, a flange) the line is hidden from the camera, or the camera from the
   // line, over a strip whose width depends on the part's pose, so the taught scans and this one see the foot of the

@@ -409,7 +409,7 @@ class Cascade {
   [[nodiscard]] CellGroup grow_group(const Roi& roi, std::size_t seed, double typical);
   [[nodiscard]] bool is_lost_data(const CellGroup& group) const;
   void mark_group_lost(const CellGroup& group);
-  void join_band_pieces(const Roi& roi);
+  void follow_lost_bands(const Roi& roi);
   struct LostBand;
   void mark_band_strip(const Roi& roi, const LostBand& band, double t_lo, double t_hi, double half_width);
   void mark_laser_shadow(const Roi& roi);
@@ -466,7 +466,7 @@ class Cascade {
   std::vector<Candidate> candidates_;     // the pm_candidates most probable classes of a decision
   std::vector<std::int32_t> blob_cells_;  // cells of the blob being weighed
   // The lost bands mark_lost_data() found in this check (cells: axis, half width, extent along the axis), for
-  // join_band_pieces(). Fixed capacity: a scan has a few glare bands, not dozens.
+  // follow_lost_bands(). Fixed capacity: a scan has a few glare bands, not dozens.
   struct LostBand {
     Eigen::Vector2d centre{0.0, 0.0};
     Eigen::Vector2d normal{0.0, 0.0};
