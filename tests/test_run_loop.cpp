@@ -1121,6 +1121,12 @@ TEST_CASE("loop: RSS after 200 parts equals RSS after 20 within a few pages", "[
                     << " parts: " << rss_many * page_kib << " KiB");
 #if defined(__SANITIZE_THREAD__)
   WARN("RSS is not compared under ThreadSanitizer: its own history buffers grow with run time");
+#elif defined(__SANITIZE_ADDRESS__)
+  // ASan's RSS holds its own bookkeeping: a freed block waits in the quarantine instead of being reused and every new
+  // allocation stack goes into the stack depot, so a busy machine's thread timing alone moved it by 19 pages (seen in
+  // CI). The loop's own allocations are checked by the no-allocation test; RSS is compared in the Release run of this
+  // binary (scripts/test.sh), where it measures the program.
+  WARN("RSS is not compared under AddressSanitizer: its quarantine and stack depot grow with the other threads' work");
 #else
   constexpr long kFewPages = 8;
   CHECK(rss_many - rss_few <= kFewPages);
