@@ -10,6 +10,7 @@
 #include <filesystem>
 #include <fstream>
 #include <opencv2/imgcodecs.hpp>
+#include <set>
 #include <sstream>
 
 #include "app/catalogue.hpp"
@@ -45,11 +46,22 @@ std::string pose_of(const fs::path& dir) {
 }  // namespace
 
 TEST_CASE(
-    "Given every catalogue part, when `cellsight sim` runs, then a full pass of mono8 frames and truth.yaml "
-    "is written") {
+    "Given a catalogue part of every feature kind, when `cellsight sim` runs, then a full pass of mono8 frames and "
+    "truth.yaml is written") {
   auto parts = cellsight::app::load_catalogue(CELLSIGHT_SOURCE_DIR "/config/parts.yaml");
   REQUIRE(parts.ok());
+  // Each part that brings a feature kind (or an own outline) the parts before it did not: 8 of the 15, which is
+  // everything the renderer draws. All 15 took 124 s of the CI's sanitizer run (45 min on 2 cores in all).
+  std::set<int> kinds_seen;
+  bool outline_seen = false;
+  std::size_t rendered = 0;
   for (const auto& part : *parts) {
+    bool brings = !part.outline_mm.empty() && !outline_seen;
+    for (const auto& f : part.features) brings = brings || !kinds_seen.contains(static_cast<int>(f.kind));
+    if (!brings) continue;
+    outline_seen = outline_seen || !part.outline_mm.empty();
+    for (const auto& f : part.features) kinds_seen.insert(static_cast<int>(f.kind));
+    ++rendered;
     const fs::path out = fresh_dir("all-" + part.name);
     const Run r = run("sim --part " + part.name + " --seed 11 --out " + out.string());
     INFO(part.name << ": " << r.output);
@@ -70,6 +82,7 @@ TEST_CASE(
     CHECK(truth.find("index: 295") != std::string::npos);
     fs::remove_all(out);
   }
+  CHECK(rendered == 8);
 }
 
 TEST_CASE(
