@@ -367,7 +367,8 @@ class Cascade {
   void report_timeout(DecideState& s);
   void report_candidates(DecideState& s, const Candidate* winner, bool ambiguous) const;
   // Perfect Match + check of the scan set in matcher_; false when the deadline passed before it could start.
-  // first_ranked: the SVM's most probable candidate, checked without the gross-failure shortcut (check_prepared).
+  // first_ranked: one of the SVM's most probable candidates (kFirstRanked), checked without the gross-failure
+  // shortcut (check_prepared).
   bool evaluate_candidate(std::span<const TemplateModel> templates, std::span<const ScanPoint> scan,
                           std::chrono::steady_clock::time_point deadline, bool first_ranked, Candidate& out);
   // The check proper (takes the scan's outline when it first needs it and outline_valid_ is false). With
@@ -380,7 +381,16 @@ class Cascade {
   [[nodiscard]] bool prepare_template_outline(const Roi& template_box);
   [[nodiscard]] double outline_cost(const Eigen::Vector2d& centre_m, const PlanarPose& pose, double cutoff_m,
                                     int* inliers) const;
-  [[nodiscard]] PlanarPose refine_on_outline(const Eigen::Vector2d& centre_m, const PlanarPose& start, double& rms_m);
+  [[nodiscard]] PlanarPose refine_on_outline(const Eigen::Vector2d& centre_m, const PlanarPose& start,
+                                             double first_cutoff_m, double last_cutoff_m, int iterations,
+                                             double& rms_m);
+  // check_prepared()'s steps: whether a check fails its gates by far (kGrossFailure x a limit), and the outline fit
+  // from a pose with the check at its result (kept in `best` when it finds less evidence); a first cutoff wider than
+  // refine_cutoff_m is held over `iterations` before the usual fit.
+  [[nodiscard]] static bool gross_failure(const MatchReport& report, const TemplateThresholds& thresholds);
+  [[nodiscard]] double recheck_on_outline(const TemplateModel& model, std::span<const ScanPoint> scan,
+                                          const PlanarPose& pose, const Roi& template_box, double first_cutoff_m,
+                                          int iterations, MatchReport& best);
   void outline_mask(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi);
   void closed_mask(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi,
                    std::vector<std::uint8_t>& out);
@@ -408,7 +418,16 @@ class Cascade {
   [[nodiscard]] bool joins_group(std::size_t i, double typical) const;
   [[nodiscard]] CellGroup grow_group(const Roi& roi, std::size_t seed, double typical);
   [[nodiscard]] bool is_lost_data(const CellGroup& group) const;
+  void empty_depth(const Roi& roi);
   void mark_group_lost(const CellGroup& group);
+  void protect_holes(const CellGroup& group);
+  struct EmptyRectangle {
+    double side = 0.0;      // cells across the axis
+    double along_lo = 0.0;  // the run of deep cells along the axis, cells from the start (<= 0) ...
+    double along_hi = 0.0;  // ... and (>= 0): the rectangle is side + along_hi - along_lo long
+  };
+  [[nodiscard]] EmptyRectangle empty_rectangle(const Eigen::Vector2d& p, const Eigen::Vector2d& axis,
+                                               float depth) const;
   void follow_lost_bands(const Roi& roi);
   struct LostBand;
   void mark_band_strip(const Roi& roi, const LostBand& band, double t_lo, double t_hi, double half_width);
