@@ -117,10 +117,6 @@ constexpr double kGrossFailure = 4.0;
 // the usual one: it reaches an edge ~40 mm away.
 constexpr double kWideCutoffM = 0.04;
 constexpr int kWideIterations = 30;
-// verify: the SVM's most probable candidates, this many, are checked without the gross-failure shortcut (at both
-// poses, and with the wide outline fit): a near twin ranked first leaves the true part second (10501 mixed, rnd06
-// s710010: its twin first, itself 0.38).
-constexpr std::size_t kFirstRanked = 2;
 
 [[nodiscard]] int raster_margin_cells(const GridSpec& grid) {
   return static_cast<int>(std::ceil(kRasterMarginM / grid.resolution_m));
@@ -494,6 +490,7 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
 }
 
 bool Cascade::verify(DecideState& s, std::size_t j) {
+  // (Not only the first: a near twin ranked first leaves the true part second; 10501 mixed, rnd06 s710010.)
   if (!evaluate_candidate(s.templates_by_class, s.scan, s.deadline, j < kFirstRanked, candidates_[j])) return false;
   s.longest_ms = std::max(s.longest_ms, candidates_[j].ms);
   ++s.d.verified_count;

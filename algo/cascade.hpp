@@ -296,6 +296,10 @@ void surface_cells_from_map(const DistanceMapView& map, std::vector<SurfaceCell>
 // maxima. Depth makes a pressed rib (20 mm) visible, which a flat x-y mask is blind to.
 class Cascade {
  public:
+  // decide() checks the SVM's this many most probable candidates without the gross-failure shortcut, at both poses
+  // and with the wide outline fit (check_prepared); train matches a scan's closest rivals the same way.
+  static constexpr std::size_t kFirstRanked = 2;
+
   Cascade(const CascadeParams& params, const PerfectMatchParams& pm_params, const GridSpec& grid);  // allocates
 
   // svm_best_first: SvmModel::predict's output. templates_by_class[i] is class i's template.

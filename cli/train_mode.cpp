@@ -215,8 +215,8 @@ std::vector<std::vector<std::size_t>> cross_match_rivals(const app::Config& conf
     if (data.variant_of(i) != 0) continue;  // groups are the scans in manifest order, the taught scan first
     const auto own = static_cast<std::size_t>(data.labels[i]);
     std::vector<std::size_t>& r = rivals.emplace_back();
-    // In the SVM's rank order: the first is the scan's closest rival, matched as decide() matches its first
-    // candidate (cross_matches).
+    // In the SVM's rank order: the first ones are the scan's closest rivals, matched as decide() matches its
+    // first-ranked candidates (cross_matches).
     for (const algo::ClassProbability& p : model.predict(data.features[i])) {
       if (r.size() == reach || r.size() + 1 == classes) break;
       if (static_cast<std::size_t>(p.class_index) != own) r.push_back(static_cast<std::size_t>(p.class_index));
@@ -267,10 +267,10 @@ Expected<CrossMatches> cross_matches(const app::Config& config, const app::Model
         for (std::size_t k = 0; k < rivals[i].size(); ++k) {
           const std::size_t c = rivals[i][k];
           if (templates.models[c].map.valid()) {
-            // The closest rival (k 0) without the gross-failure shortcut, as decide() checks its first candidate:
-            // were the scan ranked first there, its figures must be the ones learnt from here.
+            // The closest rivals (Cascade::kFirstRanked) without the gross-failure shortcut, as decide() checks
+            // its first-ranked candidates: were the scan ranked so there, its figures must be the ones learnt here.
             reports[i][k] = w.cascade.evaluate_prepared(templates.models[c], w.preparer.part_points(),
-                                                        k == 0 ? nullptr : &own_limits[c]);
+                                                        k < algo::Cascade::kFirstRanked ? nullptr : &own_limits[c]);
           }
         }
         const std::size_t n = ++done;
