@@ -1632,9 +1632,6 @@ Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, b
           if (touches) ++contact;
         }
       }
-      for (std::size_t j = 0; j < count; ++j) {
-        flags_[static_cast<std::size_t>(blob_cells_[j])] &= static_cast<std::uint8_t>(~kVisited);
-      }
       const double area = static_cast<double>(count);
       double weight = 1.0;
       // Mostly depths that disagree (a rib, a flange the other lacks): contradiction, whatever its shape. Otherwise
@@ -1652,14 +1649,68 @@ Cascade::BlobEvidence Cascade::blob_evidence(const Roi& roi, std::uint8_t bit, b
           weight = params_.weak_evidence_weight;
         }
       }
-      out.largest_cells = std::max(out.largest_cells, weight * area);
-      out.total_cells += weight * area;
+      // A weak missing blob may join a hole to a glare band: what it holds outside the lost data in pieces too thick
+      // for a band's ragged edge weighs fully.
+      double largest_solid = 0.0, solid = 0.0;
+      if (!extra && weight < 1.0 && lost < count) solid = solid_unlost_cells(count, largest_solid);
+      for (std::size_t j = 0; j < count; ++j) {
+        flags_[static_cast<std::size_t>(blob_cells_[j])] &= static_cast<std::uint8_t>(~(kVisited | kGrouped));
+      }
+      out.largest_cells = std::max({out.largest_cells, weight * area, largest_solid});
+      out.total_cells += weight * (area - solid) + solid;
       // Lost data that may hide a twin's feature: not the strips beside the template's own relief walls, whose
       // laser shadow every ribbed part's scan shows somewhere (it brought every candidate to verification).
       out.weak_cells += (1.0 - weight) * static_cast<double>(count - stepped);
     }
   }
   return out;
+}
+
+double Cascade::solid_unlost_cells(std::size_t count, double& largest) {
+  // The missing blob in blob_cells_[0, count) (kVisited) is weak, mostly lost data. Its cells that are not lost make
+  // 4-connected pieces; a piece that holds a cell with all eight neighbours in it (three cells thick) and at least
+  // kMinSolidCells is a hole beside the lost data, not its fringe (10603 mixed, rnd10 s730001: an untaught twin's
+  // slot, its lower half under a glare band that left no point, its upper 10 x 7 cells beside it, was all weak with
+  // the band, and the twin passed). Returns their cells; `largest` the largest piece. kGrouped marks the pieces
+  // (free since mark_lost_data, cleared with kVisited by the caller).
+  constexpr std::size_t kMinSolidCells = 12;
+  const int w = width_;
+  auto unlost = [&](std::size_t i) { return (flags_[i] & (kVisited | kLost)) == kVisited; };
+  double total = 0.0;
+  largest = 0.0;
+  for (std::size_t j = 0; j < count; ++j) {
+    const auto seed = static_cast<std::size_t>(blob_cells_[j]);
+    if (!unlost(seed) || (flags_[seed] & kGrouped) != 0) continue;
+    flags_[seed] |= kGrouped;
+    std::size_t top = 0, cells = 0;
+    bool thick = false;
+    stack_[top++] = static_cast<std::int32_t>(seed);
+    while (top > 0) {
+      const std::int32_t c = stack_[--top];
+      ++cells;
+      const int cx = c % w, cy = c / w;
+      int around = 0;
+      for (int dy = -1; dy <= 1; ++dy) {
+        for (int dx = -1; dx <= 1; ++dx) {
+          const int nx = cx + dx, ny = cy + dy;
+          if ((dx == 0 && dy == 0) || nx < 0 || nx >= w || ny < 0 || ny >= height_) continue;
+          const std::size_t n =
+              static_cast<std::size_t>(ny) * static_cast<std::size_t>(w) + static_cast<std::size_t>(nx);
+          if (!unlost(n)) continue;
+          ++around;
+          if ((dx == 0 || dy == 0) && (flags_[n] & kGrouped) == 0) {
+            flags_[n] |= kGrouped;
+            stack_[top++] = static_cast<std::int32_t>(n);
+          }
+        }
+      }
+      thick = thick || around == 8;
+    }
+    if (!thick || cells < kMinSolidCells) continue;
+    total += static_cast<double>(cells);
+    largest = std::max(largest, static_cast<double>(cells));
+  }
+  return total;
 }
 
 void Cascade::measure_size(const Roi& roi, MatchReport& r) {
@@ -1797,7 +1848,9 @@ void Cascade::mark_lost_data(const Roi& roi) {
   }
   follow_lost_bands(roi);
   mark_laser_shadow(roi);
-  clear_flag(roi, kVisited);  // protect_holes' holes; covered_hole_cells and blob_evidence need it clear
+  // protect_holes' holes and the groups: covered_hole_cells and blob_evidence need both clear.
+  clear_flag(roi, kVisited);
+  clear_flag(roi, kGrouped);
 }
 
 void Cascade::empty_depth(const Roi& roi) {

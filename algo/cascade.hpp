@@ -452,6 +452,8 @@ class Cascade {
   // Flood-fills the blobs of `bit` (kMissing, or kExtra with `extra`) and weighs each by its shape
   // (CascadeParams::weak_evidence_weight).
   [[nodiscard]] BlobEvidence blob_evidence(const Roi& roi, std::uint8_t bit, bool extra);
+  // blob_evidence()'s holes beside lost data: see the definition.
+  [[nodiscard]] double solid_unlost_cells(std::size_t count, double& largest);
   [[nodiscard]] MatchReport check_at(const Eigen::Vector2d& centre_m, std::span<const ScanPoint> scan,
                                      const PlanarPose& pose, const Roi& template_box);
   void reset_scan(const Roi& roi);
