@@ -2129,7 +2129,10 @@ void Cascade::protect_holes(const CellGroup& g) {
         if ((flags_[ci] & kMissing) == 0 && scan_occupies(ci)) ++with_points;
       }
       if (reference < kHoleMinReference) continue;
-      const double area = e.side * (e.side + e.along_hi - e.along_lo);
+      // The run across the band too: a slot across it is empty that way (10802 mixed, rnd10 s780005: a 127 x 30 mm
+      // slot across a band of ~7 % residue gave the untaught twin its sibling's id).
+      const EmptyRectangle across = empty_rectangle(p, normal, k);
+      const double area = e.side * (e.side + std::max(e.along_hi - e.along_lo, across.along_hi - across.along_lo));
       best = std::max(best, static_cast<double>(with_points) / reference * area);
     }
     if (best < kHoleEmptyPoints) return;  // the deepest is not a hole: nor are the shallower ones (lanes alike)
