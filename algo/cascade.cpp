@@ -821,14 +821,13 @@ MatchReport Cascade::check_prepared(const TemplateModel& model, std::span<const 
     // The surfaces agree when SOME plausible alignment makes them agree: Perfect Match's pose and the outline
     // pose are both estimates (the outline is only known to a profile spacing along x, Perfect Match can be a few
     // millimetres off on a flat sheet). A real difference (a hole, a rib) stays at either pose.
-    best.outline_rms_m =
-        recheck_on_outline(model, scan, pose, rt, params_.refine_cutoff_m, params_.refine_iterations, best);
+    best.outline_rms_m = recheck_on_outline(model, scan, pose, rt, false, best);
     // Perfect Match can also settle a whole period off on a part with a row of louvres or slots (mixed, 10503 rnd11
     // s710001 and 10501 rnd06 s710010: 30-33 mm off in y, 11 000-17 000 mm2 missing at both poses), beyond the
     // outline fit's reach. The part's outer edges are not periodic: for a first-ranked candidate still failing by
     // far, the outline is fitted once more with a cutoff that reaches them.
     if (thresholds != nullptr && !settle_on_gross && gross_failure(best, *thresholds)) {
-      (void)recheck_on_outline(model, scan, pose, rt, kWideCutoffM, kWideIterations, best);
+      (void)recheck_on_outline(model, scan, pose, rt, true, best);
     }
   }
   reset_template(rt);
@@ -842,15 +841,15 @@ bool Cascade::gross_failure(const MatchReport& r, const TemplateThresholds& t) {
 }
 
 double Cascade::recheck_on_outline(const TemplateModel& model, std::span<const ScanPoint> scan, const PlanarPose& pose,
-                                   const Roi& rt, double first_cutoff_m, int iterations, MatchReport& best) {
+                                   const Roi& rt, bool wide, MatchReport& best) {
   // The outline fit from `pose`; the check at its pose replaces `best` when it finds less evidence. Returns the
   // fit's rms.
   double rms_m = 0.0;
   PlanarPose start = pose;
-  if (first_cutoff_m > params_.refine_cutoff_m) {
+  if (wide) {
     // A wide reach: first the cutoff held wide (shrinking at once would drop an edge still far off before it
     // pulled), then the usual fit from there.
-    start = refine_on_outline(model.centroid_m, pose, first_cutoff_m, first_cutoff_m, iterations, rms_m);
+    start = refine_on_outline(model.centroid_m, pose, kWideCutoffM, kWideCutoffM, kWideIterations, rms_m);
   }
   const PlanarPose refined = refine_on_outline(model.centroid_m, start, params_.refine_cutoff_m,
                                                params_.refine_final_cutoff_m, params_.refine_iterations, rms_m);
@@ -1835,15 +1834,20 @@ void Cascade::mark_lost_data(const Roi& roi) {
   if (!row_window_counts(roi, typical)) return;
   column_window_counts(roi, typical);
   mark_template_outside(roi);
-  empty_depth(roi);
   lost_band_count_ = 0;
+  bool depth_ready = false;  // empty_depth only for a check that has lost data
   for (int y = roi.y0; y < roi.y1; ++y) {
     for (int x = roi.x0; x < roi.x1; ++x) {
       const std::size_t seed =
           static_cast<std::size_t>(y) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(x);
       if ((flags_[seed] & kMissing) == 0 || !joins_group(seed, typical)) continue;
       const CellGroup group = grow_group(roi, seed, typical);
-      if (is_lost_data(group)) mark_group_lost(group);
+      if (!is_lost_data(group)) continue;
+      if (!depth_ready) {
+        empty_depth(roi);
+        depth_ready = true;
+      }
+      mark_group_lost(group);
     }
   }
   follow_lost_bands(roi);
@@ -2086,9 +2090,9 @@ void Cascade::protect_holes(const CellGroup& g) {
   // Glare that leaves a residue of points cannot hide a hole much larger than the gaps between its points: an
   // untaught twin with one slot more, the slot half under a band (10403 mixed, pass 680004), was taken for its
   // sibling because the whole slot became lost data. So the group's deepest empty cell (empty_depth) and the run of
-  // cells as deep along the group's axis make an empty rectangle (empty_rectangle), weighed against the residue
-  // around it: in the same lane of the band (across its axis within the rectangle's half width; along it beyond the
-  // rectangle, within kHoleLaneCells), or all around when the group is no band. When that density would have put
+  // cells as deep along the group's axis, or across it, make an empty rectangle (empty_rectangle), weighed against the
+  // residue around it: in the same lane of the band (across its axis within the rectangle's half width; along it beyond
+  // the rectangle, within kHoleLaneCells), or all around when the group is no band. When that density would have put
   // kHoleEmptyPoints into the rectangle, the empty cells connected to it are a hole: kVisited keeps them from
   // becoming lost data (mark_group_lost, mark_band_strip). A band without residue, or with so little that such a
   // rectangle fits between its points, protects nothing: there the hole cannot be told.

@@ -316,7 +316,8 @@ class Cascade {
   // of them by far at Perfect Match's pose is not retried there, as decide() does with the learnt thresholds: train
   // passes a template's own-class limits, which learn_thresholds() only ever lowers, so decide() skips the retry of
   // that scan too and sees the same figures (issue 11: 10.7 instead of 17.6 min of rival matching at 297 parts).
-  // decide() retries its first candidate even so; train passes no limits for a scan's closest rival likewise.
+  // decide() retries its first-ranked candidates (kFirstRanked) even so; train passes no limits for a scan's closest
+  // rivals likewise.
   [[nodiscard]] MatchReport evaluate(const TemplateModel& model, std::span<const ScanPoint> scan,
                                      const TemplateThresholds* gross_limits = nullptr);
   // The same for one scan against several templates (training's rival matching): set_scan() once, then
@@ -389,12 +390,12 @@ class Cascade {
                                              double first_cutoff_m, double last_cutoff_m, int iterations,
                                              double& rms_m);
   // check_prepared()'s steps: whether a check fails its gates by far (kGrossFailure x a limit), and the outline fit
-  // from a pose with the check at its result (kept in `best` when it finds less evidence); a first cutoff wider than
-  // refine_cutoff_m is held over `iterations` before the usual fit.
+  // from a pose with the check at its result (kept in `best` when it finds less evidence); `wide` holds a wide cutoff
+  // over several steps before the usual fit (kWideCutoffM, kWideIterations).
   [[nodiscard]] static bool gross_failure(const MatchReport& report, const TemplateThresholds& thresholds);
   [[nodiscard]] double recheck_on_outline(const TemplateModel& model, std::span<const ScanPoint> scan,
-                                          const PlanarPose& pose, const Roi& template_box, double first_cutoff_m,
-                                          int iterations, MatchReport& best);
+                                          const PlanarPose& pose, const Roi& template_box, bool wide,
+                                          MatchReport& best);
   void outline_mask(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi);
   void closed_mask(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi,
                    std::vector<std::uint8_t>& out);
