@@ -39,13 +39,15 @@ constexpr double kBandFringeCells = 1.5;
 constexpr double kBandFollowShare = 0.6;
 constexpr int kBandBridgeCells = 2;
 // protect_holes: an empty rectangle inside a porous group is a hole, not glare, when the residue around it (the same
-// lane of the band, within kHoleLaneCells along it) would have put this many points into it: the chance that glare
-// alone leaves it empty is e^-12 (6e-6) per place. Fewer than kHoleMinReference template cells there: no judgement.
+// lane of the band, within kHoleLaneCells along it) would have put this many points into it, plus the log of the
+// number of places such a rectangle has in the group: the chance that glare alone leaves one of them empty is e^-12
+// (6e-6). Fewer than kHoleMinReference template cells there: no judgement.
 constexpr double kHoleEmptyPoints = 12.0;
 constexpr int kHoleLaneCells = 40;
 constexpr int kHoleMinReference = 40;
 constexpr int kMaxHolesPerGroup = 4;
-constexpr float kHoleMinDepth = 3.0F;  // an empty square of 9 cells (20 mm) at least
+constexpr float kHoleMinDepth = 3.0F;      // an empty square of 9 cells (20 mm) at least
+constexpr float kGapTemplateShare = 0.8F;  // empty_depth: a gap in the template's sampling has a window mostly template
 // mark_lost_data: a template depth step this high within the window is a relief wall, whose foot the laser shadow
 // hides in some poses and not in others (ribs rise 10 mm or more; a sheet's depth spread in a cell is ~2 mm).
 constexpr double kShadowStepM = 0.006;
@@ -1858,10 +1860,10 @@ void Cascade::mark_lost_data(const Roi& roi) {
 }
 
 void Cascade::empty_depth(const Roi& roi) {
-  // Per template cell whose window holds no scan point (w_lo_ == 0), its Chebyshev distance to the nearest cell that
-  // is not such (1 at an empty region's rim), into tmp_hi_ (free after the window counts); 0 elsewhere. Two chamfer
-  // passes with unit weights give it exactly. A cell of depth k certifies an empty square of 2 (k - 1) + window
-  // cells on a side: the union of the point-free windows within k - 1 of it.
+  // Per template cell (or gap, below) whose window holds no scan point (w_lo_ == 0), its Chebyshev distance to the
+  // nearest cell that is not such (1 at an empty region's rim), into tmp_hi_ (free after the window counts), 0 for
+  // the rest. Two chamfer passes with unit weights give it exactly. A cell of depth k certifies an empty square of
+  // 2 (k - 1) + window cells on a side: the union of the point-free windows within k - 1 of it.
   const int wi = width_;
   auto at = [&](int x, int y) {
     return static_cast<std::size_t>(y) * static_cast<std::size_t>(wi) + static_cast<std::size_t>(x);
@@ -1869,10 +1871,15 @@ void Cascade::empty_depth(const Roi& roi) {
   auto depth = [&](int x, int y) {
     return x < roi.x0 || x >= roi.x1 || y < roi.y0 || y >= roi.y1 ? 0.0F : tmp_hi_[at(x, y)];
   };
+  // A cell the template lacks inside its material (its window at least kGapTemplateShare template cells) is a gap of
+  // its sampling, not one of its holes: empty like its neighbours. Such gaps cut a slot under glare into pieces too
+  // short to tell (10603 mixed, rnd10 s730003: a 97 x 26 mm slot, runs of 12 cells between them).
+  const auto window = static_cast<float>((2 * window_cells_ + 1) * (2 * window_cells_ + 1));
+  const float gap_cells = kGapTemplateShare * window;
   for (int y = roi.y0; y < roi.y1; ++y) {
     for (int x = roi.x0; x < roi.x1; ++x) {
       const std::size_t i = at(x, y);
-      if (!(t_lo_[i] <= t_hi_[i]) || w_lo_[i] > 0.0F) {
+      if (w_lo_[i] > 0.0F || !(t_lo_[i] <= t_hi_[i] || w_hi_[i] >= gap_cells)) {
         tmp_hi_[i] = 0.0F;
         continue;
       }
@@ -2137,7 +2144,11 @@ void Cascade::protect_holes(const CellGroup& g) {
       // slot across a band of ~7 % residue gave the untaught twin its sibling's id).
       const EmptyRectangle across = empty_rectangle(p, normal, k);
       const double area = e.side * (e.side + std::max(e.along_hi - e.along_lo, across.along_hi - across.along_lo));
-      best = std::max(best, static_cast<double>(with_points) / reference * area);
+      // Against the places such a rectangle has in the group: the chance that one of them is empty by glare alone
+      // is the per-place chance times their number (sparse bands gave 11 x 26 cell rectangles by chance, 15.6
+      // points expected, in 1 of 100 bands without the count).
+      const double places = std::max(1.0, static_cast<double>(g.count) / area);
+      best = std::max(best, static_cast<double>(with_points) / reference * area - std::log(places));
     }
     if (best < kHoleEmptyPoints) return;  // the deepest is not a hole: nor are the shallower ones (lanes alike)
     // The hole: the group's empty cells connected to it (stack_ is free between groups).
