@@ -1855,8 +1855,7 @@ void Cascade::mark_lost_data(const Roi& roi) {
   follow_lost_bands(roi);
   mark_laser_shadow(roi);
   // protect_holes' holes and the groups: covered_hole_cells and blob_evidence need both clear.
-  clear_flag(roi, kVisited);
-  clear_flag(roi, kGrouped);
+  clear_flag(roi, static_cast<std::uint8_t>(kVisited | kGrouped));
 }
 
 void Cascade::empty_depth(const Roi& roi) {

@@ -1745,11 +1745,9 @@ SCENARIO("Sparse glare residue that leaves an empty rectangle by chance is no ho
         for (const ScanPoint& p : scan) cx += p.x;
         cx /= static_cast<float>(scan.size());
         const double x0 = cx - 0.15 + 0.045 * b.place;
-        std::mt19937_64 rng(7000 + 1000 * b.part + 100 * pose_i + static_cast<int>(1000 * b.share) + b.place +
-                            static_cast<int>(b.width_m * 1000) * 13);
-        std::uniform_real_distribution<double> u(0.0, 1.0);
-        std::erase_if(scan,
-                      [&](const ScanPoint& p) { return p.x >= x0 && p.x <= x0 + b.width_m && u(rng) >= b.share; });
+        scan = with_glare_residue(std::move(scan), x0, x0 + b.width_m, b.share,
+                                  7000 + 1000 * b.part + 100 * pose_i + static_cast<int>(1000 * b.share) + b.place +
+                                      static_cast<int>(b.width_m * 1000) * 13);
         const TemplateModel& m = cat.models()[pi];
         const MatchReport r = cat.cascade().evaluate(m, scan);
         if (!r.passes(m.thresholds)) {
