@@ -393,6 +393,11 @@ class Cascade {
   // from a pose with the check at its result (kept in `best` when it finds less evidence); `wide` holds a wide cutoff
   // over several steps before the usual fit (kWideCutoffM, kWideIterations).
   [[nodiscard]] static bool gross_failure(const MatchReport& report, const TemplateThresholds& thresholds);
+  // Whether a gross failure looks like a misplaced alignment (material missing and extra, the size agreeing), which
+  // a wide outline fit may mend: only then do the first-ranked candidates get one.
+  [[nodiscard]] static bool displaced(const MatchReport& report, const TemplateThresholds& thresholds);
+  // Whether the outer size is off by far (kGrossFailure x its limit), which no alignment mends.
+  [[nodiscard]] static bool off_in_size(const MatchReport& report, const TemplateThresholds& thresholds);
   [[nodiscard]] double recheck_on_outline(const TemplateModel& model, std::span<const ScanPoint> scan,
                                           const PlanarPose& pose, const Roi& template_box, bool wide,
                                           MatchReport& best);

@@ -90,6 +90,7 @@ struct CandidateOutcome {
   double value = std::numeric_limits<double>::quiet_NaN();  // the figure that failed (m^2 for areas, shares, error)
   double limit = std::numeric_limits<double>::quiet_NaN();  // ... and its learnt threshold
   double pm_error = std::numeric_limits<double>::quiet_NaN();
+  bool pm_stopped_early = false;  // its error was far above the limit early on: pm_error is where it stopped
   double missing_area_m2 = std::numeric_limits<double>::quiet_NaN();
   double extra_area_m2 = std::numeric_limits<double>::quiet_NaN();
   double evidence_m2 = std::numeric_limits<double>::quiet_NaN();  // weighted evidence against it (ties, margins)

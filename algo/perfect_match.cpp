@@ -586,7 +586,7 @@ FullPoseFit PerfectMatcher::refine(const DistanceMapView& map, const Eigen::Vect
 }
 
 PerfectMatchResult PerfectMatcher::match(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
-                                         const PlanarPose& start) const {
+                                         const PlanarPose& start, double give_up_error) const {
   PerfectMatchResult result;
   result.pose = start;
   result.points = static_cast<int>(used_);
@@ -656,11 +656,16 @@ PerfectMatchResult PerfectMatcher::match(const DistanceMapView& map, const Eigen
         const double settle = fine ? state[k].step_min : kFineRestartStepFraction * step_initial[k];
         settled = settled && state[k].step <= settle;
       }
+      if (level == 1 && i + 1 == kGiveUpIterations && best_error > give_up_error * static_cast<double>(used_)) {
+        result.gave_up = true;
+        break;
+      }
       if (settled) {
         result.converged = fine;
         break;
       }
     }
+    if (result.gave_up) break;  // (no levelling pass after it: the error stands as it was)
   }
   if (!have_best) return result;  // unreachable: the fine level always has at least one iteration
   const auto n = static_cast<double>(used_);

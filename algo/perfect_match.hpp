@@ -100,6 +100,11 @@ struct PerfectMatchResult {
   int points = 0;               // scan points used (at the finest level)
   bool converged = false;       // steps fell under their minimum before the iteration cap
   DepthPlane depth{};           // the depth levelling of the last fine pass
+  // match() stopped early: after kGiveUpIterations of the fine level the error was above its give_up_error. Measured
+  // (3 632 candidate matches of 15-part random catalogues, plain and mixed, 7 catalogues): every match that ended with
+  // an error at or below a template's learnt limit had, 5 iterations into the fine level, at most 1.64 x that limit,
+  // so a match above twice the limit there ends above it (32 % of the wrong candidates were).
+  bool gave_up = false;
 };
 
 // The full pose of a scan against a template (refine()): p_scan = c + R_z(theta) R_y(ry) R_x(rx) (p_template - c) +
@@ -161,8 +166,16 @@ class PerfectMatcher {
   // RPROP (iRprop-, thesis eq. 2.67-2.70) from `start` (typically centroid_start()) against one template;
   // `template_centroid_m` is c of the pose. Returns the pose with the lowest cost seen at the finest level. At most
   // max_iterations cost evaluations of at most max_points samples each.
+  // `give_up_error`: the match stops after kGiveUpIterations of the fine level when its error (`error`'s measure, at
+  // the best pose so far) is still above this; the result is then `gave_up`, its error that of the pose reached. Its
+  // use: a caller that only needs to know whether the error ends below a limit (the cascade, for a candidate that
+  // will fail on its error alone). The fine level refines the pose by millimetres and the error, a mean of squared
+  // distances dominated by the points that lie centimetres from any surface of a wrong template, hardly moves with
+  // it: see PerfectMatchResult::gave_up for what was measured.
   [[nodiscard]] PerfectMatchResult match(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
-                                         const PlanarPose& start) const;
+                                         const PlanarPose& start,
+                                         double give_up_error = std::numeric_limits<double>::infinity()) const;
+  static constexpr int kGiveUpIterations = 5;
 
   // Cost and gradient of the first `count` used points at `pose` (count is clamped to the used points), fitted with
   // `fit_lc_m` (<= 0: lc_m); error_sum always with lc_m. Default: the fine level's Lc.

@@ -111,7 +111,9 @@ std::string decision_json(const std::string& scan, const algo::Decision& d, std:
       << (c.rejected_by == algo::RejectReason::kNone ? std::string("null")
                                                      : "\"" + std::string(algo::to_string(c.rejected_by)) + "\"")
       << ", \"value\": " << json_number(c.value) << ", \"limit\": " << json_number(c.limit)
-      << ", \"pm_error\": " << json_number(c.pm_error) << ", \"missing_mm2\": " << json_number(c.missing_area_m2 * 1e6)
+      << ", \"pm_error\": " << json_number(c.pm_error)
+      << ", \"pm_stopped_early\": " << (c.pm_stopped_early ? "true" : "false")
+      << ", \"missing_mm2\": " << json_number(c.missing_area_m2 * 1e6)
       << ", \"extra_mm2\": " << json_number(c.extra_area_m2 * 1e6) << ", \"coverage\": " << json_number(c.coverage)
       << ", \"outliers\": " << json_number(c.outliers) << ", \"size_dev_mm\": " << json_number(c.size_dev_m * 1e3)
       << ", \"hole_pattern_mm2\": " << json_number(c.hole_pattern_m2 * 1e6);

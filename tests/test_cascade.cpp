@@ -763,6 +763,25 @@ SCENARIO("The cascade decides by the thesis 6.4.4 table and verifies every accep
         check_pose(d, truth);
       }
     }
+    WHEN("a scan of an untaught bracket_l comes (an L-shaped bracket: no taught sheet lies where its points do)") {
+      const auto bracket = sample_part(part("bracket_l"), kTestPose, 502);
+      const ClassProbability ranked[] = {{0, 0.50}, {2, 0.45}, {3, 0.03}, {1, 0.02}};
+      const Decision d = cat.cascade().decide(ranked, cat.models(), bracket, far_deadline());
+      THEN(
+          "every candidate is verified, each match gives up early on an error far above its limit, and the scan "
+          "is unknown") {
+        CHECK(d.source == DecisionSource::kUnknown);
+        CHECK(d.verified_count == 4);
+        REQUIRE(d.candidate_count == 4);
+        for (int i = 0; i < d.candidate_count; ++i) {
+          const algo::CandidateOutcome& c = d.candidates[static_cast<std::size_t>(i)];
+          INFO("candidate " << i << " class " << c.class_index << " pm_error " << c.pm_error << " limit " << c.limit);
+          CHECK(c.pm_stopped_early);
+          CHECK(c.rejected_by == algo::RejectReason::kPmError);
+          CHECK(c.value > 2.0 * c.limit);  // the cascade's give-up limit: twice the template's own
+        }
+      }
+    }
     WHEN("the verification budget allows one candidate only and the SVM ranks the true class second") {
       CascadeParams p = cat.cascade().params();
       p.verify_budget_ms = 1e-6;

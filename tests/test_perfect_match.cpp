@@ -449,6 +449,52 @@ SCENARIO("A scan of another shape gives a clearly higher error than the part's o
   }
 }
 
+SCENARIO("A match gives up early only when its error stays far above the caller's limit", "[perfect_match][give_up]") {
+  const PlanarPose pose{0.021, -0.034, 2.5 * kDeg};
+  const Template& t = cached_template("plate_4h");
+  PerfectMatcher pm;
+  GIVEN("scans of other shapes against plate_4h's template, matched in full first") {
+    for (const char* other : {"ribbed_v4", "louvred_panel", "bracket_l", "frame_window"}) {
+      pm.set_scan(displaced(part_points(other, 0.0012, 0.23), t.centroid_m, pose));
+      const PlanarPose start = pm.centroid_start(t.centroid_m);
+      const PerfectMatchResult full = pm.match(t.view, t.centroid_m, start);
+      REQUIRE_FALSE(full.gave_up);
+      WHEN(other << " is matched again with a limit a quarter of its final error") {
+        const PerfectMatchResult r = pm.match(t.view, t.centroid_m, start, 0.25 * full.error);
+        THEN("the match gives up a few iterations into the fine level, its error still above the limit") {
+          INFO("full " << full.error << " after " << full.iterations << " iterations, early " << r.error << " after "
+                       << r.iterations);
+          CHECK(r.gave_up);
+          CHECK_FALSE(r.converged);
+          CHECK(r.iterations < full.iterations);
+          CHECK(r.error > 0.25 * full.error);
+        }
+      }
+      WHEN(other << " is matched again with a limit four times its final error") {
+        const PerfectMatchResult r = pm.match(t.view, t.centroid_m, start, 4.0 * full.error);
+        THEN("it runs to the end and gives the same result as without a limit") {
+          CHECK_FALSE(r.gave_up);
+          CHECK(r.iterations == full.iterations);
+          CHECK(r.error == full.error);
+          CHECK(r.pose.x_m == full.pose.x_m);
+          CHECK(r.pose.theta_rad == full.pose.theta_rad);
+        }
+      }
+    }
+  }
+  GIVEN("plate_4h's own scan with the limit twice its final error, as the cascade sets it for a passing match") {
+    pm.set_scan(displaced(part_points("plate_4h", 0.0012, 0.23), t.centroid_m, pose));
+    const PlanarPose start = pm.centroid_start(t.centroid_m);
+    const PerfectMatchResult full = pm.match(t.view, t.centroid_m, start);
+    const PerfectMatchResult r = pm.match(t.view, t.centroid_m, start, 2.0 * full.error);
+    THEN("the match does not give up: the error falls within the fine level's first iterations") {
+      CHECK_FALSE(r.gave_up);
+      CHECK(r.error == full.error);
+      CHECK(r.iterations == full.iterations);
+    }
+  }
+}
+
 SCENARIO("match() and set_scan() allocate nothing", "[perfect_match][alloc]") {
   GIVEN("a matcher sized at start-up, a template and a scan") {
     const Template& t = cached_template("ribbed_v3");
