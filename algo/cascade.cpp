@@ -175,11 +175,11 @@ struct OutlineField {
 
 namespace {
 
-// The seven gated figures of a report, in TemplateThresholds order (the size's deviation needs the template's
-// centres; it comes last).
-constexpr int kFigures = 7;
+// The eight gated figures of a report, in TemplateThresholds order (the size's deviations need the template's
+// centres; they come last, width then height).
+constexpr int kFigures = 8;
 constexpr int kHolePatternFigure = 5;
-constexpr int kSizeFigure = 6;
+constexpr int kSizeFigure = 6;  // the width's deviation; the height's is the next
 [[nodiscard]] std::array<double, kFigures> figures_of(const MatchReport& r, const TemplateThresholds& t) {
   return {r.pm.error,
           r.missing_area_m2,
@@ -187,15 +187,16 @@ constexpr int kSizeFigure = 6;
           1.0 - r.coverage,
           r.scan_outliers,
           r.hole_pattern_m2,
-          t.size_deviation(r.size_dx_m, r.size_dy_m)};
+          std::abs(r.size_dx_m - t.size_centre_x_m),
+          std::abs(r.size_dy_m - t.size_centre_y_m)};
 }
 [[nodiscard]] std::array<double, kFigures> limits_of(const TemplateThresholds& t) {
   return {t.max_error,    t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered,
-          t.max_outliers, t.max_hole_pattern_m2, t.max_size_dev_m};
+          t.max_outliers, t.max_hole_pattern_m2, t.max_size_dev_x_m,  t.max_size_dev_y_m};
 }
 // Whether a figure fails its limit: NaN fails, except the size's (unmeasured; MatchReport::check_passes).
 [[nodiscard]] bool fails(int figure, double value, double limit) {
-  if (figure == kSizeFigure) return value > limit;
+  if (figure >= kSizeFigure) return value > limit;
   return !(value <= limit);
 }
 void set_limit(TemplateThresholds& t, int figure, double v) {
@@ -206,12 +207,14 @@ void set_limit(TemplateThresholds& t, int figure, double v) {
     case 3: t.max_uncovered = v; break;
     case 4: t.max_outliers = v; break;
     case kHolePatternFigure: t.max_hole_pattern_m2 = v; break;
-    default: t.max_size_dev_m = v; break;
+    case kSizeFigure: t.max_size_dev_x_m = v; break;
+    default: t.max_size_dev_y_m = v; break;
   }
+  t.max_size_dev_m = std::max(t.max_size_dev_x_m, t.max_size_dev_y_m);
 }
 constexpr RejectReason kFigureReason[kFigures] = {
     RejectReason::kPmError,  RejectReason::kMissingArea, RejectReason::kExtraArea, RejectReason::kUncovered,
-    RejectReason::kOutliers, RejectReason::kHolePattern, RejectReason::kSize};
+    RejectReason::kOutliers, RejectReason::kHolePattern, RejectReason::kSize,      RejectReason::kSize};
 
 [[nodiscard]] double median_of(std::vector<double> v) {
   if (v.empty()) return 0.0;
@@ -249,10 +252,10 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
                                    const CascadeParams& params) {
   ThresholdLearning out;
   const double factor[kFigures] = {params.error_factor, params.area_factor, params.area_factor, params.share_factor,
-                                   params.share_factor, params.area_factor, params.size_factor};
-  const double floor[kFigures] = {params.error_floor, params.area_floor_m2, params.area_floor_m2,
-                                  params.share_floor, params.share_floor,   params.hole_pattern_floor_m2,
-                                  params.size_floor_m};
+                                   params.share_factor, params.area_factor, params.size_factor, params.size_factor};
+  const double floor[kFigures] = {params.error_floor,  params.area_floor_m2, params.area_floor_m2,
+                                  params.share_floor,  params.share_floor,   params.hole_pattern_floor_m2,
+                                  params.size_floor_m, params.size_floor_m};
   // 0. The size's centres: the own class's medians (all its scans: a median is not moved by the few that disagree).
   {
     std::vector<double> dx, dy;
@@ -604,10 +607,7 @@ bool Cascade::clear_of_near_misses(const DecideState& s, const Candidate& best) 
     // 3.5 mm limit it is not narrow. The evidence (areas) cannot give the margin there: a size twin's are a
     // winner's (catalogue 8601's rnd02 / rnd06 came out ambiguous on all 20 passes).
     const double size_slack_m = (params_.near_fail_factor - 1.0) * params_.size_floor_m;
-    if (ct->thresholds.size_deviation(c.report.size_dx_m, c.report.size_dy_m) >
-        ct->thresholds.max_size_dev_m + size_slack_m) {
-      continue;
-    }
+    if (ct->thresholds.size_beyond(c.report.size_dx_m, c.report.size_dy_m, 1.0, size_slack_m)) continue;
     if (!clear_margin(b, c.report.evidence_m2)) return false;
   }
   return true;
@@ -852,7 +852,7 @@ bool Cascade::gross_failure(const MatchReport& r, const TemplateThresholds& t) {
 }
 
 bool Cascade::off_in_size(const MatchReport& r, const TemplateThresholds& t) {
-  return t.size_deviation(r.size_dx_m, r.size_dy_m) > kGrossFailure * t.max_size_dev_m;
+  return t.size_beyond(r.size_dx_m, r.size_dy_m, kGrossFailure);
 }
 
 bool Cascade::displaced(const MatchReport& r, const TemplateThresholds& t) {
@@ -863,8 +863,7 @@ bool Cascade::displaced(const MatchReport& r, const TemplateThresholds& t) {
   // mm2 (> 70 x their limits) and a size 0.03-0.4 x its limit off; the others were of wrong candidates (other
   // outlines, other sizes, a hole more or less), many with only one of the two areas large or off in size.
   return r.missing_area_m2 > kGrossFailure * t.max_missing_area_m2 &&
-         r.extra_area_m2 > kGrossFailure * t.max_extra_area_m2 &&
-         !(t.size_deviation(r.size_dx_m, r.size_dy_m) > t.max_size_dev_m);
+         r.extra_area_m2 > kGrossFailure * t.max_extra_area_m2 && !t.size_beyond(r.size_dx_m, r.size_dy_m);
 }
 
 double Cascade::recheck_on_outline(const TemplateModel& model, std::span<const ScanPoint> scan, const PlanarPose& pose,

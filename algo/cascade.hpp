@@ -170,14 +170,25 @@ struct TemplateThresholds {
   double max_outliers = 0.0;         // share of the scan's cells the template lacks (scan_outliers)
   double max_hole_pattern_m2 = 0.0;  // holes of one surface where the other is solid, all together (hole_pattern_m2)
   // Outer size: the scan's width and height less the template's (MatchReport::size_dx_m / size_dy_m) are expected at
-  // these centres (own-class medians: sampling and the template's cells bias them); a deviation beyond
-  // max_size_dev_m on either fails. The default never fails (thresholds learnt before the size was measured).
+  // these centres (own-class medians: sampling and the template's cells bias them); a deviation beyond its axis's
+  // limit fails. Each axis has its own: a part's width and height scatter differently (a 58 mm flange along a side
+  // edge projects up to 6 mm more or less width as the part swings on its hook; its height does not move), and a
+  // twin 5 mm taller must not hide in the width's scatter (catalogue 11002, rnd05 / rnd09). The default never fails
+  // (thresholds learnt before the size was measured).
   double size_centre_x_m = 0.0;
   double size_centre_y_m = 0.0;
-  double max_size_dev_m = std::numeric_limits<double>::infinity();
+  double max_size_dev_x_m = std::numeric_limits<double>::infinity();
+  double max_size_dev_y_m = std::numeric_limits<double>::infinity();
+  double max_size_dev_m = std::numeric_limits<double>::infinity();  // the larger of the two (what `parts list` shows)
   // The larger deviation of a report's width / height from the centres; NaN when the report could not measure them.
   [[nodiscard]] double size_deviation(double dx_m, double dy_m) const {
     return std::max(std::abs(dx_m - size_centre_x_m), std::abs(dy_m - size_centre_y_m));
+  }
+  // Whether the width or the height deviates by more than `factor` x its limit plus `slack_m` (an unmeasured size,
+  // NaN, does not).
+  [[nodiscard]] bool size_beyond(double dx_m, double dy_m, double factor = 1.0, double slack_m = 0.0) const {
+    return std::abs(dx_m - size_centre_x_m) > factor * max_size_dev_x_m + slack_m ||
+           std::abs(dy_m - size_centre_y_m) > factor * max_size_dev_y_m + slack_m;
   }
 };
 
@@ -235,7 +246,7 @@ struct MatchReport {
     // areas and shares anyway.
     return missing_area_m2 <= t.max_missing_area_m2 && extra_area_m2 <= t.max_extra_area_m2 &&
            1.0 - coverage <= t.max_uncovered && scan_outliers <= t.max_outliers &&
-           hole_pattern_m2 <= t.max_hole_pattern_m2 && !(t.size_deviation(size_dx_m, size_dy_m) > t.max_size_dev_m);
+           hole_pattern_m2 <= t.max_hole_pattern_m2 && !t.size_beyond(size_dx_m, size_dy_m);
   }
   [[nodiscard]] bool passes(const TemplateThresholds& t) const { return pm.error <= t.max_error && check_passes(t); }
 };

@@ -153,6 +153,8 @@ algo::TemplateThresholds template_thresholds(const formats::PartThresholds& p) {
   t.max_hole_pattern_m2 = p.max_hole_pattern_m2;
   t.size_centre_x_m = p.size_centre_x_m;
   t.size_centre_y_m = p.size_centre_y_m;
+  t.max_size_dev_x_m = p.max_size_dev_x_m;
+  t.max_size_dev_y_m = p.max_size_dev_y_m;
   t.max_size_dev_m = p.max_size_dev_m;
   return t;
 }
@@ -168,6 +170,8 @@ formats::PartThresholds part_thresholds(const algo::TemplateThresholds& t, bool 
   p.max_hole_pattern_m2 = t.max_hole_pattern_m2;
   p.size_centre_x_m = t.size_centre_x_m;
   p.size_centre_y_m = t.size_centre_y_m;
+  p.max_size_dev_x_m = t.max_size_dev_x_m;
+  p.max_size_dev_y_m = t.max_size_dev_y_m;
   p.max_size_dev_m = t.max_size_dev_m;
   return p;
 }

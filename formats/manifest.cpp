@@ -51,6 +51,8 @@ std::string manifest_text(const Manifest& m) {
       << ", max_hole_pattern_m2: " << number(p.thresholds.max_hole_pattern_m2)
       << ", size_centre_x_m: " << number(p.thresholds.size_centre_x_m)
       << ", size_centre_y_m: " << number(p.thresholds.size_centre_y_m)
+      << ", max_size_dev_x_m: " << number(p.thresholds.max_size_dev_x_m)
+      << ", max_size_dev_y_m: " << number(p.thresholds.max_size_dev_y_m)
       << ", max_size_dev_m: " << number(p.thresholds.max_size_dev_m) << "}\n";
     if (!p.confusable.empty()) {
       std::string list;
@@ -156,6 +158,8 @@ constexpr ThresholdField kThresholdFields[] = {
     {"max_hole_pattern_m2", &PartThresholds::max_hole_pattern_m2, 0.0, 100.0, "m2"},
     {"size_centre_x_m", &PartThresholds::size_centre_x_m, -1.0, 1.0, "m"},
     {"size_centre_y_m", &PartThresholds::size_centre_y_m, -1.0, 1.0, "m"},
+    {"max_size_dev_x_m", &PartThresholds::max_size_dev_x_m, 0.0, 1.0, "m"},
+    {"max_size_dev_y_m", &PartThresholds::max_size_dev_y_m, 0.0, 1.0, "m"},
     {"max_size_dev_m", &PartThresholds::max_size_dev_m, 0.0, 1.0, "m"},
 };
 

@@ -25,7 +25,9 @@ struct PartThresholds {
   double max_hole_pattern_m2 = 0.0;  // holes of one surface where the other is solid (algo::MatchReport)
   double size_centre_x_m = 0.0;      // outer width / height of a scan less the template's, as its own scans show
   double size_centre_y_m = 0.0;
-  double max_size_dev_m = 0.0;  // ... and the largest deviation from those accepted
+  double max_size_dev_x_m = 0.0;  // ... and the largest deviation from those accepted, per axis
+  double max_size_dev_y_m = 0.0;
+  double max_size_dev_m = 0.0;  // the larger of the two
 };
 
 struct ScanEntry {

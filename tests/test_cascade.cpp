@@ -336,6 +336,42 @@ TEST_CASE("learn_thresholds takes the own-class maxima times the factor plus the
   CHECK(empty.max_uncovered == Approx(0.002));
 }
 
+TEST_CASE("learn_thresholds learns the width's and the height's limits apart", "[cascade][size]") {
+  // Catalogue 11002's rnd05 (measured): a 58 mm flange along its right edge projects up to 6 mm more width as the
+  // part swings on its hook, its height stays within 1 mm; its twin rnd09 is 5 mm taller.
+  CascadeParams p;
+  p.size_factor = 1.0;
+  p.size_floor_m = 0.0015;
+  std::vector<MatchReport> own(12);
+  for (std::size_t i = 0; i < own.size(); ++i) {
+    own[i].size_dx_m = 0.0007 * static_cast<double>(i);               // 0 .. 7.7 mm wider
+    own[i].size_dy_m = 0.0001 * static_cast<double>(i % 5) - 0.0002;  // -0.2 .. +0.2 mm
+  }
+  const algo::TemplateThresholds t = algo::learn_thresholds(own, p);
+  // Centres are the medians (4.2 mm, 0 mm); the limits the own maximum deviation from them plus the floor.
+  CHECK(t.size_centre_x_m == Approx(0.0042));
+  CHECK(t.size_centre_y_m == Approx(0.0).margin(1e-9));
+  CHECK(t.max_size_dev_x_m == Approx(0.0042 + 0.0015));
+  CHECK(t.max_size_dev_y_m == Approx(0.0002 + 0.0015));
+  CHECK(t.max_size_dev_m == t.max_size_dev_x_m);
+  MatchReport twin = own[3];
+  twin.size_dy_m = 0.005;  // the twin: 5 mm taller, its width within the own scatter
+  twin.pm.error = 0.0;
+  for (MatchReport* r : {&twin, &own[3]}) {
+    r->coverage = 1.0;
+    r->scan_outliers = 0.0;
+  }
+  THEN("the twin fails on its height, though its deviation is within the width's limit; the own scan passes") {
+    CHECK(t.size_deviation(twin.size_dx_m, twin.size_dy_m) < t.max_size_dev_x_m);
+    CHECK_FALSE(twin.check_passes(t));
+    double value = 0.0, limit = 0.0;
+    CHECK(algo::first_failed_gate(twin, t, value, limit) == algo::RejectReason::kSize);
+    CHECK(value == Approx(0.005));
+    CHECK(limit == Approx(t.max_size_dev_y_m));
+    CHECK(own[3].check_passes(t));
+  }
+}
+
 SCENARIO("The two-way check sees one hole more or less in both directions and the same part at other poses passes",
          "[cascade][two-way]") {
   GIVEN("templates of plate_4h and plate_5h (= plate_4h + one 40 mm centre hole), taught at one pose") {
@@ -1557,7 +1593,7 @@ SCENARIO(
     wide.max_error = 1.0;
     wide.max_missing_area_m2 = wide.max_extra_area_m2 = 1.0;
     wide.max_uncovered = wide.max_outliers = 1.0;
-    wide.max_size_dev_m = std::numeric_limits<double>::infinity();
+    wide.max_size_dev_x_m = wide.max_size_dev_y_m = wide.max_size_dev_m = std::numeric_limits<double>::infinity();
     const auto scan = sample_part(part("plate_4h"), kTestPose, 1201);
     // Independent of decide(): each template's evidence on its own; the hole's material is a clear margin.
     const MatchReport own = cat.cascade().evaluate(models[0], scan);
@@ -1617,7 +1653,7 @@ SCENARIO(
         algo::TemplateThresholds& t = models[1].thresholds;
         t.size_centre_x_m = own.size_dx_m;
         t.size_centre_y_m = own.size_dy_m - (limit_m + beyond_m);
-        t.max_size_dev_m = limit_m;
+        t.max_size_dev_x_m = t.max_size_dev_y_m = t.max_size_dev_m = limit_m;
         const ClassProbability svm[] = {{0, 0.55}, {1, 0.40}, {2, 0.03}, {3, 0.02}};
         const Decision d = cat.cascade().decide(svm, models, scan, far_deadline());
         REQUIRE(d.verified_count >= 2);

@@ -331,7 +331,7 @@ TEST_CASE("limits learnt before a gate existed read as not learnt, so the databa
 
 TEST_CASE("a part's limits go from the manifest to the cascade and back field by field", "[model_db]") {
   // Every field a different value, so that two swapped fields show.
-  const formats::PartThresholds p{true, 1e-3, 2e-4, 3e-4, 4e-3, 5e-3, 6e-4, 7e-3, -8e-3, 9e-3};
+  const formats::PartThresholds p{true, 1e-3, 2e-4, 3e-4, 4e-3, 5e-3, 6e-4, 7e-3, -8e-3, 9e-3, 1.1e-2, 1.2e-2};
   const algo::TemplateThresholds t = app::template_thresholds(p);
   CHECK(t.max_error == p.max_error);
   CHECK(t.max_missing_area_m2 == p.max_missing_area_m2);
@@ -341,6 +341,8 @@ TEST_CASE("a part's limits go from the manifest to the cascade and back field by
   CHECK(t.max_hole_pattern_m2 == p.max_hole_pattern_m2);
   CHECK(t.size_centre_x_m == p.size_centre_x_m);
   CHECK(t.size_centre_y_m == p.size_centre_y_m);
+  CHECK(t.max_size_dev_x_m == p.max_size_dev_x_m);
+  CHECK(t.max_size_dev_y_m == p.max_size_dev_y_m);
   CHECK(t.max_size_dev_m == p.max_size_dev_m);
   // ... and back: the manifest writes the same limits (every field is in its text).
   auto text_of = [](const formats::PartThresholds& limits) {
