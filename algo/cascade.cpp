@@ -1396,6 +1396,7 @@ double Cascade::covered_hole_cells(const Roi& roi) {
   constexpr std::size_t kMinHoleCells = 20;  // ~100 mm2
   constexpr double kMinHoleThickness = 4.0;
   constexpr float kMaxRimStep_m = 0.006F;  // above a cell's own depth spread and a swing's slope, below a rib's rise
+  constexpr double kShadowSlackCells = 2.0;
   const auto tol = static_cast<float>(params_.depth_tolerance_m);
   const int w = width_;
   double largest = 0.0;
@@ -1438,11 +1439,20 @@ double Cascade::covered_hole_cells(const Roi& roi) {
       // A rim that steps in depth (the sheet on one side, a rib's top on the other) bounds a laser shadow, not a hole.
       // A scan at another pose sees into it: its material there, at depths between the rim's (the wall, its foot), is
       // marked for blob_evidence as the mirror of the shadow mark_lost_data excuses. Only a strip along the wall
-      // (elongated): a round hole beside a rib stays a hole.
+      // (elongated): a round hole beside a rib stays a hole. And only within a shadow's reach of the raised side (the
+      // laser meets the sheet 30 deg off the camera's axis, so a shadow is ~tan 30 deg x the rise; the rise itself and
+      // two cells are allowed): a slot along a rib, which the shadow joins to it, stays a hole beyond that (catalogue
+      // 11102's rnd05 has a 126 x 30 mm slot 1.5 mm from a 13 mm rib; all of it taken for the rib's shadow, its twin
+      // rnd01's material there weighed nothing and the two came out ambiguous on every pass; had rnd01 not been
+      // taught, its passes would have passed as rnd05).
       if (rim_cells > 0 && rim_hi - rim_lo >= kMaxRimStep_m && moments.elongation() >= params_.band_elongation) {
+        const double rise_m = static_cast<double>(rim_hi - rim_lo);
+        const int reach = static_cast<int>(std::ceil(rise_m / resolution_m_ + kShadowSlackCells));
+        const float raised = rim_lo + kMaxRimStep_m;
         for (std::size_t j = 0; j < count; ++j) {
           const auto c = static_cast<std::size_t>(blob_cells_[j]);
-          if ((flags_[c] & kExtra) != 0 && s_lo_[c] >= rim_lo - tol && s_hi_[c] <= rim_hi + tol) flags_[c] |= kShadow;
+          if ((flags_[c] & kExtra) == 0 || s_lo_[c] < rim_lo - tol || s_hi_[c] > rim_hi + tol) continue;
+          if (near_raised(roi, blob_cells_[j], reach, raised)) flags_[c] |= kShadow;
         }
         continue;
       }
@@ -1463,6 +1473,18 @@ double Cascade::covered_hole_cells(const Roi& roi) {
   }
   clear_flag(roi, kVisited);  // blob_evidence needs it clear
   return largest;
+}
+
+bool Cascade::near_raised(const Roi& roi, std::int32_t cell, int reach, float raised) const {
+  const int cx = cell % width_, cy = cell / width_;
+  for (int y = std::max(roi.y0, cy - reach); y <= std::min(roi.y1 - 1, cy + reach); ++y) {
+    for (int x = std::max(roi.x0, cx - reach); x <= std::min(roi.x1 - 1, cx + reach); ++x) {
+      const std::size_t i =
+          static_cast<std::size_t>(y) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(x);
+      if (t_lo_[i] <= t_hi_[i] && t_hi_[i] >= raised) return true;
+    }
+  }
+  return false;
 }
 
 void Cascade::clear_flag(const Roi& roi, std::uint8_t bit) {

@@ -409,6 +409,9 @@ class Cascade {
   [[nodiscard]] static bool displaced(const MatchReport& report, const TemplateThresholds& thresholds);
   // Whether the outer size is off by far (kGrossFailure x its limit), which no alignment mends.
   [[nodiscard]] static bool off_in_size(const MatchReport& report, const TemplateThresholds& thresholds);
+  // covered_hole_cells: whether a template cell at least `raised` deep lies within `reach` cells of `cell` (in the
+  // box).
+  [[nodiscard]] bool near_raised(const Roi& roi, std::int32_t cell, int reach, float raised) const;
   [[nodiscard]] double recheck_on_outline(const TemplateModel& model, std::span<const ScanPoint> scan,
                                           const PlanarPose& pose, const Roi& template_box, bool wide,
                                           MatchReport& best);
