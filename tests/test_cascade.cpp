@@ -219,14 +219,17 @@ TemplateModel model_of(const Template& t, int class_index, int part_id) {
 
 // DESIGN.md's pose of a scan taken at `scan` relative to a template taught at `taught` (swing left out: the planar
 // pose does not model it): p_scan = c + R(dtheta)(p_template - c) + t.
-PlanarPose true_relative_pose(const Template& taught, const sim::PartPose& scan) {
-  const sim::PartSpec& spec = part(taught.name);
+// `spec`: the taught part's (a part outside the catalogue; the other overload looks it up by the template's name).
+PlanarPose true_relative_pose(const sim::PartSpec& spec, const Template& taught, const sim::PartPose& scan) {
   const Eigen::Vector2d n = nominal_centre(spec).head<2>();
   const Eigen::Vector2d t0(taught.pose.x_m, taught.pose.y_m), t1(scan.x_m, scan.y_m);
   const double dtheta = scan.theta_rad - taught.pose.theta_rad;
   const Eigen::Vector2d c = taught.centroid_m;
   const Eigen::Vector2d t = Eigen::Rotation2Dd(dtheta) * (c - n - t0) + n + t1 - c;
   return {t.x(), t.y(), dtheta};
+}
+PlanarPose true_relative_pose(const Template& taught, const sim::PartPose& scan) {
+  return true_relative_pose(part(taught.name), taught, scan);
 }
 
 // Poses of "other passes" of the same part (thesis pose range is +-50 mm / +-5 deg; here +-30 mm / +-4 deg so the
@@ -401,14 +404,7 @@ SCENARIO("A slot along a rib is a hole of its own, not the rib's laser shadow", 
   // The template of the slotted part from a scan without the foot of its rib's +x wall (the shadow).
   const auto taught_scan = without_wall_foot(sample_part(with_slot, kTaughtPose, 71), 0.28F, 8);
   const std::unique_ptr<Template> t = teach_from("rib_slot", kTaughtPose, taught_scan);
-  // Its relative pose (true_relative_pose() for a part outside the catalogue).
-  const Eigen::Vector2d n = nominal_centre(with_slot).head<2>();
-  const double dtheta = kTestPose.theta_rad - kTaughtPose.theta_rad;
-  const Eigen::Vector2d c = t->centroid_m;
-  const Eigen::Vector2d shift =
-      Eigen::Rotation2Dd(dtheta) * (c - n - Eigen::Vector2d(kTaughtPose.x_m, kTaughtPose.y_m)) + n +
-      Eigen::Vector2d(kTestPose.x_m, kTestPose.y_m) - c;
-  const PlanarPose at{shift.x(), shift.y(), dtheta};
+  const PlanarPose at = true_relative_pose(with_slot, *t, kTestPose);
   Cascade cascade(CascadeParams{}, pm_params(), test_grid());
   const double slot_m2 = 0.030 * 0.126;
   WHEN("the twin without the slot is checked against the slotted template, and the slotted part's own scan") {
