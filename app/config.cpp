@@ -236,6 +236,7 @@ void read_cascade_section(formats::YamlSection s, Config& cfg) {
   s.number("accept_p2_max", cfg.cascade.accept_p2_max, 0.0, 1.0, "");
   s.integer("pm_candidates", cfg.cascade.pm_candidates, 1, 64, "classes");
   s.number("verify_budget_ms", cfg.cascade.verify_budget_ms, 1.0, 3000.0, "ms");
+  s.number("search_budget_ms", cfg.cascade.search_budget_ms, 1.0, 3000.0, "ms");
   s.number("stop_ratio", cfg.cascade.stop_ratio, 0.0, 1.0, "");
   s.number("margin_ratio", cfg.cascade.margin_ratio, 0.0, 1.0, "");
   s.number("margin_floor_m2", cfg.cascade.margin_floor_m2, 0.0, 1.0, "m^2");

@@ -377,6 +377,7 @@ class ModelRecogniser final : public runtime::Recogniser {
       p.pm_candidates = static_cast<int>(std::max<std::size_t>(1, classes));
       p.stop_ratio = 1e-12;  // every candidate the SVM gives any probability
       p.verify_budget_ms = kNoBudgetMs;
+      p.search_budget_ms = kNoBudgetMs;
     }
     return p;
   }

@@ -62,6 +62,7 @@ sim:
   catalogue: $(realpath config/parts.yaml)
 cascade:
   verify_budget_ms: 3000
+  search_budget_ms: 3000
 runtime:
   deadline_ms: 60000
 EOF

@@ -12,8 +12,9 @@
 #              WORK           the work folder (default: out/eval_catalogue/seedSEED-nN); it must not exist yet
 #              PERTURB        a --perturb SPEC for the taught and the evaluated passes alike (e.g. mixed; see
 #                             README "Robustness")
-#              SITE_EXTRA     YAML appended to the site config (e.g. $'cascade:\n  verify_budget_ms: 1000' to judge
-#                             accuracy apart from a loaded machine's timing)
+#              SITE_EXTRA     YAML appended to the site config (e.g.
+#                             $'cascade:\n  verify_budget_ms: 1000\n  search_budget_ms: 1000' to judge accuracy apart
+#                             from a loaded machine's timing)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 

@@ -722,6 +722,7 @@ namespace {
 CascadeParams generous_budget() {
   CascadeParams p;
   p.verify_budget_ms = 60000.0;
+  p.search_budget_ms = 60000.0;
   return p;
 }
 
@@ -878,6 +879,39 @@ SCENARIO("The cascade decides by the thesis 6.4.4 table and verifies every accep
         CHECK(d.verified_count == 1);
         CHECK(d.candidates[1].rejected_by == algo::RejectReason::kNotVerified);
         CHECK(d.probability == 0.50);
+      }
+    }
+    WHEN("the search budget is spent and no candidate has passed, the true class ranked third") {
+      CascadeParams p = cat.cascade().params();
+      p.search_budget_ms = 1e-6;
+      Cascade tight(p, pm_params(), test_grid());
+      const ClassProbability svm[] = {{1, 0.50}, {2, 0.45}, {0, 0.03}, {3, 0.02}};
+      const Decision d = tight.decide(svm, cat.models(), scan, far_deadline());
+      THEN("the SVM's two most probable are verified all the same, not the third, and the scan is unknown") {
+        CHECK(d.source == DecisionSource::kUnknown);
+        CHECK(d.class_index == -1);
+        CHECK(d.verified_count == 2);
+        CHECK_FALSE(d.candidates[0].passed);
+        CHECK_FALSE(d.candidates[1].passed);
+        CHECK(d.candidates[2].rejected_by == algo::RejectReason::kNotVerified);
+      }
+    }
+    WHEN("the search budget is spent but the true class passes second, with a look-alike after it") {
+      CascadeParams p = cat.cascade().params();
+      p.search_budget_ms = 1e-6;
+      Cascade tight(p, pm_params(), test_grid());
+      // plate_5h (2) as plate_4h's (0) look-alike, as training would record it: one hole more.
+      std::vector<TemplateModel> models(cat.models().begin(), cat.models().end());
+      const int look_alike[] = {2};
+      models[0].confusable = look_alike;
+      const ClassProbability svm[] = {{1, 0.50}, {0, 0.45}, {3, 0.03}, {2, 0.02}};
+      const Decision d = tight.decide(svm, models, scan, far_deadline());
+      THEN("the look-alike is verified within the whole budget, fails, and the part is found") {
+        CHECK(d.class_index == 0);
+        CHECK(d.candidates[1].passed);
+        CHECK(d.candidates[3].verified);
+        CHECK_FALSE(d.candidates[3].passed);
+        CHECK(d.candidates[2].rejected_by == algo::RejectReason::kNotVerified);
       }
     }
     WHEN("the true class passes first but the budget runs out before an almost as probable candidate") {
@@ -1075,6 +1109,40 @@ SCENARIO("A part that passes only with lost data brings every candidate to verif
                          << d.verified_count);
         CHECK(d.verified_count == 4);
         CHECK(d.class_index != 1);
+      }
+    }
+  }
+}
+
+SCENARIO("The search beyond the SVM's two most probable has a budget of its own, except on a scan with lost data",
+         "[cascade][policy]") {
+  GIVEN("the four classes, a search budget spent at once, and the SVM ranking plate_4h last, plate_5h first") {
+    Catalogue4& cat = catalogue4();
+    CascadeParams p = cat.cascade().params();
+    p.search_budget_ms = 1e-6;
+    Cascade tight(p, pm_params(), test_grid());
+    const ClassProbability svm[] = {{2, 0.50}, {1, 0.45}, {3, 0.03}, {0, 0.02}};
+    const auto clean = sample_part(part("plate_4h"), kTestPose, 821);
+    float cx = 0.0F;
+    for (const ScanPoint& q : clean) cx += q.x;
+    cx /= static_cast<float>(clean.size());
+    WHEN("a clean plate_4h scan comes") {
+      const Decision d = tight.decide(svm, cat.models(), clean, far_deadline());
+      THEN("plate_5h and ribbed_v4 are verified and fail, the search stops there, and the scan is unknown") {
+        CHECK(d.verified_count == 2);
+        CHECK(d.source == DecisionSource::kUnknown);
+        CHECK(d.candidates[3].rejected_by == algo::RejectReason::kNotVerified);
+      }
+    }
+    WHEN("the plate_4h scan has a 20 mm glare band that leaves 3 % of its points, where all four are flat sheet") {
+      // (Between ribbed_v4's first two ribs, x -115..-65 mm: over a rib the band's cells join the rib's missing ones.)
+      const auto glare = with_glare_residue(clean, cx - 0.105, cx - 0.085, 0.03, 822);
+      const Decision d = tight.decide(svm, cat.models(), glare, far_deadline());
+      THEN("the lost data plate_5h's check found keeps the search going, and plate_4h is found") {
+        INFO("decision " << d.class_index << ", reason " << algo::to_string(d.unknown_reason) << ", verified "
+                         << d.verified_count);
+        CHECK(d.verified_count == 4);
+        CHECK(d.class_index == 0);
       }
     }
   }

@@ -115,6 +115,7 @@ TEST_CASE(
   CHECK(cfg->cascade.accept_p2_max == d.cascade.accept_p2_max);
   CHECK(cfg->cascade.pm_candidates == d.cascade.pm_candidates);
   CHECK(cfg->cascade.verify_budget_ms == d.cascade.verify_budget_ms);
+  CHECK(cfg->cascade.search_budget_ms == d.cascade.search_budget_ms);
   CHECK(cfg->cascade.stop_ratio == d.cascade.stop_ratio);
   CHECK(cfg->cascade.margin_ratio == d.cascade.margin_ratio);
   CHECK(cfg->cascade.margin_floor_m2 == d.cascade.margin_floor_m2);
@@ -486,6 +487,7 @@ const RangedKey kRangedKeys[] = {
     {"cascade.accept_p2_max", kNumber, "0", "1", ""},
     {"cascade.pm_candidates", kInteger, "1", "64", "classes"},
     {"cascade.verify_budget_ms", kNumber, "1", "3000", "ms"},
+    {"cascade.search_budget_ms", kNumber, "1", "3000", "ms"},
     {"cascade.stop_ratio", kNumber, "0", "1", ""},
     {"cascade.margin_ratio", kNumber, "0", "1", ""},
     {"cascade.margin_floor_m2", kNumber, "0", "1", "m^2"},
