@@ -38,15 +38,14 @@ struct CascadeParams {
   // candidates that happened to start just before its end (issue 11: 204 ms at 300 parts with 200 ms of budget).
   // The search in rank order for a first passing candidate has a budget of its own, search_budget_ms (counted the
   // same way, at most verify_budget_ms): a scan that no candidate has passed by then is unknown. The SVM's
-  // kFirstRanked most probable are verified within verify_budget_ms all the same, and so is every candidate once a
-  // check has found lost data (verify_all_lost_m2) on the scan: glare is where the SVM ranks the true class lower
-  // (a 35 ms search alone lost 3 of ~1 000 passes under `mixed` and `glare`, each with the true class ranked 3rd-9th
-  // and lost data on the scan). Once one passes,
-  // what could also pass is verified within verify_budget_ms. The search's tail is where time goes and answers do
-  // not: the true class is among the SVM's two most probable for >= 98 % of scans even under `mixed`, while a scan
-  // whose own template fails narrowly (or an untaught part) verified every candidate (issue 11: 15 of 15 taught
-  // parts under a PLC, worst cycle 75.9 ms; a single 45 ms budget bounded it but also cut the look-alikes of a
-  // passing candidate short, 6 more unknown passes).
+  // kFirstRanked most probable are verified within verify_budget_ms all the same, and so is every candidate while
+  // every check that ran has found lost data (verify_all_lost_m2) on the scan: glare is where the SVM ranks the true
+  // class lower (a 35 ms search alone lost 3 of ~1 000 passes under `mixed` and `glare`, each with the true class
+  // ranked 3rd-9th and lost data on the scan). Once one passes, what could also pass is verified within
+  // verify_budget_ms. The search's tail is where time goes and answers do not: the true class is among the SVM's two
+  // most probable for >= 98 % of scans even under `mixed`, while a scan whose own template fails narrowly (or an
+  // untaught part) verified every candidate (issue 11: 15 of 15 taught parts under a PLC, worst cycle 75.9 ms; a
+  // single 45 ms budget bounded it but also cut the look-alikes of a passing candidate short, 6 more unknown passes).
   double accept_p1 = 0.70;
   double accept_p2_max = 0.06;
   int pm_candidates = 16;

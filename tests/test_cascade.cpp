@@ -1138,7 +1138,7 @@ SCENARIO("The search beyond the SVM's two most probable has a budget of its own,
       // (Between ribbed_v4's first two ribs, x -115..-65 mm: over a rib the band's cells join the rib's missing ones.)
       const auto glare = with_glare_residue(clean, cx - 0.105, cx - 0.085, 0.03, 822);
       const Decision d = tight.decide(svm, cat.models(), glare, far_deadline());
-      THEN("the lost data plate_5h's check found keeps the search going, and plate_4h is found") {
+      THEN("the lost data both checks found keeps the search going, and plate_4h is found") {
         INFO("decision " << d.class_index << ", reason " << algo::to_string(d.unknown_reason) << ", verified "
                          << d.verified_count);
         CHECK(d.verified_count == 4);
