@@ -474,6 +474,10 @@ class Cascade {
   [[nodiscard]] double hole_pattern_cells(const Roi& roi);
   // hole_pattern_cells()'s half for one side: the unmatched holes (cells) of the scan, or of the template.
   [[nodiscard]] double unmatched_hole_cells(const Roi& roi, bool scan_holes);
+  // unmatched_hole_cells()'s test of one hole (centre and equivalent radius in cells): clean (its own surface solid
+  // around it in every direction) and unmatched (the other surface solid where it lies).
+  [[nodiscard]] bool clean_unmatched_hole(const Roi& roi, const Eigen::Vector2d& centre, double radius,
+                                          bool scan_holes) const;
   // unmatched_hole_cells()'s empty cells of one side into mask_b_.
   void mark_empty_cells(const Roi& roi, bool scan_side);
   // Whether raster cell i holds a point of the scan (scan_side) or of the template.

@@ -1221,6 +1221,32 @@ SCENARIO("The hole pattern sees a field of small holes two pitches over, which t
         CHECK(std::max({r.hole_pattern_m2, dropped.hole_pattern_m2, glare.hole_pattern_m2}) < kOneHoleM2);
       }
     }
+    WHEN("glare bands 15 mm wide that keep 4-12 % of their points lie over the plain sheet or along its edge") {
+      const auto clean = sample_part(plate, kTestPose, 68);
+      float left = 1e9F, right = -1e9F;
+      for (const ScanPoint& p : clean) {
+        left = std::min(left, p.x);
+        right = std::max(right, p.x);
+      }
+      double worst = 0.0;
+      int passed = 0, bands = 0;
+      std::uint64_t seed = 69;
+      for (const double x0 : {static_cast<double>(left) + 0.060, static_cast<double>(right) - 0.040,
+                              static_cast<double>(right) - 0.020}) {
+        for (const double keep : {0.04, 0.08, 0.12}) {
+          const MatchReport r = cascade.evaluate(m, with_glare_residue(clean, x0, x0 + 0.015, keep, seed++));
+          worst = std::max(worst, r.hole_pattern_m2);
+          passed += r.passes(m.thresholds) ? 1 : 0;
+          ++bands;
+        }
+      }
+      THEN("the pockets between the residue's points are no holes: each passes, with less than a hole's pattern") {
+        INFO("largest hole pattern " << worst * 1e6 << " mm2 (limit " << m.thresholds.max_hole_pattern_m2 * 1e6 << "); "
+                                     << passed << " of " << bands << " pass");
+        CHECK(worst < kOneHoleM2);
+        CHECK(passed == bands);
+      }
+    }
     WHEN("the check of the part's own scan runs at a pose 1.5 mm and 1 mm off the fitted one, without realignment") {
       CascadeParams fixed_params;
       fixed_params.refine_iterations = 0;
@@ -1291,6 +1317,58 @@ SCENARIO("Evidence is judged by its shape: data loss and hangers weigh little, a
         INFO("size dx " << r.size_dx_m * 1e3 << " (centre " << m.thresholds.size_centre_x_m * 1e3 << ", limit "
                         << m.thresholds.max_size_dev_m * 1e3 << ") mm; missing " << r.missing_area_m2 * 1e6 << " mm2");
         CHECK(r.passes(m.thresholds));
+      }
+    }
+    WHEN("20 mm glare bands that leave 1-2 % of the points run along its right edge and off the part, 0.6 deg off") {
+      // The right edge, turned with the pose: a line fitted through the outermost point of each 10 mm of height (the
+      // middle 80 %, clear of the corners).
+      float y_lo = 1e9F, y_hi = -1e9F;
+      for (const ScanPoint& p : clean) {
+        y_lo = std::min(y_lo, p.y);
+        y_hi = std::max(y_hi, p.y);
+      }
+      constexpr int kBins = 52;
+      std::array<float, kBins> outer{};
+      outer.fill(-1e9F);
+      const float first = y_lo + 0.1F * (y_hi - y_lo), bin = 0.8F * (y_hi - y_lo) / kBins;
+      for (const ScanPoint& p : clean) {
+        const int k = static_cast<int>(std::floor((p.y - first) / bin));
+        if (k >= 0 && k < kBins) outer[static_cast<std::size_t>(k)] = std::max(outer[static_cast<std::size_t>(k)], p.x);
+      }
+      double sy = 0.0, sx = 0.0, syy = 0.0, sxy = 0.0;
+      for (int k = 0; k < kBins; ++k) {
+        const double y = first + (k + 0.5) * bin, x = outer[static_cast<std::size_t>(k)];
+        sy += y, sx += x, syy += y * y, sxy += x * y;
+      }
+      const double edge_slope = (kBins * sxy - sx * sy) / (kBins * syy - sy * sy);
+      const double edge_at = (sx - edge_slope * sy) / kBins;  // x of the edge at y = 0
+      int passed = 0, bands = 0;
+      double worst = 0.0;
+      // The band's axis on the edge at one end, turning 0.6 deg outward: along the part it eats a strip of the edge
+      // whose width shrinks as the band runs off.
+      const double off = std::tan(0.6 * std::numbers::pi / 180.0);
+      for (const float y_start : {y_lo, y_hi}) {
+        for (const double keep : {0.01, 0.02}) {
+          std::mt19937_64 rng(814 + static_cast<std::uint64_t>(bands));
+          std::uniform_real_distribution<double> u(0.0, 1.0);
+          auto scan = clean;
+          std::erase_if(scan, [&](const ScanPoint& p) {
+            const double y = p.y;
+            const double axis = edge_at + edge_slope * y + off * std::abs(y - static_cast<double>(y_start));
+            return std::abs(static_cast<double>(p.x) - axis) <= 0.010 && u(rng) >= keep;
+          });
+          const MatchReport r = cat.cascade().evaluate(m, scan);
+          worst = std::max(worst, r.missing_area_m2);
+          passed += r.passes(m.thresholds) ? 1 : 0;
+          ++bands;
+        }
+      }
+      THEN("each passes, and the strip a band eats off the edge where it leaves the part is lost data, no evidence") {
+        // Stopped where half the band's width had run off the part, the strip beyond weighed 34-53 mm2 here (the
+        // shipped catalogue's plate_4h pass 870010 under `glare`: 286 mm2, rejected).
+        INFO("largest missing " << worst * 1e6 << " mm2; " << passed << " of " << bands << " pass");
+        CHECK(passed == bands);
+        CHECK(worst < 0.0022 * 0.0022 * 1.5);
       }
     }
     WHEN("a 44 mm glare band that leaves 10 % of the points lies over where plate_5h has its fifth hole") {
