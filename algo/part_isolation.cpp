@@ -107,13 +107,22 @@ bool PartIsolator::cell_of(const ScanPoint& p, std::size_t& index) const {
   return true;
 }
 
+bool PartIsolator::border_cell_of(const ScanPoint& p, int& x, int& y) const {
+  const double fx = (static_cast<double>(p.x) - grid_.origin_m.x()) * inv_resolution_;
+  const double fy = (static_cast<double>(p.y) - grid_.origin_m.y()) * inv_resolution_;
+  if (!std::isfinite(fx) || !std::isfinite(fy)) return false;
+  x = static_cast<int>(std::clamp(std::floor(fx), 0.0, static_cast<double>(grid_.nx - 1)));
+  y = static_cast<int>(std::clamp(std::floor(fy), 0.0, static_cast<double>(grid_.ny - 1)));
+  return true;
+}
+
 CellBox PartIsolator::occupied_box(const ScanBuffer& part, bool count) {
   const auto nx = static_cast<std::size_t>(grid_.nx);
   if (count) std::fill(occupied_.begin(), occupied_.end(), 0);
   CellBox b{grid_.nx, -1, grid_.ny, -1};
   for (const ScanPoint& p : part.points()) {
     int x = 0, y = 0;
-    if (!cell_of(p, x, y)) continue;
+    if (!(count ? border_cell_of(p, x, y) : cell_of(p, x, y))) continue;
     if (count) ++occupied_[static_cast<std::size_t>(y) * nx + static_cast<std::size_t>(x)];
     b.x0 = std::min(b.x0, x);
     b.x1 = std::max(b.x1, x);
@@ -205,9 +214,10 @@ IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, dou
   }
   if (report.dropped_pieces == 0) return report;
   report.dropped_points += part.filter([&](const ScanPoint& p) {
-    std::size_t i = 0;
-    if (!cell_of(p, i)) return true;
-    const std::int32_t id = label_[i];
+    int x = 0, y = 0;
+    if (!border_cell_of(p, x, y)) return true;
+    const std::int32_t id =
+        label_[static_cast<std::size_t>(y) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(x)];
     return id < 0 || piece_keep_[static_cast<std::size_t>(id)] != 0;
   });
   return report;

@@ -90,6 +90,16 @@ SCENARIO("A neighbour's part at the field's edge and loose specks are separated 
         CHECK(count_tag(b, kPart) == part_points);
       }
     }
+    WHEN("a neighbour's sheet edge enters at the scanned range's right end below the grid's bottom (y < 0)") {
+      add_sheet(points, 0.606, 0.635, -0.035, 0.0, 0.21, kStray);
+      algo::ScanBuffer b = buffer_of(points);
+      const algo::IsolationReport r = isolator.isolate(b, 0.0165, 0.635);
+      THEN("it is dropped (its points count in the grid's bottom row there), and every plate point stays") {
+        CHECK(r.dropped_pieces == 1);
+        CHECK(count_tag(b, kStray) == 0);
+        CHECK(count_tag(b, kPart) == part_points);
+      }
+    }
     WHEN("a few specular specks float in front of the carrier away from it") {
       add_sheet(points, 0.02, 0.024, 0.05, 0.052, 0.1, kSpeck);
       add_sheet(points, 0.30, 0.302, 0.97, 0.972, 0.1, kSpeck);
@@ -113,6 +123,21 @@ SCENARIO("A neighbour's part at the field's edge and loose specks are separated 
         CHECK(r.pieces == 2);
         CHECK(r.dropped_pieces == 0);
         CHECK(count_tag(b, kPart) == part_points);
+      }
+    }
+  }
+  GIVEN("a plate hanging 20 mm out of the grid's bottom, and a loose speck 100 mm below the grid beside it") {
+    // (Beyond the grid only the column is known: a speck below the part's own columns would join the part.)
+    std::vector<ScanPoint> points;
+    add_sheet(points, 0.10, 0.55, -0.02, 0.68, 0.20, kPart);
+    const int part_points = static_cast<int>(points.size());
+    add_sheet(points, 0.59, 0.592, -0.10, -0.098, 0.20, kSpeck);
+    WHEN("it is isolated") {
+      algo::ScanBuffer b = buffer_of(points);
+      (void)isolator.isolate(b, 0.0165, 0.635);
+      THEN("the part keeps the strip beyond the grid (it touches the part there), the speck goes") {
+        CHECK(count_tag(b, kPart) == part_points);
+        CHECK(count_tag(b, kSpeck) == 0);
       }
     }
   }
