@@ -1573,7 +1573,8 @@ double Cascade::unmatched_hole_cells(const Roi& roi, bool scan_holes) {
   auto at = [&](int x, int y) { return static_cast<std::size_t>(y) * static_cast<std::size_t>(w) + x; };
   mark_empty_cells(roi, scan_holes);
   auto empty = [&](int x, int y) { return mask_b_[at(x, y)] != 0; };
-  auto empty_corners = [&](int x, int y) {  // (x, y)'s four neighbours are inside the box and empty
+  // (x, y)'s four diagonal neighbours are empty; only asked once its four edge neighbours are (so all are in the box).
+  auto empty_corners = [&](int x, int y) {
     return empty(x - 1, y - 1) && empty(x + 1, y - 1) && empty(x - 1, y + 1) && empty(x + 1, y + 1);
   };
   double unmatched = 0.0;
