@@ -91,7 +91,9 @@ class PartIsolator {
   [[nodiscard]] bool border_cell_of(const ScanPoint& p, int& x, int& y) const;
   // Drops the points beyond a depth gap (IsolationParams::depth_gap_m); returns how many.
   std::size_t drop_depth_outliers(ScanBuffer& part);
-  // The cell box of the part's points on the grid; with count, occupied_ gets the points per cell.
+  // The cell box of the part's points on the grid (points beyond it left out); with count (isolate's use), points
+  // beyond the grid count in their border cell (border_cell_of, as isolate's labels take them) and occupied_ gets the
+  // points per cell.
   CellBox occupied_box(const ScanBuffer& part, bool count);
 
   GridSpec grid_;
