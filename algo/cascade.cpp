@@ -175,26 +175,32 @@ struct OutlineField {
 
 namespace {
 
-// The eight gated figures of a report, in TemplateThresholds order (the size's deviations need the template's
-// centres; they come last, width then height).
-constexpr int kFigures = 8;
+// The gated figures of a report, in TemplateThresholds order (the size's and the edges' deviations need the
+// template's centres; they come last: width, height, then the edges in Edge order).
+constexpr int kFigures = 12;
 constexpr int kHolePatternFigure = 5;
 constexpr int kSizeFigure = 6;  // the width's deviation; the height's is the next
+constexpr int kEdgeFigure = 8;  // the left edge's deviation; the other edges' follow
 [[nodiscard]] std::array<double, kFigures> figures_of(const MatchReport& r, const TemplateThresholds& t) {
-  return {r.pm.error,
-          r.missing_area_m2,
-          r.extra_area_m2,
-          1.0 - r.coverage,
-          r.scan_outliers,
-          r.hole_pattern_m2,
-          std::abs(r.size_dx_m - t.size_centre_x_m),
-          std::abs(r.size_dy_m - t.size_centre_y_m)};
+  std::array<double, kFigures> f = {r.pm.error,
+                                    r.missing_area_m2,
+                                    r.extra_area_m2,
+                                    1.0 - r.coverage,
+                                    r.scan_outliers,
+                                    r.hole_pattern_m2,
+                                    std::abs(r.size_dx_m - t.size_centre_x_m),
+                                    std::abs(r.size_dy_m - t.size_centre_y_m)};
+  for (std::size_t e = 0; e < kEdges; ++e) f[kEdgeFigure + e] = std::abs(r.edge_m[e] - t.edge_centre_m[e]);
+  return f;
 }
 [[nodiscard]] std::array<double, kFigures> limits_of(const TemplateThresholds& t) {
-  return {t.max_error,    t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered,
-          t.max_outliers, t.max_hole_pattern_m2, t.max_size_dev_x_m,  t.max_size_dev_y_m};
+  std::array<double, kFigures> l = {t.max_error,    t.max_missing_area_m2, t.max_extra_area_m2, t.max_uncovered,
+                                    t.max_outliers, t.max_hole_pattern_m2, t.max_size_dev_x_m,  t.max_size_dev_y_m};
+  for (std::size_t e = 0; e < kEdges; ++e) l[kEdgeFigure + e] = t.max_edge_dev_m[e];
+  return l;
 }
-// Whether a figure fails its limit: NaN fails, except the size's (unmeasured; MatchReport::check_passes).
+// Whether a figure fails its limit: NaN fails, except the size's and the edges' (unmeasured;
+// MatchReport::check_passes).
 [[nodiscard]] bool fails(int figure, double value, double limit) {
   if (figure >= kSizeFigure) return value > limit;
   return !(value <= limit);
@@ -208,19 +214,46 @@ void set_limit(TemplateThresholds& t, int figure, double v) {
     case 4: t.max_outliers = v; break;
     case kHolePatternFigure: t.max_hole_pattern_m2 = v; break;
     case kSizeFigure: t.max_size_dev_x_m = v; break;
-    default: t.max_size_dev_y_m = v; break;
+    case kSizeFigure + 1: t.max_size_dev_y_m = v; break;
+    default: t.max_edge_dev_m[static_cast<std::size_t>(figure - kEdgeFigure)] = v; break;
   }
   t.max_size_dev_m = std::max(t.max_size_dev_x_m, t.max_size_dev_y_m);
 }
 constexpr RejectReason kFigureReason[kFigures] = {
     RejectReason::kPmError,  RejectReason::kMissingArea, RejectReason::kExtraArea, RejectReason::kUncovered,
-    RejectReason::kOutliers, RejectReason::kHolePattern, RejectReason::kSize,      RejectReason::kSize};
+    RejectReason::kOutliers, RejectReason::kHolePattern, RejectReason::kSize,      RejectReason::kSize,
+    RejectReason::kEdge,     RejectReason::kEdge,        RejectReason::kEdge,      RejectReason::kEdge};
 
 [[nodiscard]] double median_of(std::vector<double> v) {
   if (v.empty()) return 0.0;
   const auto mid = v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2);
   std::nth_element(v.begin(), mid, v.end());
   return *mid;
+}
+
+// learn_thresholds' step 0: the size's and the edges' centres, the own class's medians of the measured values.
+void learn_centres(std::span<const MatchReport> own_class, TemplateThresholds& t) {
+  auto centre = [&](auto figure) {
+    std::vector<double> v;
+    for (const MatchReport& r : own_class) {
+      if (std::isfinite(figure(r))) v.push_back(figure(r));
+    }
+    return median_of(v);
+  };
+  t.size_centre_x_m = centre([](const MatchReport& r) { return r.size_dx_m; });
+  t.size_centre_y_m = centre([](const MatchReport& r) { return r.size_dy_m; });
+  for (std::size_t e = 0; e < kEdges; ++e) {
+    t.edge_centre_m[e] = centre([e](const MatchReport& r) { return r.edge_m[e]; });
+  }
+}
+
+// The interquartile mean of v's first `count` values (sorts them): whole values dropped at either end.
+[[nodiscard]] double interquartile_mean(std::vector<double>& v, std::size_t count) {
+  std::sort(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(count));
+  const std::size_t quarter = count / 4;
+  double sum = 0.0;
+  for (std::size_t j = quarter; j < count - quarter; ++j) sum += v[j];
+  return sum / static_cast<double>(count - 2 * quarter);
 }
 
 }  // namespace
@@ -252,20 +285,15 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
                                    const CascadeParams& params) {
   ThresholdLearning out;
   const double factor[kFigures] = {params.error_factor, params.area_factor, params.area_factor, params.share_factor,
-                                   params.share_factor, params.area_factor, params.size_factor, params.size_factor};
-  const double floor[kFigures] = {params.error_floor,  params.area_floor_m2, params.area_floor_m2,
-                                  params.share_floor,  params.share_floor,   params.hole_pattern_floor_m2,
-                                  params.size_floor_m, params.size_floor_m};
-  // 0. The size's centres: the own class's medians (all its scans: a median is not moved by the few that disagree).
-  {
-    std::vector<double> dx, dy;
-    for (const MatchReport& r : own_class) {
-      if (std::isfinite(r.size_dx_m)) dx.push_back(r.size_dx_m);
-      if (std::isfinite(r.size_dy_m)) dy.push_back(r.size_dy_m);
-    }
-    out.thresholds.size_centre_x_m = median_of(dx);
-    out.thresholds.size_centre_y_m = median_of(dy);
-  }
+                                   params.share_factor, params.area_factor, params.size_factor, params.size_factor,
+                                   params.size_factor,  params.size_factor, params.size_factor, params.size_factor};
+  const double floor[kFigures] = {params.error_floor,    params.area_floor_m2, params.area_floor_m2,
+                                  params.share_floor,    params.share_floor,   params.hole_pattern_floor_m2,
+                                  params.size_floor_m,   params.size_floor_m,  params.edge_floor_x_m,
+                                  params.edge_floor_x_m, params.edge_floor_m,  params.edge_floor_m};
+  // 0. The size's and the edges' centres: the own class's medians (all its scans: a median is not moved by the few
+  //    that disagree).
+  learn_centres(own_class, out.thresholds);
   const TemplateThresholds& centres = out.thresholds;
   // 1. Robust agreement: per figure the median and the MAD of the own class; a scan above median + k sigma on any
   //    figure disagrees. Sigma never goes below a quarter of the floor, so scans that are all alike do not flag the
@@ -295,22 +323,26 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
   if (2 * flagged >= own_class.size()) std::fill(disagrees.begin(), disagrees.end(), 0);
   // 2. max * factor + floor over the scans that agree.
   std::array<double, kFigures> own_max{};
+  std::array<bool, kFigures> measured{};
   for (std::size_t i = 0; i < own_class.size(); ++i) {
     if (disagrees[i] != 0) {
       out.flagged.push_back(static_cast<int>(i));
       continue;
     }
     const auto x = figures_of(own_class[i], centres);
-    for (int f = 0; f < kFigures; ++f) {
-      if (std::isfinite(x[static_cast<std::size_t>(f)])) {
-        own_max[static_cast<std::size_t>(f)] =
-            std::max(own_max[static_cast<std::size_t>(f)], x[static_cast<std::size_t>(f)]);
+    for (std::size_t f = 0; f < kFigures; ++f) {
+      if (std::isfinite(x[f])) {
+        own_max[f] = std::max(own_max[f], x[f]);
+        measured[f] = true;
       }
     }
   }
   for (int f = 0; f < kFigures; ++f) {
     double v = own_max[static_cast<std::size_t>(f)] * factor[f] + floor[f];
     if (f == 3 || f == 4) v = std::min(1.0, v);  // shares
+    // An edge no own scan measured (lost data along it on every pass) has no centre: 1 m, the manifest's largest
+    // limit, never fails.
+    if (f >= kEdgeFigure && !measured[static_cast<std::size_t>(f)]) v = 1.0;
     set_limit(out.thresholds, f, v);
   }
   // 3. Margin to the runner-up: an other-class scan that would pass is pushed out by the figure on which it stands
@@ -403,6 +435,9 @@ Cascade::Cascade(const CascadeParams& params, const PerfectMatchParams& pm_param
   size_lo_.assign(lines, 0);
   size_hi_.assign(lines, 0);
   size_work_.assign(lines, 0.0);
+  edge_lo_work_.assign(lines, 0.0);
+  holes_.resize(kMaxEdgeHoles);
+  edge_hi_work_.assign(lines, 0.0);
   edt_in_.assign(cells, 0);
   edt_out_.assign(cells, 0.0F);
   outline_.assign(cells, Eigen::Vector2d::Zero());
@@ -632,6 +667,11 @@ bool Cascade::clear_of_near_misses(const DecideState& s, const Candidate& best) 
     // winner's (catalogue 8601's rnd02 / rnd06 came out ambiguous on all 20 passes).
     const double size_slack_m = (params_.near_fail_factor - 1.0) * params_.size_floor_m;
     if (ct->thresholds.size_beyond(c.report.size_dx_m, c.report.size_dy_m, 1.0, size_slack_m)) continue;
+    // The same for an edge (a 5 mm taller twin's clean edge, 2.5 mm off where its own scans stay within a row step).
+    const double near = params_.near_fail_factor - 1.0;
+    if (ct->thresholds.edge_beyond(c.report.edge_m, near * params_.edge_floor_x_m, near * params_.edge_floor_m)) {
+      continue;
+    }
     if (!clear_margin(b, c.report.evidence_m2)) return false;
   }
   return true;
@@ -757,7 +797,10 @@ void Cascade::report_candidates(DecideState& s, const Candidate* winner, bool am
     o.hole_pattern_m2 = c.report.hole_pattern_m2;
     o.check_pose = c.report.check_pose;
     const TemplateModel* t = s.template_of(c.class_index);
-    if (t != nullptr) o.size_dev_m = t->thresholds.size_deviation(c.report.size_dx_m, c.report.size_dy_m);
+    if (t != nullptr) {
+      o.size_dev_m = t->thresholds.size_deviation(c.report.size_dx_m, c.report.size_dy_m);
+      o.edge_dev_m = t->thresholds.edge_deviation(c.report.edge_m);
+    }
     if (t == nullptr) {
       o.rejected_by = RejectReason::kNoTemplate;
     } else if (!c.passed) {
@@ -973,6 +1016,7 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
     measure_size(roi, r);
     const double covered_hole = covered_hole_cells(roi);
     r.hole_pattern_m2 = hole_pattern_cells(roi) * cell_area_m2;
+    edges_against_holes(roi, r);
     const BlobEvidence missing = blob_evidence(roi, kMissing, false);
     const BlobEvidence extra = blob_evidence(roi, kExtra, true);
     r.missing_area_m2 = missing.largest_cells * cell_area_m2;
@@ -1531,6 +1575,96 @@ double Cascade::hole_pattern_cells(const Roi& roi) {
   return total;
 }
 
+void Cascade::edges_against_holes(const Roi& roi, MatchReport& r) {
+  // The part's holes fix its place on the sheet where Perfect Match and the outline fit may not: on a flat sheet the
+  // edges carry most of their in-plane pull, and an end seen short or long by a varying length (a bent flange)
+  // pulls the pose by as much as 2 of 3 mm (the scenario of a twin 5 mm taller). Each template hole (a 4-connected
+  // piece of its empty cells, kMinCells..kMaxCells, compact, the box's edge and relief walls not reached: the laser
+  // shadow beside a rib differs between poses, and 11306's rnd03 s940005 paired one 12 mm off) is paired with the
+  // scan's empty piece around its centre cell when that is about as large (kMinRatio..1 / kMinRatio), holds no lost
+  // data (a hole glare opened into is no reference) and lies within the check's window of it (else it is another
+  // piece); the pairs' mean centre shift, weighted by area, is how far the scan lies off the template at its holes,
+  // and the edges (measure_size's) are taken against it. Fewer than kMinPairedCells paired: no hole holds the pose,
+  // the edges stay unmeasured (NaN, never failing).
+  constexpr std::size_t kMinCells = 4;     // ~19 mm^2: a 5 mm hole
+  constexpr std::size_t kMaxCells = 2000;  // ~9 700 mm^2: a window 100 mm square
+  constexpr double kMinRatio = 0.7;
+  constexpr double kMinPairedCells = 30.0;  // ~145 mm^2: one 14 mm hole
+  const int w = width_;
+  auto at = [&](int x, int y) { return static_cast<std::size_t>(y) * static_cast<std::size_t>(w) + x; };
+  // One piece of empty cells (mask_b_) from `seed`, its moments; false when it reaches the box's edge, lost data or
+  // a relief wall, or grows beyond `limit` cells.
+  auto piece = [&](std::size_t seed, std::size_t limit, CellMoments& m) {
+    std::size_t top = 0;
+    bool clean = true;
+    flags_[seed] |= kVisited;
+    stack_[top++] = static_cast<std::int32_t>(seed);
+    while (top > 0) {
+      const std::int32_t c = stack_[--top];
+      const int cx = c % w, cy = c / w;
+      m.add(cx, cy);
+      if ((flags_[static_cast<std::size_t>(c)] & (kLost | kStep)) != 0 || m.n > static_cast<double>(limit)) {
+        clean = false;
+      }
+      const int nx[4] = {cx - 1, cx + 1, cx, cx};
+      const int ny[4] = {cy, cy, cy - 1, cy + 1};
+      for (int k = 0; k < 4; ++k) {
+        if (nx[k] < roi.x0 || nx[k] >= roi.x1 || ny[k] < roi.y0 || ny[k] >= roi.y1) {
+          clean = false;
+          continue;
+        }
+        const std::size_t n = at(nx[k], ny[k]);
+        if (mask_b_[n] != 0 && (flags_[n] & kVisited) == 0) {
+          flags_[n] |= kVisited;
+          stack_[top++] = static_cast<std::int32_t>(n);
+        }
+      }
+    }
+    return clean;
+  };
+  std::size_t holes = 0;
+  mark_empty_cells(roi, false);
+  for (int y = roi.y0; y < roi.y1 && holes < holes_.size(); ++y) {
+    for (int x = roi.x0; x < roi.x1 && holes < holes_.size(); ++x) {
+      const std::size_t i = at(x, y);
+      if (mask_b_[i] == 0 || (flags_[i] & kVisited) != 0) continue;
+      CellMoments m;
+      if (piece(i, kMaxCells, m) && m.n >= kMinCells && m.elongation() < params_.band_elongation) {
+        holes_[holes++] = {m.sx / m.n, m.sy / m.n, m.n};
+      }
+    }
+  }
+  clear_flag(roi, kVisited);
+  mark_empty_cells(roi, true);
+  double paired = 0.0, shift_x = 0.0, shift_y = 0.0;
+  for (std::size_t h = 0; h < holes; ++h) {
+    const HoleRef& t = holes_[h];
+    const int x = static_cast<int>(std::lround(t.x)), y = static_cast<int>(std::lround(t.y));
+    const std::size_t i = at(x, y);
+    if (mask_b_[i] == 0 || (flags_[i] & kVisited) != 0) continue;
+    CellMoments m;
+    const auto limit = static_cast<std::size_t>(t.cells / kMinRatio);
+    if (!piece(i, limit, m) || m.n < kMinRatio * t.cells) continue;
+    const double sx = m.sx / m.n - t.x, sy = m.sy / m.n - t.y;
+    if (sx * sx + sy * sy > static_cast<double>(window_cells_ * window_cells_)) continue;  // another piece
+    paired += t.cells;
+    shift_x += t.cells * sx;
+    shift_y += t.cells * sy;
+  }
+  clear_flag(roi, kVisited);
+  auto& e = r.edge_m;
+  if (paired < kMinPairedCells) {
+    e.fill(std::numeric_limits<double>::quiet_NaN());
+    return;
+  }
+  // Outward offsets: the scan's left edge lies shift_x further out when the scan is shifted by -shift_x, etc.
+  const double dx_m = shift_x / paired * resolution_m_, dy_m = shift_y / paired * resolution_m_;
+  e[static_cast<std::size_t>(Edge::kLeft)] += dx_m;
+  e[static_cast<std::size_t>(Edge::kRight)] -= dx_m;
+  e[static_cast<std::size_t>(Edge::kBottom)] += dy_m;
+  e[static_cast<std::size_t>(Edge::kTop)] -= dy_m;
+}
+
 void Cascade::mark_empty_cells(const Roi& roi, bool scan_side) {
   // Empty: no point, and not a gap of one profile between two occupied cells (a missing profile, a dropout run
   // along a profile: one cell wide in x). Into mask_b_ (free here: covered_hole_cells read it last).
@@ -1821,15 +1955,8 @@ double Cascade::solid_unlost_cells(std::size_t count, double& largest) {
   return total;
 }
 
-void Cascade::measure_size(const Roi& roi, MatchReport& r) {
-  // (After mark_lost_data: lines ending in lost data are left out.)
-  // Per template column: the scan's height there (its points' own y extent, continuous) less the template's (its
-  // occupied cells' centres: a surface spanning [a, b] gives floor(b) - floor(a), b - a on average); the median over
-  // the columns that both hold, away from the template's left and right ends (slanted there by a turn). The same
-  // per row for the width. Extents do not move with the pose, so Perfect Match splitting a 5 mm difference into
-  // 2.5 mm at either edge (which no area sees) leaves it whole here. Glare, a chain or a hook spoils some columns;
-  // the trimmed mean does not mind.
-  auto measure = [&](bool columns, double& out_m) {
+void Cascade::measure_size(const Roi& roi, MatchReport& r) {  // after mark_lost_data (see the declaration)
+  auto measure = [&](bool columns, double& out_m, double& lo_edge_m, double& hi_edge_m) {
     // Raster index of the cell at position a along the measured axis, b across it.
     auto cell = [&](int a, int b) {
       return columns ? static_cast<std::size_t>(b) * static_cast<std::size_t>(width_) + static_cast<std::size_t>(a)
@@ -1839,8 +1966,8 @@ void Cascade::measure_size(const Roi& roi, MatchReport& r) {
     const int b0 = columns ? roi.y0 : roi.x0, b1 = columns ? roi.y1 : roi.x1;
     const std::vector<float>& s_lo = columns ? col_lo_ : row_lo_;
     const std::vector<float>& s_hi = columns ? col_hi_ : row_hi_;
-    int first = a1, last = a0 - 1;  // the template's span along a
-    std::size_t n = 0;
+    int first = a1, last = a0 - 1;          // the template's span along a
+    std::size_t n = 0, n_lo = 0, n_hi = 0;  // lines measuring the size, the low edge, the high edge
     for (int a = a0; a < a1; ++a) {
       int lo = b1, hi = b0 - 1;
       for (int b = b0; b < b1; ++b) {
@@ -1903,23 +2030,30 @@ void Cascade::measure_size(const Roi& roi, MatchReport& r) {
       }
       if (!(size_hi_[k] >= size_lo_[k]) || !(lo_k <= hi_k)) continue;
       ++lines;
-      // A line whose end lies in lost data (glare along an edge) does not show where the scan's edge is.
-      if (lost_near(a, t_lo, 1) || lost_near(a, t_hi, -1)) continue;
-      if (residue_end(a, lo_k, t_lo) || residue_end(a, hi_k, t_hi)) continue;
-      size_work_[n++] = static_cast<double>(hi_k - lo_k) - static_cast<double>(t_hi - t_lo);
+      // A line whose end lies in lost data (glare along an edge) does not show where the scan's edge is: the size
+      // needs both ends, an edge its own.
+      const bool lo_seen = !lost_near(a, t_lo, 1) && !residue_end(a, lo_k, t_lo);
+      const bool hi_seen = !lost_near(a, t_hi, -1) && !residue_end(a, hi_k, t_hi);
+      if (lo_seen) edge_lo_work_[n_lo++] = static_cast<double>(t_lo) - static_cast<double>(lo_k);
+      if (hi_seen) edge_hi_work_[n_hi++] = static_cast<double>(hi_k) - static_cast<double>(t_hi);
+      if (lo_seen && hi_seen) {
+        size_work_[n++] = static_cast<double>(hi_k - lo_k) - static_cast<double>(t_hi - t_lo);
+      }
     }
-    // Most lines ending in lost data: the few left may be its ragged edge, not the part's.
-    if (n < static_cast<std::size_t>(kMinSizeLines) || 2 * n < lines) return;
     // The interquartile mean, not the median: a template edge a little turned against the raster makes its
-    // extents a staircase of two values, whose median jumps by a whole cell with the share of either.
-    std::sort(size_work_.begin(), size_work_.begin() + static_cast<std::ptrdiff_t>(n));
-    const std::size_t quarter = n / 4;  // whole lines dropped at either end
-    double sum = 0.0;
-    for (std::size_t j = quarter; j < n - quarter; ++j) sum += size_work_[j];
-    out_m = sum / static_cast<double>(n - 2 * quarter) * resolution_m_;
+    // extents a staircase of two values, whose median jumps by a whole cell with the share of either. Most lines
+    // ending in lost data: the few left may be its ragged edge, not the part's (NaN).
+    auto interquartile_mean_m = [&](std::vector<double>& v, std::size_t count) {
+      const bool enough = count >= static_cast<std::size_t>(kMinSizeLines) && 2 * count >= lines;
+      return enough ? interquartile_mean(v, count) * resolution_m_ : std::numeric_limits<double>::quiet_NaN();
+    };
+    out_m = interquartile_mean_m(size_work_, n);
+    lo_edge_m = interquartile_mean_m(edge_lo_work_, n_lo);
+    hi_edge_m = interquartile_mean_m(edge_hi_work_, n_hi);
   };
-  measure(true, r.size_dy_m);
-  measure(false, r.size_dx_m);
+  auto& e = r.edge_m;
+  measure(true, r.size_dy_m, e[static_cast<std::size_t>(Edge::kBottom)], e[static_cast<std::size_t>(Edge::kTop)]);
+  measure(false, r.size_dx_m, e[static_cast<std::size_t>(Edge::kLeft)], e[static_cast<std::size_t>(Edge::kRight)]);
 }
 
 // A 4-connected group of missing and sparse template cells (mark_lost_data), its cells in blob_cells_.

@@ -59,6 +59,7 @@ enum class RejectReason : std::uint8_t {
   kOutliers,     // too much of the scan off the template, all places together
   kHolePattern,  // holes of one surface where the other is solid (a perforation field shifted or mirrored)
   kSize,         // outer size (width or height) off the template's by more than its own scans vary (5 mm taller)
+  kEdge,         // one edge off the template's by more than its own scans vary (5 mm taller at a flanged part's end)
   kAmbiguous,    // passed, but another candidate passed as well without a clear margin
   kNotVerified,  // ranked too low: the verification budget or the candidate limit ended first
 };
@@ -74,6 +75,7 @@ enum class RejectReason : std::uint8_t {
     case RejectReason::kOutliers: return "outliers";
     case RejectReason::kHolePattern: return "hole_pattern";
     case RejectReason::kSize: return "size";
+    case RejectReason::kEdge: return "edge";
     case RejectReason::kAmbiguous: return "ambiguous";
     case RejectReason::kNotVerified: return "not_verified";
   }
@@ -97,6 +99,7 @@ struct CandidateOutcome {
   double coverage = std::numeric_limits<double>::quiet_NaN();     // share of its template the scan covers
   double outliers = std::numeric_limits<double>::quiet_NaN();     // share of the scan its template does not explain
   double size_dev_m = std::numeric_limits<double>::quiet_NaN();   // outer size off its template's (TemplateThresholds)
+  double edge_dev_m = std::numeric_limits<double>::quiet_NaN();   // its edges' largest deviation (TemplateThresholds)
   double hole_pattern_m2 = std::numeric_limits<double>::quiet_NaN();  // MatchReport::hole_pattern_m2
   PlanarPose check_pose{};  // the pose its two-way check ran at (diagnosis: a refused candidate's pose)
   double ms = 0.0;

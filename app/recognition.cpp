@@ -156,6 +156,8 @@ algo::TemplateThresholds template_thresholds(const formats::PartThresholds& p) {
   t.max_size_dev_x_m = p.max_size_dev_x_m;
   t.max_size_dev_y_m = p.max_size_dev_y_m;
   t.max_size_dev_m = p.max_size_dev_m;
+  t.edge_centre_m = p.edge_centre_m;
+  t.max_edge_dev_m = p.max_edge_dev_m;
   return t;
 }
 
@@ -173,6 +175,8 @@ formats::PartThresholds part_thresholds(const algo::TemplateThresholds& t, bool 
   p.max_size_dev_x_m = t.max_size_dev_x_m;
   p.max_size_dev_y_m = t.max_size_dev_y_m;
   p.max_size_dev_m = t.max_size_dev_m;
+  p.edge_centre_m = t.edge_centre_m;
+  p.max_edge_dev_m = t.max_edge_dev_m;
   return p;
 }
 

@@ -116,6 +116,7 @@ std::string decision_json(const std::string& scan, const algo::Decision& d, std:
       << ", \"missing_mm2\": " << json_number(c.missing_area_m2 * 1e6)
       << ", \"extra_mm2\": " << json_number(c.extra_area_m2 * 1e6) << ", \"coverage\": " << json_number(c.coverage)
       << ", \"outliers\": " << json_number(c.outliers) << ", \"size_dev_mm\": " << json_number(c.size_dev_m * 1e3)
+      << ", \"edge_dev_mm\": " << json_number(c.edge_dev_m * 1e3)
       << ", \"hole_pattern_mm2\": " << json_number(c.hole_pattern_m2 * 1e6);
     if (c.verified) {
       o << ", \"check_pose\": {\"x\": " << json_number(c.check_pose.x_m) << ", \"y\": " << json_number(c.check_pose.y_m)
@@ -134,9 +135,9 @@ std::string unknown_reason_text(const algo::Decision& d, const ClassNames& names
     const algo::CandidateOutcome& c = d.candidates[static_cast<std::size_t>(i)];
     if (!c.verified) continue;
     char buf[200];
-    if (c.rejected_by == algo::RejectReason::kSize) {
-      std::snprintf(buf, sizeof buf, "; %s (p %.2f): size %.1f > %.1f mm", names(c.class_index).c_str(), c.probability,
-                    c.value * 1e3, c.limit * 1e3);
+    if (c.rejected_by == algo::RejectReason::kSize || c.rejected_by == algo::RejectReason::kEdge) {
+      std::snprintf(buf, sizeof buf, "; %s (p %.2f): %s %.1f > %.1f mm", names(c.class_index).c_str(), c.probability,
+                    std::string(algo::to_string(c.rejected_by)).c_str(), c.value * 1e3, c.limit * 1e3);
     } else if (c.rejected_by == algo::RejectReason::kPmError || c.rejected_by == algo::RejectReason::kUncovered ||
                c.rejected_by == algo::RejectReason::kOutliers) {
       std::snprintf(buf, sizeof buf, "; %s (p %.2f): %s %.3g > %.3g", names(c.class_index).c_str(), c.probability,

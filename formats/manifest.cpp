@@ -21,6 +21,11 @@ using formats::parse_hex32;
 
 constexpr const char* kChecksumKey = "checksum_crc32";
 constexpr int kMaxPartId = 65535;  // PART_ID is one Modbus register
+// PartThresholds::edge_centre_m / max_edge_dev_m, in algo::Edge order.
+constexpr std::array<const char*, 4> kEdgeCentreKeys = {"edge_centre_left_m", "edge_centre_right_m",
+                                                        "edge_centre_bottom_m", "edge_centre_top_m"};
+constexpr std::array<const char*, 4> kEdgeDevKeys = {"max_edge_dev_left_m", "max_edge_dev_right_m",
+                                                     "max_edge_dev_bottom_m", "max_edge_dev_top_m"};
 constexpr std::size_t kMaxPartName = 64;
 
 }  // namespace
@@ -53,7 +58,12 @@ std::string manifest_text(const Manifest& m) {
       << ", size_centre_y_m: " << number(p.thresholds.size_centre_y_m)
       << ", max_size_dev_x_m: " << number(p.thresholds.max_size_dev_x_m)
       << ", max_size_dev_y_m: " << number(p.thresholds.max_size_dev_y_m)
-      << ", max_size_dev_m: " << number(p.thresholds.max_size_dev_m) << "}\n";
+      << ", max_size_dev_m: " << number(p.thresholds.max_size_dev_m);
+    for (std::size_t e = 0; e < p.thresholds.edge_centre_m.size(); ++e) {
+      t << ", " << kEdgeCentreKeys[e] << ": " << number(p.thresholds.edge_centre_m[e]) << ", " << kEdgeDevKeys[e]
+        << ": " << number(p.thresholds.max_edge_dev_m[e]);
+    }
+    t << "}\n";
     if (!p.confusable.empty()) {
       std::string list;
       for (const std::string& c : p.confusable) list += (list.empty() ? "" : ",") + c;
@@ -170,7 +180,14 @@ void read_thresholds(YamlSection t, PartThresholds& thresholds) {
   for (const ThresholdField& f : kThresholdFields) {
     if (!t.has(f.key)) thresholds.learnt = false;
   }
+  for (std::size_t e = 0; e < thresholds.edge_centre_m.size(); ++e) {
+    if (!t.has(kEdgeCentreKeys[e]) || !t.has(kEdgeDevKeys[e])) thresholds.learnt = false;
+  }
   for (const ThresholdField& f : kThresholdFields) t.number(f.key, thresholds.*f.value, f.min, f.max, f.unit);
+  for (std::size_t e = 0; e < thresholds.edge_centre_m.size(); ++e) {
+    t.number(kEdgeCentreKeys[e], thresholds.edge_centre_m[e], -1.0, 1.0, "m");
+    t.number(kEdgeDevKeys[e], thresholds.max_edge_dev_m[e], 0.0, 1.0, "m");
+  }
   t.finish();
 }
 

@@ -2,6 +2,7 @@
 // last, and a reader that checks the checksum and validates every field before anything is used.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <string>
 #include <string_view>
@@ -28,6 +29,10 @@ struct PartThresholds {
   double max_size_dev_x_m = 0.0;  // ... and the largest deviation from those accepted, per axis
   double max_size_dev_y_m = 0.0;
   double max_size_dev_m = 0.0;  // the larger of the two
+  // Each edge's outward offset beyond the template's as its own scans show it, and the largest deviation accepted;
+  // left, right, bottom, top (algo::Edge; manifest keys edge_centre_left_m .. max_edge_dev_top_m).
+  std::array<double, 4> edge_centre_m{};
+  std::array<double, 4> max_edge_dev_m{};
 };
 
 struct ScanEntry {

@@ -375,6 +375,52 @@ TEST_CASE("learn_thresholds learns the width's and the height's limits apart", "
   }
 }
 
+TEST_CASE("learn_thresholds learns each edge's limit apart, so a clean edge tells a twin a flange's end hides",
+          "[cascade][size]") {
+  // Catalogue 11301's rnd00 / rnd08 at Perfect Match's pose (measured): rnd08 is 5 mm taller, both have a bent
+  // flange along the bottom whose visible end scatters by 5 mm between passes; the clean top edge of rnd00's own
+  // passes lay +0.45..+1.64 mm beyond its template, rnd08's passes +2.75..+4.31 mm.
+  CascadeParams p;
+  p.size_factor = 1.0;
+  p.size_floor_m = 0.0015;
+  p.edge_floor_m = 0.001;
+  const auto top = static_cast<std::size_t>(algo::Edge::kTop);
+  const auto bottom = static_cast<std::size_t>(algo::Edge::kBottom);
+  std::vector<MatchReport> own(12);
+  for (std::size_t i = 0; i < own.size(); ++i) {
+    own[i].pm.error = 0.0;
+    own[i].coverage = 1.0;
+    own[i].scan_outliers = 0.0;
+    own[i].edge_m = {0.0, 0.0, -0.0012 + 0.00045 * static_cast<double>(i), 0.00045 + 0.0001 * static_cast<double>(i)};
+    own[i].size_dx_m = 0.0;
+    own[i].size_dy_m = own[i].edge_m[bottom] + own[i].edge_m[top];
+  }
+  const algo::TemplateThresholds t = algo::learn_thresholds(own, p);
+  // Centres are the medians, limits the own maximum deviation plus the floor, per edge.
+  CHECK(t.edge_centre_m[top] == Approx(0.00045 + 0.0006));
+  CHECK(t.max_edge_dev_m[top] == Approx(0.0006 + 0.001));
+  CHECK(t.max_edge_dev_m[bottom] == Approx(0.0027 + 0.001));
+  MatchReport twin = own[4];
+  twin.edge_m[top] = 0.0028;  // the twin's clean edge: 1.75 mm beyond the centre
+  twin.size_dy_m = twin.edge_m[bottom] + twin.edge_m[top];
+  THEN("the twin's height is within the flange's scatter, its top edge is not; the own scans pass") {
+    CHECK_FALSE(t.size_beyond(twin.size_dx_m, twin.size_dy_m));
+    CHECK_FALSE(twin.check_passes(t));
+    double value = 0.0, limit = 0.0;
+    CHECK(algo::first_failed_gate(twin, t, value, limit) == algo::RejectReason::kEdge);
+    CHECK(value == Approx(0.0028 - 0.00105));
+    CHECK(limit == Approx(t.max_edge_dev_m[top]));
+    for (const MatchReport& r : own) CHECK(r.check_passes(t));
+  }
+  THEN("an edge its own scans never measured does not fail a scan that measures it") {
+    std::vector<MatchReport> unmeasured = own;
+    for (MatchReport& r : unmeasured) r.edge_m[top] = std::numeric_limits<double>::quiet_NaN();
+    const algo::TemplateThresholds u = algo::learn_thresholds(unmeasured, p);
+    CHECK(u.max_edge_dev_m[top] >= 1.0);
+    CHECK(twin.check_passes(u));
+  }
+}
+
 SCENARIO("A slot along a rib is a hole of its own, not the rib's laser shadow", "[cascade][two-way][shadow]") {
   // Catalogue 11102's rnd01 / rnd05 (measured: every rnd01 pass ambiguous against rnd05): rnd05 is rnd01 plus a
   // 126 x 30 mm slot 1.5 mm from a 13 mm rib. Here a vertical rib and the slot on its +x side, where the rib's
@@ -673,6 +719,83 @@ SCENARIO("The outer size of a part taught and scanned by a sensor with rows 3.3 
           INFO("size dx " << r.size_dx_m * 1e3 << " dy " << r.size_dy_m * 1e3 << " mm");
           CHECK(std::abs(r.size_dx_m) < 0.0022);
           CHECK(std::abs(r.size_dy_m) < 0.0033);
+        }
+      }
+    }
+  }
+}
+
+namespace {
+
+// A 300 x 400 mm plate with three holes, `taller_mm` taller, its holes where they were about its centre: the
+// random catalogue's "5 mm taller" twin (11301's rnd08 and rnd10 without their flange), each end 2.5 mm further
+// out.
+sim::PartSpec plate_with_holes(double taller_mm) {
+  sim::PartSpec p;
+  p.name = taller_mm > 0 ? "taller" : "plate";
+  p.width_mm = 300;
+  p.height_mm = 400 + taller_mm;
+  p.features = {sim::FeatureSpec{.kind = sim::FeatureKind::kHole, .x_mm = -80, .y_mm = 100, .diameter_mm = 30},
+                sim::FeatureSpec{.kind = sim::FeatureKind::kHole, .x_mm = 90, .y_mm = -60, .diameter_mm = 24},
+                sim::FeatureSpec{.kind = sim::FeatureKind::kHole, .x_mm = -40, .y_mm = -120, .diameter_mm = 40}};
+  REQUIRE(sim::validate_part(p).empty());
+  return p;
+}
+
+// A scan of `spec` at `pose` whose bottom end is seen `short_mm` short: a flange bent away there leaves an edge
+// that moves between passes (11301's rnd00: 0-8 mm, by the pose).
+std::vector<ScanPoint> with_bottom_seen_short(const sim::PartSpec& spec, const sim::PartPose& pose, std::uint64_t seed,
+                                              double short_mm) {
+  std::vector<ScanPoint> scan = sample_part(spec, pose, seed);
+  const Eigen::Isometry3d to_part = part_to_carrier(spec, pose).inverse();
+  const double cut_m = 1e-3 * (-0.5 * spec.height_mm + short_mm);
+  std::erase_if(scan, [&](const ScanPoint& p) { return (to_part * Eigen::Vector3d(p.x, p.y, p.z)).y() < cut_m; });
+  return scan;
+}
+
+}  // namespace
+
+SCENARIO("A twin 5 mm taller whose other end is seen short by a varying length fails by its clean edge",
+         "[cascade][two-way][size]") {
+  const std::array<double, 5> short_mm = {0.0, 6.0, 2.0, 8.0, 4.0};  // per other pose
+  const sim::PartPose test_pose{0.012, -0.021, -1.4 * kDeg, 0.9 * kDeg};
+  GIVEN("a plate and its twin 5 mm taller, each taught and learnt from its own scans at five other poses") {
+    const sim::PartSpec plate = plate_with_holes(0.0), taller = plate_with_holes(5.0);
+    Cascade cascade(CascadeParams{}, pm_params(), test_grid());
+    std::vector<std::unique_ptr<Template>> templates;
+    std::vector<TemplateModel> models;
+    for (const sim::PartSpec* spec : {&plate, &taller}) {
+      templates.push_back(teach_from(spec->name, kTaughtPose, with_bottom_seen_short(*spec, kTaughtPose, 51, 3.0)));
+      TemplateModel m = model_of(*templates.back(), static_cast<int>(models.size()), 1);
+      std::vector<MatchReport> own;
+      for (std::size_t i = 0; i < other_poses().size(); ++i) {
+        own.push_back(cascade.evaluate(m, with_bottom_seen_short(*spec, other_poses()[i], 520 + i, short_mm[i])));
+      }
+      m.thresholds = algo::learn_thresholds(own, cascade.params());
+      models.push_back(m);
+    }
+    // (Seen about 3.5 mm short, the height of either lies within the other's scatter; farther off, the size tells.)
+    WHEN("a scan of each at two new poses, its bottom seen 3.5 mm short, is checked against both templates") {
+      THEN("it passes its own template and fails its twin's by an edge, its height within the twin's scatter") {
+        for (const sim::PartPose& pose : {test_pose, kTestPose}) {
+          for (std::size_t s = 0; s < 2; ++s) {
+            const sim::PartSpec& spec = s == 0 ? plate : taller;
+            const auto scan = with_bottom_seen_short(spec, pose, 530, 3.5);
+            const MatchReport own = cascade.evaluate(models[s], scan);
+            const MatchReport other = cascade.evaluate(models[1 - s], scan);
+            const algo::TemplateThresholds& ot = models[1 - s].thresholds;
+            double value = 0.0, limit = 0.0;
+            const algo::RejectReason reason = algo::first_failed_gate(other, ot, value, limit);
+            const auto top = static_cast<std::size_t>(algo::Edge::kTop);
+            INFO(spec.name << " at theta " << pose.theta_rad / kDeg << " deg: the other template's height deviation "
+                           << std::abs(other.size_dy_m - ot.size_centre_y_m) * 1e3 << " mm (limit "
+                           << ot.max_size_dev_y_m * 1e3 << "), its top edge " << other.edge_m[top] * 1e3
+                           << " mm (centre " << ot.edge_centre_m[top] * 1e3 << ", limit "
+                           << ot.max_edge_dev_m[top] * 1e3 << "); reason " << algo::to_string(reason));
+            CHECK(own.passes(models[s].thresholds));
+            CHECK_FALSE(ot.size_beyond(other.size_dx_m, other.size_dy_m));
+            CHECK(reason == algo::RejectReason::kEdge);
+          }
         }
       }
     }

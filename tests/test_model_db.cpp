@@ -317,22 +317,38 @@ TEST_CASE("limits learnt before a gate existed read as not learnt, so the databa
   REQUIRE(back.ok());
   CHECK(back->parts.at(0).thresholds.learnt);
   CHECK(back->parts.at(0).thresholds.max_hole_pattern_m2 == Approx(0.0004));
-  // The same limits without the hole pattern's (a database trained before it, issue 11): read, but not learnt.
-  std::string old = text.substr(0, text.find("checksum_crc32"));
-  const std::size_t at = old.find(", max_hole_pattern_m2: ");
-  REQUIRE(at != std::string::npos);
-  old.erase(at, old.find(',', at + 2) - at);
-  char line[40];
-  std::snprintf(line, sizeof line, "checksum_crc32: \"%08x\"\n", base::crc32(old));
-  const auto before = formats::parse_manifest("manifest.yaml", old + line);
-  INFO(old);
-  REQUIRE(before.ok());
-  CHECK_FALSE(before->parts.at(0).thresholds.learnt);
+  // The same limits without the hole pattern's (a database trained before it, issue 11) or without an edge's (before
+  // issue 10's edges): read, but not learnt.
+  for (const char* key : {", max_hole_pattern_m2: ", ", edge_centre_left_m: ", ", max_edge_dev_top_m: "}) {
+    std::string old = text.substr(0, text.find("checksum_crc32"));
+    const std::size_t at = old.find(key);
+    REQUIRE(at != std::string::npos);
+    old.erase(at, old.find_first_of(",}", at + 2) - at);
+    char line[40];
+    std::snprintf(line, sizeof line, "checksum_crc32: \"%08x\"\n", base::crc32(old));
+    const auto before = formats::parse_manifest("manifest.yaml", old + line);
+    INFO(old);
+    REQUIRE(before.ok());
+    CHECK_FALSE(before->parts.at(0).thresholds.learnt);
+  }
 }
 
 TEST_CASE("a part's limits go from the manifest to the cascade and back field by field", "[model_db]") {
   // Every field a different value, so that two swapped fields show.
-  const formats::PartThresholds p{true, 1e-3, 2e-4, 3e-4, 4e-3, 5e-3, 6e-4, 7e-3, -8e-3, 9e-3, 1.1e-2, 1.2e-2};
+  const formats::PartThresholds p{true,
+                                  1e-3,
+                                  2e-4,
+                                  3e-4,
+                                  4e-3,
+                                  5e-3,
+                                  6e-4,
+                                  7e-3,
+                                  -8e-3,
+                                  9e-3,
+                                  1.1e-2,
+                                  1.2e-2,
+                                  {1.3e-3, -1.4e-3, 1.5e-3, -1.6e-3},
+                                  {1.7e-3, 1.8e-3, 1.9e-3, 2.1e-3}};
   const algo::TemplateThresholds t = app::template_thresholds(p);
   CHECK(t.max_error == p.max_error);
   CHECK(t.max_missing_area_m2 == p.max_missing_area_m2);
@@ -345,6 +361,8 @@ TEST_CASE("a part's limits go from the manifest to the cascade and back field by
   CHECK(t.max_size_dev_x_m == p.max_size_dev_x_m);
   CHECK(t.max_size_dev_y_m == p.max_size_dev_y_m);
   CHECK(t.max_size_dev_m == p.max_size_dev_m);
+  CHECK(t.edge_centre_m == p.edge_centre_m);
+  CHECK(t.max_edge_dev_m == p.max_edge_dev_m);
   // ... and back: the manifest writes the same limits (every field is in its text).
   auto text_of = [](const formats::PartThresholds& limits) {
     formats::Manifest m;
