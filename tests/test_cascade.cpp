@@ -2183,3 +2183,37 @@ SCENARIO("Sparse glare residue that leaves an empty rectangle by chance is no ho
     }
   }
 }
+
+SCENARIO("A first-ranked candidate Perfect Match does not reach from the unturned start is matched from a turned one",
+         "[cascade][policy]") {
+  // Fresh catalogue 11310 (plain): 5 of 20 passes of a twin pair, turned 5-9 deg and swung 3-4 deg against the taught
+  // pass, left Perfect Match 150 times above its own error from the unturned start. Here its reach is cut instead
+  // (at most 0.05 deg per iteration, ~5 deg in all) and the pass is turned 6 deg.
+  GIVEN("plate_4h's template and a matcher that turns at most ~5 deg from where it starts") {
+    algo::PerfectMatchParams slow = pm_params();
+    slow.step_max_rad = 0.0008;
+    slow.step_initial_rad = 0.0008;
+    Cascade cascade(generous_budget(), slow, test_grid());
+    TemplateModel plate = model_of(taught("plate_4h"), 0, 1);
+    plate.thresholds = accept_anything();
+    plate.thresholds.max_error = 3e-5;  // a few times an own match's error (a flat plate 4 deg off errs 5.5e-5)
+    TemplateModel other = model_of(taught("plate_5h"), 1, 2);
+    other.thresholds = plate.thresholds;
+    const std::vector<TemplateModel> models = {plate, other};
+    const sim::PartPose turned{0.006, -0.004, kTaughtPose.theta_rad + 6.0 * kDeg, 0.5 * kDeg};
+    const auto scan = sample_part(part("plate_4h"), turned, 77);
+    WHEN("its pass turned 6 deg is decided with plate_4h ranked first") {
+      const MatchReport unturned = cascade.evaluate(plate, scan);
+      const ClassProbability svm[] = {{0, 0.8}, {1, 0.2}};
+      const Decision d = cascade.decide(svm, models, scan, far_deadline());
+      THEN("Perfect Match from the unturned start fails its error limit, a turned start finds the pose") {
+        INFO("unturned start: error " << unturned.pm.error << ", theta " << unturned.pm.pose.theta_rad / kDeg
+                                      << " deg");
+        CHECK(unturned.pm.error > plate.thresholds.max_error);
+        REQUIRE(d.source != DecisionSource::kUnknown);
+        CHECK(d.class_index == 0);
+        CHECK(d.pose.theta_rad == Approx(true_relative_pose(taught("plate_4h"), turned).theta_rad).margin(0.1 * kDeg));
+      }
+    }
+  }
+}
