@@ -439,8 +439,8 @@ Cascade::Cascade(const CascadeParams& params, const PerfectMatchParams& pm_param
   size_hi_.assign(lines, 0);
   size_work_.assign(lines, 0.0);
   edge_lo_work_.assign(lines, 0.0);
-  holes_.resize(kMaxEdgeHoles);
   edge_hi_work_.assign(lines, 0.0);
+  holes_.resize(kMaxEdgeHoles);
   edt_in_.assign(cells, 0);
   edt_out_.assign(cells, 0.0F);
   outline_.assign(cells, Eigen::Vector2d::Zero());

@@ -239,7 +239,7 @@ struct TemplateThresholds {
   [[nodiscard]] bool edge_beyond(const std::array<double, kEdges>& edge_m, double slack_x_m = 0.0,
                                  double slack_y_m = 0.0) const {
     for (std::size_t e = 0; e < kEdges; ++e) {
-      const double slack_m = e < 2 ? slack_x_m : slack_y_m;
+      const double slack_m = e < static_cast<std::size_t>(Edge::kBottom) ? slack_x_m : slack_y_m;
       if (std::abs(edge_m[e] - edge_centre_m[e]) > max_edge_dev_m[e] + slack_m) return true;
     }
     return false;
