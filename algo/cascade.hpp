@@ -448,6 +448,9 @@ class Cascade {
   // shortcut (check_prepared).
   bool evaluate_candidate(std::span<const TemplateModel> templates, std::span<const ScanPoint> scan,
                           std::chrono::steady_clock::time_point deadline, bool first_ranked, Candidate& out);
+  // A failing first-ranked candidate whose check settled on a pose far from Perfect Match's: Perfect Match once
+  // more from that pose, and its check, replace the report when they leave less evidence.
+  void rematch_from_outline(const TemplateModel& model, std::span<const ScanPoint> scan, Candidate& c);
   // The check proper (takes the scan's outline when it first needs it and outline_valid_ is false). With
   // thresholds, a gross failure at `pose` ends it when settle_on_gross, and so does a pass when settle_on_pass (the
   // outline pose is only tried when the given one fails).

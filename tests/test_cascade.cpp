@@ -2184,32 +2184,90 @@ SCENARIO("Sparse glare residue that leaves an empty rectangle by chance is no ho
   }
 }
 
+namespace {
+
+// Perfect Match whose reach is cut: at most 0.05 deg per iteration, ~5 deg from where it starts.
+algo::PerfectMatchParams short_reach() {
+  algo::PerfectMatchParams slow = pm_params();
+  slow.step_max_rad = 0.0008;
+  slow.step_initial_rad = 0.0008;
+  return slow;
+}
+
+// plate_4h (class 0) and its one-hole-more twin plate_5h (class 1), both with `limits`.
+std::vector<TemplateModel> plate_and_twin(const algo::TemplateThresholds& limits) {
+  std::vector<TemplateModel> models = {model_of(taught("plate_4h"), 0, 1), model_of(taught("plate_5h"), 1, 2)};
+  for (auto& m : models) m.thresholds = limits;
+  return models;
+}
+
+// The decision on `scan` with plate_4h ranked first (p 0.8) and its twin second.
+Decision decide_plate_first(Cascade& cascade, const std::vector<TemplateModel>& models,
+                            std::span<const ScanPoint> scan) {
+  const ClassProbability svm[] = {{0, 0.8}, {1, 0.2}};
+  return cascade.decide(svm, models, scan, far_deadline());
+}
+
+}  // namespace
+
 SCENARIO("A first-ranked candidate Perfect Match does not reach from the unturned start is matched from a turned one",
          "[cascade][policy]") {
   // Fresh catalogue 11310 (plain): 5 of 20 passes of a twin pair, turned 5-9 deg and swung 3-4 deg against the taught
   // pass, left Perfect Match 150 times above its own error from the unturned start. Here its reach is cut instead
   // (at most 0.05 deg per iteration, ~5 deg in all) and the pass is turned 6 deg.
   GIVEN("plate_4h's template and a matcher that turns at most ~5 deg from where it starts") {
-    algo::PerfectMatchParams slow = pm_params();
-    slow.step_max_rad = 0.0008;
-    slow.step_initial_rad = 0.0008;
-    Cascade cascade(generous_budget(), slow, test_grid());
-    TemplateModel plate = model_of(taught("plate_4h"), 0, 1);
-    plate.thresholds = accept_anything();
-    plate.thresholds.max_error = 3e-5;  // a few times an own match's error (a flat plate 4 deg off errs 5.5e-5)
-    TemplateModel other = model_of(taught("plate_5h"), 1, 2);
-    other.thresholds = plate.thresholds;
-    const std::vector<TemplateModel> models = {plate, other};
+    Cascade cascade(generous_budget(), short_reach(), test_grid());
+    algo::TemplateThresholds limits = accept_anything();
+    limits.max_error = 3e-5;  // a few times an own match's error (a flat plate 4 deg off errs 5.5e-5)
+    const std::vector<TemplateModel> models = plate_and_twin(limits);
+    const TemplateModel& plate = models[0];
     const sim::PartPose turned{0.006, -0.004, kTaughtPose.theta_rad + 6.0 * kDeg, 0.5 * kDeg};
     const auto scan = sample_part(part("plate_4h"), turned, 77);
     WHEN("its pass turned 6 deg is decided with plate_4h ranked first") {
       const MatchReport unturned = cascade.evaluate(plate, scan);
-      const ClassProbability svm[] = {{0, 0.8}, {1, 0.2}};
-      const Decision d = cascade.decide(svm, models, scan, far_deadline());
+      const Decision d = decide_plate_first(cascade, models, scan);
       THEN("Perfect Match from the unturned start fails its error limit, a turned start finds the pose") {
         INFO("unturned start: error " << unturned.pm.error << ", theta " << unturned.pm.pose.theta_rad / kDeg
                                       << " deg");
         CHECK(unturned.pm.error > plate.thresholds.max_error);
+        REQUIRE(d.source != DecisionSource::kUnknown);
+        CHECK(d.class_index == 0);
+        CHECK(d.pose.theta_rad == Approx(true_relative_pose(taught("plate_4h"), turned).theta_rad).margin(0.1 * kDeg));
+      }
+    }
+  }
+}
+
+SCENARIO(
+    "A first-ranked candidate whose check settles on a pose turned away from Perfect Match's is matched from there",
+    "[cascade][policy]") {
+  // Fresh catalogue 11309 under `mixed`, rnd05: Perfect Match stopped 4-5 deg short of a pass's turn with its error
+  // under the limit, the outline fit turned it most of the way (a degree short), and the check failed at both poses
+  // by a few times its limits, too little for the wide outline fit. Here both reaches are cut: Perfect Match turns
+  // at most ~5 deg from where it starts, the outline fit runs two iterations (a degree of turn each), and the pass is
+  // turned 7 deg; the error limit is loose, so only the check sees the turn. Without the second Perfect Match from
+  // the check's pose the pass is unknown (missing area 499 mm2 against 150 at 5.5 deg).
+  GIVEN("plate_4h's template, a matcher that turns at most ~5 deg and an outline fit of two iterations") {
+    CascadeParams short_fit = generous_budget();
+    short_fit.refine_iterations = 2;
+    Cascade cascade(short_fit, short_reach(), test_grid());
+    algo::TemplateThresholds limits = accept_anything();
+    limits.max_missing_area_m2 = limits.max_extra_area_m2 = 150e-6;
+    limits.max_uncovered = limits.max_outliers = 0.003;
+    limits.max_hole_pattern_m2 = 120e-6;
+    const std::vector<TemplateModel> models = plate_and_twin(limits);
+    const TemplateModel& plate = models[0];
+    const sim::PartPose turned{0.004, -0.003, kTaughtPose.theta_rad + 7.0 * kDeg, 0.5 * kDeg};
+    const auto scan = sample_part(part("plate_4h"), turned, 78);
+    WHEN("its pass turned 7 deg is decided with plate_4h ranked first") {
+      const MatchReport first = cascade.evaluate(plate, scan);
+      const Decision d = decide_plate_first(cascade, models, scan);
+      THEN("the check fails at both poses from the unturned start, Perfect Match from the check's pose passes") {
+        INFO("from the unturned start: Perfect Match at " << first.pm.pose.theta_rad / kDeg << " deg, check at "
+                                                          << first.check_pose.theta_rad / kDeg << " deg, missing "
+                                                          << first.missing_area_m2 * 1e6 << " mm2");
+        CHECK_FALSE(first.passes(plate.thresholds));
+        CHECK(first.check_pose.theta_rad - first.pm.pose.theta_rad > 0.6 * kDeg);
         REQUIRE(d.source != DecisionSource::kUnknown);
         CHECK(d.class_index == 0);
         CHECK(d.pose.theta_rad == Approx(true_relative_pose(taught("plate_4h"), turned).theta_rad).margin(0.1 * kDeg));
