@@ -205,6 +205,8 @@ class PerfectMatcher {
   // (within the map's own depth sampling) leaves `prior` as it is.
   // `prior`: a plane found before (the previous pass's); the fit is of what remains after it, so points that were
   // beyond level_clip_m before levelling (the edges of a strongly swung part) enter once the prior has levelled them.
+  // A fit over a strip only (a part tilted several degrees against its template) is a step: the fit is made again
+  // from it, a few times at most, and only one over the part is returned (else `prior`).
   [[nodiscard]] DepthPlane depth_plane(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
                                        const PlanarPose& pose, const DepthPlane& prior = DepthPlane{}) const;
 
@@ -238,6 +240,11 @@ class PerfectMatcher {
   void mark_informative_bins(const BinGrid& grid);
   void pick_spread(std::span<const ScanPoint> points, const BinGrid& grid, std::size_t finite);
   void order_coarse_first();
+  // depth_plane()'s one fit from `prior`: kPart, a fit over the part (or `prior` kept, the change below what the map
+  // resolves); kStrip, over a strip of it only; kNone, no fit (`prior` returned).
+  enum class LevelFit { kNone, kStrip, kPart };
+  [[nodiscard]] DepthPlane fit_depth_plane(const DistanceMapView& map, const Eigen::Vector2d& template_centroid_m,
+                                           const PlanarPose& pose, const DepthPlane& prior, LevelFit& kind) const;
 
   std::vector<Eigen::Vector3f> points_;
   // depth_plane()'s per-point scratch (X, Y, depth e or NaN), sized with points_; not state between calls.
