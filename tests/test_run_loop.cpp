@@ -725,7 +725,9 @@ TEST_CASE(
   CHECK(b0.timestamp_us() < b1.timestamp_us());
   CHECK(b1.timestamp_us() < b2.timestamp_us());
 
-  // Every frame of each simulated pass went into the scan the recogniser got.
+  // Every frame of each simulated pass went into the scan the recogniser got. (The PLC can see a result before the
+  // observer has its record: publish() hands the result block over first.)
+  REQUIRE(wait_until([&] { return cell.recorder.part_count() == 3; }, 5'000));
   const auto parts = cell.recorder.parts();
   REQUIRE(parts.size() == 3);
   for (const auto& p : parts) {
@@ -911,7 +913,8 @@ TEST_CASE(
   const auto edges = edges_of(cell.recorder.transitions());
   CHECK(std::count(edges.begin(), edges.end(), std::pair{LoopState::kPublishing, LoopState::kFault}) == 1);
   CHECK(std::count(edges.begin(), edges.end(), std::pair{LoopState::kFault, LoopState::kIdle}) == 1);
-  // The third part was scanned whole after the recovery.
+  // The third part was scanned whole after the recovery (its record may follow its result by a moment).
+  REQUIRE(wait_until([&] { return cell.recorder.part_count() == 3; }, 5'000));
   CHECK(cell.recorder.parts().back().frames == cell.sim_cell.rig().frames_per_pass());
 }
 
@@ -1733,6 +1736,9 @@ TEST_CASE(
   CHECK(kept[0].first.tag.acq_id == 2);
   CHECK_FALSE(kept[0].first.tag.teach);
   CHECK(kept[0].first.decision.source == algo::DecisionSource::kUnknown);
+  // The PLC can see a result before the observer has its record (publish() hands the result block over first: the
+  // sanitizer run under load once read one record here).
+  REQUIRE(wait_until([&] { return cell.recorder.part_count() == 2; }, 5'000));
   const auto records = cell.recorder.parts();
   REQUIRE(records.size() == 2);
   CHECK(kept[0].second.size() == records[1].points);
