@@ -106,6 +106,11 @@ double largest_change(const Eigen::Vector3d& p, const Eigen::Matrix3d& all) {
                 std::abs(p[2]) * std::sqrt(std::max(variance_of(all, 2), 0.0)));
 }
 
+// `prior` with a fit of what remained after it (offset, slope X, slope Y) added, from `points` points.
+DepthPlane plus_fit(const DepthPlane& prior, const Eigen::Vector3d& fit, int points) {
+  return {prior.offset_m + fit[0], prior.slope_x + fit[1], prior.slope_y + fit[2], points};
+}
+
 }  // namespace
 
 Eigen::Vector2d centroid_xy_m(std::span<const ScanPoint> points) {
@@ -440,19 +445,16 @@ DepthPlane PerfectMatcher::fit_depth_plane(const DistanceMapView& map, const Eig
       ++n;
     }
     if (n < kLevelMinPoints) break;
-    const bool strip = !have_fit && !spans_part(a, all) && spans_part(a, all, kLevelStripSpread);
-    if (!strip && !spans_part(a, all)) break;
+    const bool spans = spans_part(a, all);
+    const bool strip = !have_fit && !spans && spans_part(a, all, kLevelStripSpread);
+    if (!spans && !strip) break;
     const Eigen::LDLT<Eigen::Matrix3d> ldlt(a);
     if (ldlt.info() != Eigen::Success || !(ldlt.rcond() > kLevelMinRcond)) break;
     fit = ldlt.solve(b);
-    if (strip) {
+    if (strip) {  // a step only (depth_plane fits again from it)
       if (!fit.allFinite()) break;
       kind = LevelFit::kStrip;
-      plane.points = n;
-      plane.offset_m = prior.offset_m + fit[0];
-      plane.slope_x = prior.slope_x + fit[1];
-      plane.slope_y = prior.slope_y + fit[2];
-      return plane;
+      return plus_fit(prior, fit, n);
     }
     have_fit = true;
     plane.points = n;
@@ -467,10 +469,7 @@ DepthPlane PerfectMatcher::fit_depth_plane(const DistanceMapView& map, const Eig
     kept.points = plane.points;
     return kept;
   }
-  plane.offset_m = prior.offset_m + fit[0];
-  plane.slope_x = prior.slope_x + fit[1];
-  plane.slope_y = prior.slope_y + fit[2];
-  return plane;
+  return plus_fit(prior, fit, plane.points);
 }
 
 Eigen::Matrix3d rotation_of(const FullPose& pose) {
