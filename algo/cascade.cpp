@@ -180,6 +180,40 @@ struct OutlineField {
 
 }  // namespace
 
+// Depth slopes: x for the width and the left and right edges, y for the height and the bottom and top edges.
+double TemplateThresholds::size_centre_x_at(const MatchReport& r) const {
+  return size_centre_x_m + size_gain_x_m * r.depth_slope_x;
+}
+double TemplateThresholds::size_centre_y_at(const MatchReport& r) const {
+  return size_centre_y_m + size_gain_y_m * r.depth_slope_y;
+}
+double TemplateThresholds::edge_centre_at(std::size_t edge, const MatchReport& r) const {
+  const double slope = edge < static_cast<std::size_t>(Edge::kBottom) ? r.depth_slope_x : r.depth_slope_y;
+  return edge_centre_m[edge] + edge_gain_m[edge] * slope;
+}
+double TemplateThresholds::size_deviation(const MatchReport& r) const {
+  return std::max(std::abs(r.size_dx_m - size_centre_x_at(r)), std::abs(r.size_dy_m - size_centre_y_at(r)));
+}
+bool TemplateThresholds::size_beyond(const MatchReport& r, double factor, double slack_m) const {
+  return std::abs(r.size_dx_m - size_centre_x_at(r)) > factor * max_size_dev_x_m + slack_m ||
+         std::abs(r.size_dy_m - size_centre_y_at(r)) > factor * max_size_dev_y_m + slack_m;
+}
+double TemplateThresholds::edge_deviation(const MatchReport& r) const {
+  double worst = 0.0;
+  for (std::size_t e = 0; e < kEdges; ++e) {
+    const double d = std::abs(r.edge_m[e] - edge_centre_at(e, r));
+    if (d > worst) worst = d;
+  }
+  return worst;
+}
+bool TemplateThresholds::edge_beyond(const MatchReport& r, double slack_x_m, double slack_y_m) const {
+  for (std::size_t e = 0; e < kEdges; ++e) {
+    const double slack_m = e < static_cast<std::size_t>(Edge::kBottom) ? slack_x_m : slack_y_m;
+    if (std::abs(r.edge_m[e] - edge_centre_at(e, r)) > max_edge_dev_m[e] + slack_m) return true;
+  }
+  return false;
+}
+
 namespace {
 
 // The gated figures of a report, in TemplateThresholds order (the size's and the edges' deviations need the
@@ -195,9 +229,9 @@ constexpr int kEdgeFigure = 8;  // the left edge's deviation; the other edges' f
                                     1.0 - r.coverage,
                                     r.scan_outliers,
                                     r.hole_pattern_m2,
-                                    std::abs(r.size_dx_m - t.size_centre_x_m),
-                                    std::abs(r.size_dy_m - t.size_centre_y_m)};
-  for (std::size_t e = 0; e < kEdges; ++e) f[kEdgeFigure + e] = std::abs(r.edge_m[e] - t.edge_centre_m[e]);
+                                    std::abs(r.size_dx_m - t.size_centre_x_at(r)),
+                                    std::abs(r.size_dy_m - t.size_centre_y_at(r))};
+  for (std::size_t e = 0; e < kEdges; ++e) f[kEdgeFigure + e] = std::abs(r.edge_m[e] - t.edge_centre_at(e, r));
   return f;
 }
 [[nodiscard]] std::array<double, kFigures> limits_of(const TemplateThresholds& t) {
@@ -238,19 +272,95 @@ constexpr RejectReason kFigureReason[kFigures] = {
   return *mid;
 }
 
-// learn_thresholds' step 0: the size's and the edges' centres, the own class's medians of the measured values.
-void learn_centres(std::span<const MatchReport> own_class, TemplateThresholds& t) {
-  auto centre = [&](auto figure) {
-    std::vector<double> v;
-    for (const MatchReport& r : own_class) {
-      if (std::isfinite(figure(r))) v.push_back(figure(r));
+// learn_centres' line through the own scans' (slope, figure) pairs, x = centre + gain x slope: kept only where it
+// explains them (the own scans' slopes spread over kMinGainSpread at least, and their largest deviation from the line
+// at most kGainShare of that from the median), else the median and no gain. A twin's offset is a constant: the line
+// learnt from the own scans leaves it whole.
+constexpr std::size_t kMinGainScans = 6;
+constexpr double kMinGainSpread = 0.02;  // ~1.1 deg of swing or tilt between the own scans
+constexpr double kGainShare = 0.5;
+constexpr double kMaxGainM = 0.15;  // the offset of a 150 mm wall's shadow edge, per unit of slope
+constexpr double kGainTrimSigmas = 3.0;
+struct CentreLine {
+  double centre = 0.0;
+  double gain = 0.0;
+};
+template <typename Figure, typename Slope>
+CentreLine centre_line(std::span<const MatchReport> own_class, Figure figure, Slope slope, double floor) {
+  std::vector<double> xs, ss;
+  for (const MatchReport& r : own_class) {
+    if (std::isfinite(figure(r)) && std::isfinite(slope(r))) {
+      xs.push_back(figure(r));
+      ss.push_back(slope(r));
     }
-    return median_of(v);
+  }
+  CentreLine out{median_of(xs), 0.0};
+  if (xs.size() < kMinGainScans) return out;
+  const auto [s_lo, s_hi] = std::minmax_element(ss.begin(), ss.end());
+  if (*s_hi - *s_lo < kMinGainSpread) return out;
+  std::vector<char> keep(xs.size(), 1);
+  auto fit = [&]() {
+    double n = 0, sx = 0, sy = 0, sxx = 0, sxy = 0;
+    for (std::size_t i = 0; i < xs.size(); ++i) {
+      if (keep[i] == 0) continue;
+      n += 1.0;
+      sx += ss[i];
+      sy += xs[i];
+      sxx += ss[i] * ss[i];
+      sxy += ss[i] * xs[i];
+    }
+    const double det = n * sxx - sx * sx;
+    if (!(det > 0.0)) return CentreLine{out.centre, 0.0};
+    const double gain = (n * sxy - sx * sy) / det;
+    return CentreLine{(sy - gain * sx) / n, gain};
   };
-  t.size_centre_x_m = centre([](const MatchReport& r) { return r.size_dx_m; });
-  t.size_centre_y_m = centre([](const MatchReport& r) { return r.size_dy_m; });
+  // One trimmed refit: a scan with glare along the edge is not on the line and must not bend it.
+  CentreLine line = fit();
+  std::vector<double> res(xs.size());
+  for (std::size_t i = 0; i < xs.size(); ++i) res[i] = xs[i] - (line.centre + line.gain * ss[i]);
+  std::vector<double> dev = res;
+  const double res_median = median_of(res);
+  for (double& d : dev) d = std::abs(d - res_median);
+  const double sigma = std::max(1.4826 * median_of(dev), 0.25 * floor);
+  for (std::size_t i = 0; i < xs.size(); ++i) keep[i] = std::abs(res[i] - res_median) <= kGainTrimSigmas * sigma;
+  line = fit();
+  // The kept scans' scatter about the line against that about their median.
+  std::vector<double> kept_x, kept_res;
+  for (std::size_t i = 0; i < xs.size(); ++i) {
+    if (keep[i] == 0) continue;
+    kept_x.push_back(xs[i]);
+    kept_res.push_back(xs[i] - (line.centre + line.gain * ss[i]));
+  }
+  const double x_median = median_of(kept_x), r_median = median_of(kept_res);
+  double about_median = 0.0, about_line = 0.0;
+  for (std::size_t i = 0; i < kept_x.size(); ++i) {
+    about_median = std::max(about_median, std::abs(kept_x[i] - x_median));
+    about_line = std::max(about_line, std::abs(kept_res[i] - r_median));
+  }
+  if (about_median <= floor || about_line > kGainShare * about_median || std::abs(line.gain) > kMaxGainM) return out;
+  return CentreLine{line.centre + r_median, line.gain};
+}
+
+// learn_thresholds' step 0: the size's and the edges' centres, the own class's medians of the measured values, or
+// their lines in the depth slope (TemplateThresholds::edge_gain_m).
+void learn_centres(std::span<const MatchReport> own_class, const CascadeParams& params, TemplateThresholds& t) {
+  auto slope_x = [](const MatchReport& r) { return r.depth_slope_x; };
+  auto slope_y = [](const MatchReport& r) { return r.depth_slope_y; };
+  const CentreLine width = centre_line(
+      own_class, [](const MatchReport& r) { return r.size_dx_m; }, slope_x, params.size_floor_m);
+  const CentreLine height = centre_line(
+      own_class, [](const MatchReport& r) { return r.size_dy_m; }, slope_y, params.size_floor_m);
+  t.size_centre_x_m = width.centre;
+  t.size_gain_x_m = width.gain;
+  t.size_centre_y_m = height.centre;
+  t.size_gain_y_m = height.gain;
   for (std::size_t e = 0; e < kEdges; ++e) {
-    t.edge_centre_m[e] = centre([e](const MatchReport& r) { return r.edge_m[e]; });
+    const bool across = e < static_cast<std::size_t>(Edge::kBottom);
+    auto figure = [e](const MatchReport& r) { return r.edge_m[e]; };
+    const CentreLine line = across ? centre_line(own_class, figure, slope_x, params.edge_floor_x_m)
+                                   : centre_line(own_class, figure, slope_y, params.edge_floor_m);
+    t.edge_centre_m[e] = line.centre;
+    t.edge_gain_m[e] = line.gain;
   }
 }
 
@@ -299,8 +409,8 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
                                   params.size_floor_m,   params.size_floor_m,  params.edge_floor_x_m,
                                   params.edge_floor_x_m, params.edge_floor_m,  params.edge_floor_m};
   // 0. The size's and the edges' centres: the own class's medians (all its scans: a median is not moved by the few
-  //    that disagree).
-  learn_centres(own_class, out.thresholds);
+  //    that disagree), or their lines in the depth slope (centre_line: a trimmed fit, not moved by them either).
+  learn_centres(own_class, params, out.thresholds);
   const TemplateThresholds& centres = out.thresholds;
   // 1. Robust agreement: per figure the median and the MAD of the own class; a scan above median + k sigma on any
   //    figure disagrees. Sigma never goes below a quarter of the floor, so scans that are all alike do not flag the
@@ -673,10 +783,10 @@ bool Cascade::clear_of_near_misses(const DecideState& s, const Candidate& best) 
     // 3.5 mm limit it is not narrow. The evidence (areas) cannot give the margin there: a size twin's are a
     // winner's (catalogue 8601's rnd02 / rnd06 came out ambiguous on all 20 passes).
     const double size_slack_m = (params_.near_fail_factor - 1.0) * params_.size_floor_m;
-    if (ct->thresholds.size_beyond(c.report.size_dx_m, c.report.size_dy_m, 1.0, size_slack_m)) continue;
+    if (ct->thresholds.size_beyond(c.report, 1.0, size_slack_m)) continue;
     // The same for an edge (a 5 mm taller twin's clean edge, 2.5 mm off where its own scans stay within a row step).
     const double near = params_.near_fail_factor - 1.0;
-    if (ct->thresholds.edge_beyond(c.report.edge_m, near * params_.edge_floor_x_m, near * params_.edge_floor_m)) {
+    if (ct->thresholds.edge_beyond(c.report, near * params_.edge_floor_x_m, near * params_.edge_floor_m)) {
       continue;
     }
     if (!clear_margin(b, c.report.evidence_m2)) return false;
@@ -805,8 +915,8 @@ void Cascade::report_candidates(DecideState& s, const Candidate* winner, bool am
     o.check_pose = c.report.check_pose;
     const TemplateModel* t = s.template_of(c.class_index);
     if (t != nullptr) {
-      o.size_dev_m = t->thresholds.size_deviation(c.report.size_dx_m, c.report.size_dy_m);
-      o.edge_dev_m = t->thresholds.edge_deviation(c.report.edge_m);
+      o.size_dev_m = t->thresholds.size_deviation(c.report);
+      o.edge_dev_m = t->thresholds.edge_deviation(c.report);
     }
     if (t == nullptr) {
       o.rejected_by = RejectReason::kNoTemplate;
@@ -896,6 +1006,20 @@ MatchReport Cascade::evaluate(const TemplateModel& model, std::span<const ScanPo
   return evaluate_prepared(model, scan, gross_limits);
 }
 
+MatchReport Cascade::evaluate_own(const TemplateModel& model, std::span<const ScanPoint> scan) {
+  set_scan(scan);
+  PerfectMatchResult pm = matcher_.match(model.map, model.centroid_m, matcher_.centroid_start(model.centroid_m));
+  for (const double turn : {kRestartTurnRad, -kRestartTurnRad}) {
+    PlanarPose turned = matcher_.centroid_start(model.centroid_m);
+    turned.theta_rad = turn;
+    const PerfectMatchResult again = matcher_.match(model.map, model.centroid_m, turned);
+    if (again.error < pm.error) pm = again;
+  }
+  MatchReport report = check_prepared(model, scan, pm.pose, nullptr, false);
+  report.pm = pm;
+  return report;
+}
+
 void Cascade::set_scan(std::span<const ScanPoint> scan) {
   matcher_.set_scan(scan);
   outline_valid_ = false;  // taken from this scan when a check first needs it
@@ -963,7 +1087,7 @@ bool Cascade::gross_failure(const MatchReport& r, const TemplateThresholds& t) {
 }
 
 bool Cascade::off_in_size(const MatchReport& r, const TemplateThresholds& t) {
-  return t.size_beyond(r.size_dx_m, r.size_dy_m, kGrossFailure);
+  return t.size_beyond(r, kGrossFailure);
 }
 
 bool Cascade::displaced(const MatchReport& r, const TemplateThresholds& t) {
@@ -974,7 +1098,7 @@ bool Cascade::displaced(const MatchReport& r, const TemplateThresholds& t) {
   // mm2 (> 70 x their limits) and a size 0.03-0.4 x its limit off; the others were of wrong candidates (other
   // outlines, other sizes, a hole more or less), many with only one of the two areas large or off in size.
   return r.missing_area_m2 > kGrossFailure * t.max_missing_area_m2 &&
-         r.extra_area_m2 > kGrossFailure * t.max_extra_area_m2 && !t.size_beyond(r.size_dx_m, r.size_dy_m);
+         r.extra_area_m2 > kGrossFailure * t.max_extra_area_m2 && !t.size_beyond(r);
 }
 
 double Cascade::recheck_on_outline(const TemplateModel& model, std::span<const ScanPoint> scan, const PlanarPose& pose,

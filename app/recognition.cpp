@@ -158,6 +158,9 @@ algo::TemplateThresholds template_thresholds(const formats::PartThresholds& p) {
   t.max_size_dev_m = p.max_size_dev_m;
   t.edge_centre_m = p.edge_centre_m;
   t.max_edge_dev_m = p.max_edge_dev_m;
+  t.size_gain_x_m = p.size_gain_x_m;
+  t.size_gain_y_m = p.size_gain_y_m;
+  t.edge_gain_m = p.edge_gain_m;
   return t;
 }
 
@@ -177,6 +180,9 @@ formats::PartThresholds part_thresholds(const algo::TemplateThresholds& t, bool 
   p.max_size_dev_m = t.max_size_dev_m;
   p.edge_centre_m = t.edge_centre_m;
   p.max_edge_dev_m = t.max_edge_dev_m;
+  p.size_gain_x_m = t.size_gain_x_m;
+  p.size_gain_y_m = t.size_gain_y_m;
+  p.edge_gain_m = t.edge_gain_m;
   return p;
 }
 

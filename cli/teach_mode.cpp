@@ -144,7 +144,7 @@ Consensus consensus_points(const app::Config& config, app::ScanPreparer& prepare
   for (std::size_t j = 0; j < scans.size(); ++j) {
     if (j == chosen.index) continue;
     (void)preparer.prepare(scans[j].points);
-    const algo::MatchReport r = cascade.evaluate(view, preparer.part_points());
+    const algo::MatchReport r = cascade.evaluate_own(view, preparer.part_points());
     if (!std::isfinite(r.pm.error)) continue;
     // p_template = c + R(-theta)(p - c - t) (DESIGN.md's pose inverted); z less the check's depth plane.
     const double ct = std::cos(r.check_pose.theta_rad), st = std::sin(r.check_pose.theta_rad);
@@ -259,7 +259,7 @@ Expected<TemplateChoice> choose_template(const app::Config& config, app::ScanPre
     for (std::size_t j = 0; j < scans.size(); ++j) {
       if (j == i) continue;
       (void)preparer.prepare(scans[j].points);
-      evidence[j] = cascade.evaluate(view, preparer.part_points()).evidence_m2;
+      evidence[j] = cascade.evaluate_own(view, preparer.part_points()).evidence_m2;
       others.push_back(evidence[j]);
     }
     double median = 0.0;
@@ -283,7 +283,7 @@ Expected<TemplateChoice> choose_template(const app::Config& config, app::ScanPre
     std::vector<double> others;
     for (std::size_t j = 0; j < scans.size(); ++j) {
       (void)preparer.prepare(scans[j].points);
-      best_evidence[j] = cascade.evaluate(view, preparer.part_points()).evidence_m2;
+      best_evidence[j] = cascade.evaluate_own(view, preparer.part_points()).evidence_m2;
       if (j != best->index) others.push_back(best_evidence[j]);
     }
     std::nth_element(others.begin(), others.begin() + static_cast<std::ptrdiff_t>(others.size() / 2), others.end());

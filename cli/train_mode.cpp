@@ -145,8 +145,8 @@ Expected<TaughtData> build_dataset(const app::Config& config, const app::ModelDb
           } else {
             job_features[i].push_back(w.preparer.features());
             if (w.cascade) {
-              matches[i] = w.cascade->evaluate(templates->models[static_cast<std::size_t>(jobs[i].label)],
-                                               w.preparer.part_points());
+              matches[i] = w.cascade->evaluate_own(templates->models[static_cast<std::size_t>(jobs[i].label)],
+                                                   w.preparer.part_points());
             }
             const std::span<const algo::ScanPoint> part = w.preparer.part_points();
             w.origin.assign(part.begin(), part.end());

@@ -26,6 +26,9 @@ constexpr std::array<const char*, 4> kEdgeCentreKeys = {"edge_centre_left_m", "e
                                                         "edge_centre_bottom_m", "edge_centre_top_m"};
 constexpr std::array<const char*, 4> kEdgeDevKeys = {"max_edge_dev_left_m", "max_edge_dev_right_m",
                                                      "max_edge_dev_bottom_m", "max_edge_dev_top_m"};
+constexpr std::array<const char*, 4> kEdgeGainKeys = {"edge_gain_left_m", "edge_gain_right_m", "edge_gain_bottom_m",
+                                                      "edge_gain_top_m"};
+constexpr double kMaxGainM = 1.0;  // metres per unit of slope: the range a gain is read in
 constexpr std::size_t kMaxPartName = 64;
 
 }  // namespace
@@ -62,6 +65,11 @@ std::string manifest_text(const Manifest& m) {
     for (std::size_t e = 0; e < p.thresholds.edge_centre_m.size(); ++e) {
       t << ", " << kEdgeCentreKeys[e] << ": " << number(p.thresholds.edge_centre_m[e]) << ", " << kEdgeDevKeys[e]
         << ": " << number(p.thresholds.max_edge_dev_m[e]);
+    }
+    t << ", size_gain_x_m: " << number(p.thresholds.size_gain_x_m)
+      << ", size_gain_y_m: " << number(p.thresholds.size_gain_y_m);
+    for (std::size_t e = 0; e < p.thresholds.edge_gain_m.size(); ++e) {
+      t << ", " << kEdgeGainKeys[e] << ": " << number(p.thresholds.edge_gain_m[e]);
     }
     t << "}\n";
     if (!p.confusable.empty()) {
@@ -187,6 +195,12 @@ void read_thresholds(YamlSection t, PartThresholds& thresholds) {
   for (std::size_t e = 0; e < thresholds.edge_centre_m.size(); ++e) {
     t.number(kEdgeCentreKeys[e], thresholds.edge_centre_m[e], -1.0, 1.0, "m");
     t.number(kEdgeDevKeys[e], thresholds.max_edge_dev_m[e], 0.0, 1.0, "m");
+  }
+  // The gains are optional (absent: 0, the centres alone, as learnt before them).
+  if (t.has("size_gain_x_m")) t.number("size_gain_x_m", thresholds.size_gain_x_m, -kMaxGainM, kMaxGainM, "m");
+  if (t.has("size_gain_y_m")) t.number("size_gain_y_m", thresholds.size_gain_y_m, -kMaxGainM, kMaxGainM, "m");
+  for (std::size_t e = 0; e < thresholds.edge_gain_m.size(); ++e) {
+    if (t.has(kEdgeGainKeys[e])) t.number(kEdgeGainKeys[e], thresholds.edge_gain_m[e], -kMaxGainM, kMaxGainM, "m");
   }
   t.finish();
 }

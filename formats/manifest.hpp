@@ -33,6 +33,12 @@ struct PartThresholds {
   // left, right, bottom, top (algo::Edge; manifest keys edge_centre_left_m .. max_edge_dev_top_m).
   std::array<double, 4> edge_centre_m{};
   std::array<double, 4> max_edge_dev_m{};
+  // Where the own scans show it, the centres move with the part's swing and tilt against the template's: metres per
+  // unit of depth slope (algo::TemplateThresholds::edge_gain_m; keys size_gain_x_m, .., edge_gain_left_m ..).
+  // Optional: a database trained before them has none (0: the centres alone).
+  double size_gain_x_m = 0.0;
+  double size_gain_y_m = 0.0;
+  std::array<double, 4> edge_gain_m{};
 };
 
 struct ScanEntry {

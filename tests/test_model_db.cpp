@@ -331,6 +331,22 @@ TEST_CASE("limits learnt before a gate existed read as not learnt, so the databa
     REQUIRE(before.ok());
     CHECK_FALSE(before->parts.at(0).thresholds.learnt);
   }
+  // The centres' gains in the depth slope came later and are optional: without them the limits are learnt, and the
+  // centres stand alone (gain 0).
+  {
+    std::string old = text.substr(0, text.find("checksum_crc32"));
+    const std::size_t at = old.find(", size_gain_x_m: ");
+    REQUIRE(at != std::string::npos);
+    old.erase(at, old.find('}', at) - at);
+    REQUIRE(old.find("gain") == std::string::npos);
+    char line[40];
+    std::snprintf(line, sizeof line, "checksum_crc32: \"%08x\"\n", base::crc32(old));
+    const auto before = formats::parse_manifest("manifest.yaml", old + line);
+    REQUIRE(before.ok());
+    CHECK(before->parts.at(0).thresholds.learnt);
+    CHECK(before->parts.at(0).thresholds.size_gain_x_m == 0.0);
+    CHECK(before->parts.at(0).thresholds.edge_gain_m == std::array<double, 4>{});
+  }
 }
 
 TEST_CASE("a part's limits go from the manifest to the cascade and back field by field", "[model_db]") {
@@ -348,7 +364,10 @@ TEST_CASE("a part's limits go from the manifest to the cascade and back field by
                                   1.1e-2,
                                   1.2e-2,
                                   {1.3e-3, -1.4e-3, 1.5e-3, -1.6e-3},
-                                  {1.7e-3, 1.8e-3, 1.9e-3, 2.1e-3}};
+                                  {1.7e-3, 1.8e-3, 1.9e-3, 2.1e-3},
+                                  -2.2e-2,
+                                  2.3e-2,
+                                  {2.4e-2, -2.5e-2, 2.6e-2, -2.7e-2}};
   const algo::TemplateThresholds t = app::template_thresholds(p);
   CHECK(t.max_error == p.max_error);
   CHECK(t.max_missing_area_m2 == p.max_missing_area_m2);
@@ -363,6 +382,9 @@ TEST_CASE("a part's limits go from the manifest to the cascade and back field by
   CHECK(t.max_size_dev_m == p.max_size_dev_m);
   CHECK(t.edge_centre_m == p.edge_centre_m);
   CHECK(t.max_edge_dev_m == p.max_edge_dev_m);
+  CHECK(t.size_gain_x_m == p.size_gain_x_m);
+  CHECK(t.size_gain_y_m == p.size_gain_y_m);
+  CHECK(t.edge_gain_m == p.edge_gain_m);
   // ... and back: the manifest writes the same limits (every field is in its text).
   auto text_of = [](const formats::PartThresholds& limits) {
     formats::Manifest m;
