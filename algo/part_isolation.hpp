@@ -16,7 +16,8 @@ struct IsolationParams {
   // band does not cut the part, a neighbour 15 mm away stays apart (2.2 mm cells: 2 -> gaps up to ~9 mm bridged).
   int bridge_cells = 2;
   // A piece that is not the largest and reaches within border_cells of the scanned x range's ends (the conveyor
-  // direction, where the neighbouring carriers hang; the first and last profiles of the pass) is a neighbour's part.
+  // direction, where the neighbouring carriers hang; the first and last profiles of the pass) is a neighbour's part;
+  // so is one between such a piece and the part, beside it in y (a glare band crossed the neighbour's edge).
   int border_cells = 3;
   // A piece with fewer cells than this share of the largest is clutter (specular outliers, a loose speck).
   double min_keep_share = 0.005;
@@ -89,6 +90,9 @@ class PartIsolator {
   // used to be kept unlabelled: shipped catalogue under `stray_edge`, pass 900004, 308 points 200 mm below the part
   // that brought every template's Perfect Match error to 3-6 x its limit). False only for a point that is not finite.
   [[nodiscard]] bool border_cell_of(const ScanPoint& p, int& x, int& y) const;
+  // isolate()'s pieces that continue a piece at the field's end toward the part: marked as at the end too (see the
+  // definition).
+  void mark_end_pieces(int pieces, int largest);
   // Drops the points beyond a depth gap (IsolationParams::depth_gap_m); returns how many.
   std::size_t drop_depth_outliers(ScanBuffer& part);
   // The cell box of the part's points on the grid (points beyond it left out); with count (isolate's use), points
@@ -105,6 +109,7 @@ class PartIsolator {
   std::vector<std::int32_t> stack_;
   std::vector<std::int32_t> piece_cells_;  // occupied cells per piece
   std::vector<std::uint8_t> piece_border_;
+  std::vector<std::int32_t> piece_x0_, piece_x1_, piece_y0_, piece_y1_;  // occupied cells' box per piece
   std::vector<std::uint8_t> piece_keep_;
   std::vector<std::uint8_t> mask_;         // occupancy (bit 0); remove_hanger: cut off (bit 1)
   std::vector<std::uint8_t> closed_;       // remove_hanger: the occupancy closed by one cell

@@ -77,6 +77,31 @@ SCENARIO("A neighbour's part at the field's edge and loose specks are separated 
         CHECK(count_tag(b, kPart) == part_points);
       }
     }
+    WHEN("a neighbour's sheet edge at the right end is crossed by a 12 mm glare band 10 mm in from the end") {
+      // (Shipped catalogue under `mixed`, ribbed_v3 s1010008: the piece beyond the band was kept, 9 027 mm2 of it.)
+      add_sheet(points, 0.575, 0.613, 0.30, 0.80, 0.21, kStray);
+      add_sheet(points, 0.625, 0.635, 0.30, 0.80, 0.21, kStray);
+      algo::ScanBuffer b = buffer_of(points);
+      const algo::IsolationReport r = isolator.isolate(b, 0.0165, 0.635);
+      THEN("the piece beyond the band, beside the end piece, goes with it; every plate point stays") {
+        CHECK(r.pieces == 3);
+        CHECK(r.dropped_pieces == 2);
+        CHECK(r.edge_pieces == 2);
+        CHECK(count_tag(b, kStray) == 0);
+        CHECK(count_tag(b, kPart) == part_points);
+      }
+    }
+    WHEN("a strip beyond the plate's end has an end piece beside it only above it (another neighbour's corner)") {
+      add_sheet(points, 0.575, 0.613, 0.30, 0.80, 0.21, kStray);
+      add_sheet(points, 0.625, 0.635, 0.85, 0.95, 0.21, kSpeck);
+      algo::ScanBuffer b = buffer_of(points);
+      const algo::IsolationReport r = isolator.isolate(b, 0.0165, 0.635);
+      THEN("the strip stays (it does not continue that piece), the end piece goes") {
+        CHECK(r.dropped_pieces == 1);
+        CHECK(count_tag(b, kStray) > 0);
+        CHECK(count_tag(b, kSpeck) == 0);
+      }
+    }
     WHEN("the same scan is isolated for the second look (a glare band may have cut the part's end off)") {
       add_sheet(points, 0.57, 0.61, 0.30, 0.80, 0.21, kStray);
       add_sheet(points, 0.30, 0.302, 0.97, 0.972, 0.2, kSpeck);  // at the plate's depth: a piece, not a depth outlier
