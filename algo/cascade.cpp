@@ -954,6 +954,7 @@ bool Cascade::evaluate_candidate(std::span<const TemplateModel> templates, std::
     // first-ranked candidate over its error limit while the same pose of the twin matched). One of the SVM's most
     // probable candidates gets two more starts, turned either way.
     for (const double turn : {kRestartTurnRad, -kRestartTurnRad}) {
+      if (Clock::now() >= deadline) break;  // (the candidate's first match always runs, its further ones in time)
       PlanarPose turned = matcher_.centroid_start(model.centroid_m);
       turned.theta_rad = turn;
       const PerfectMatchResult again =
@@ -973,7 +974,9 @@ bool Cascade::evaluate_candidate(std::span<const TemplateModel> templates, std::
   }
   out.report.pm = pm;
   out.passed = out.report.passes(model.thresholds);
-  if (first_ranked && !out.passed && pm.error <= model.thresholds.max_error) rematch_from_outline(model, scan, out);
+  if (first_ranked && !out.passed && pm.error <= model.thresholds.max_error && Clock::now() < deadline) {
+    rematch_from_outline(model, scan, out);
+  }
   out.ms = ms_since(start);
   return true;
 }
