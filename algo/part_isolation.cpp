@@ -211,8 +211,8 @@ IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, dou
   for (int i = 1; i < pieces; ++i) {
     if (piece_cells_[static_cast<std::size_t>(i)] > piece_cells_[static_cast<std::size_t>(largest)]) largest = i;
   }
-  mark_end_pieces(pieces, largest);
   const double min_cells = params_.min_keep_share * piece_cells_[static_cast<std::size_t>(largest)];
+  mark_end_pieces(pieces, largest, min_cells);
   for (int i = 0; i < pieces; ++i) {
     const auto u = static_cast<std::size_t>(i);
     const bool large = piece_cells_[u] >= min_cells;
@@ -232,7 +232,7 @@ IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, dou
   return report;
 }
 
-void PartIsolator::mark_end_pieces(int pieces, int largest) {
+void PartIsolator::mark_end_pieces(int pieces, int largest, double min_cells) {
   // A neighbour's sheet edge that a glare band crossed near the field's end leaves a piece at the end and one beyond
   // the band that no longer reaches it: shipped catalogue under `mixed`, ribbed_v3 s1010008, 274 cells at the end,
   // 1 865 beyond a 12 mm band and 15 mm short of the part, kept (9 027 mm2 of material against ribbed_v3's template).
@@ -243,7 +243,8 @@ void PartIsolator::mark_end_pieces(int pieces, int largest) {
   const auto l = static_cast<std::size_t>(largest);
   for (int i = 0; i < pieces; ++i) {
     const auto u = static_cast<std::size_t>(i);
-    if (i == largest || piece_border_[u] != 0 || piece_x1_[u] < piece_x0_[u]) continue;
+    // (Specks go anyway: only pieces large enough to be kept are looked at, so a scan of many specks costs little.)
+    if (i == largest || piece_border_[u] != 0 || piece_cells_[u] < min_cells) continue;
     const bool before = piece_x1_[u]<piece_x0_[l], after = piece_x0_[u]> piece_x1_[l];
     if (!before && !after) continue;
     for (int j = 0; j < pieces && piece_border_[u] == 0; ++j) {

@@ -90,9 +90,9 @@ class PartIsolator {
   // used to be kept unlabelled: shipped catalogue under `stray_edge`, pass 900004, 308 points 200 mm below the part
   // that brought every template's Perfect Match error to 3-6 x its limit). False only for a point that is not finite.
   [[nodiscard]] bool border_cell_of(const ScanPoint& p, int& x, int& y) const;
-  // isolate()'s pieces that continue a piece at the field's end toward the part: marked as at the end too (see the
-  // definition).
-  void mark_end_pieces(int pieces, int largest);
+  // isolate()'s pieces of at least min_cells that continue a piece at the field's end toward the part: marked as at
+  // the end too (see the definition).
+  void mark_end_pieces(int pieces, int largest, double min_cells);
   // Drops the points beyond a depth gap (IsolationParams::depth_gap_m); returns how many.
   std::size_t drop_depth_outliers(ScanBuffer& part);
   // The cell box of the part's points on the grid (points beyond it left out); with count (isolate's use), points
