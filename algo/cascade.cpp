@@ -955,10 +955,7 @@ bool Cascade::evaluate_candidate(std::span<const TemplateModel> templates, std::
     // probable candidates gets two more starts, turned either way.
     for (const double turn : {kRestartTurnRad, -kRestartTurnRad}) {
       if (Clock::now() >= deadline) break;  // (the candidate's first match always runs, its further ones in time)
-      PlanarPose turned = matcher_.centroid_start(model.centroid_m);
-      turned.theta_rad = turn;
-      const PerfectMatchResult again =
-          matcher_.match(model.map, model.centroid_m, turned, kGiveUpFactor * model.thresholds.max_error);
+      const PerfectMatchResult again = match_turned(model, turn, kGiveUpFactor * model.thresholds.max_error);
       if (again.error < pm.error) pm = again;
       if (pm.error <= model.thresholds.max_error) break;
     }
@@ -1009,13 +1006,17 @@ MatchReport Cascade::evaluate(const TemplateModel& model, std::span<const ScanPo
   return evaluate_prepared(model, scan, gross_limits);
 }
 
+PerfectMatchResult Cascade::match_turned(const TemplateModel& model, double turn_rad, double give_up_error) const {
+  PlanarPose turned = matcher_.centroid_start(model.centroid_m);
+  turned.theta_rad = turn_rad;
+  return matcher_.match(model.map, model.centroid_m, turned, give_up_error);
+}
+
 MatchReport Cascade::evaluate_own(const TemplateModel& model, std::span<const ScanPoint> scan) {
   set_scan(scan);
   PerfectMatchResult pm = matcher_.match(model.map, model.centroid_m, matcher_.centroid_start(model.centroid_m));
   for (const double turn : {kRestartTurnRad, -kRestartTurnRad}) {
-    PlanarPose turned = matcher_.centroid_start(model.centroid_m);
-    turned.theta_rad = turn;
-    const PerfectMatchResult again = matcher_.match(model.map, model.centroid_m, turned);
+    const PerfectMatchResult again = match_turned(model, turn, std::numeric_limits<double>::infinity());
     if (again.error < pm.error) pm = again;
   }
   MatchReport report = check_prepared(model, scan, pm.pose, nullptr, false);

@@ -215,9 +215,9 @@ struct TemplateThresholds {
   // NaN, does not).
   [[nodiscard]] bool size_beyond(const MatchReport& r, double factor = 1.0, double slack_m = 0.0) const;
   // Edges: each edge's outward offset beyond the template's, against the holes (MatchReport::edge_m), is expected at
-  // its centre (the own-class median) within its limit: a clean edge gets a tight limit, a flange's end the wide one
-  // its own scans show (the size, the sum of two edges' offsets, only the wider). The default never fails
-  // (thresholds learnt before the edges were measured).
+  // its centre (the own-class median, or its line in the slope: edge_gain_m) within its limit: a clean edge gets a
+  // tight limit, a flange's end the wide one its own scans show (the size, the sum of two edges' offsets, only the
+  // wider). The default never fails (thresholds learnt before the edges were measured).
   std::array<double, kEdges> edge_centre_m{};
   std::array<double, kEdges> max_edge_dev_m = {
       std::numeric_limits<double>::infinity(), std::numeric_limits<double>::infinity(),
@@ -454,6 +454,9 @@ class Cascade {
                           std::chrono::steady_clock::time_point deadline, bool first_ranked, Candidate& out);
   // A failing first-ranked candidate whose check settled on a pose far from Perfect Match's: Perfect Match once
   // more from that pose, and its check, replace the report when they leave less evidence.
+  // Perfect Match from the centroid start turned by turn_rad (evaluate_candidate's and evaluate_own's further starts).
+  [[nodiscard]] PerfectMatchResult match_turned(const TemplateModel& model, double turn_rad,
+                                                double give_up_error) const;
   void rematch_from_outline(const TemplateModel& model, std::span<const ScanPoint> scan, Candidate& c);
   // The check proper (takes the scan's outline when it first needs it and outline_valid_ is false). With
   // thresholds, a gross failure at `pose` ends it when settle_on_gross, and so does a pass when settle_on_pass (the

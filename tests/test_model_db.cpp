@@ -317,31 +317,32 @@ TEST_CASE("limits learnt before a gate existed read as not learnt, so the databa
   REQUIRE(back.ok());
   CHECK(back->parts.at(0).thresholds.learnt);
   CHECK(back->parts.at(0).thresholds.max_hole_pattern_m2 == Approx(0.0004));
-  // The same limits without the hole pattern's (a database trained before it, issue 11) or without an edge's (before
-  // issue 10's edges): read, but not learnt.
-  for (const char* key : {", max_hole_pattern_m2: ", ", edge_centre_left_m: ", ", max_edge_dev_top_m: "}) {
+  // The manifest of an older version: the text from `key` up to (not including) the first of `until` left out, the
+  // checksum made again.
+  auto older = [&](const char* key, const char* until) {
     std::string old = text.substr(0, text.find("checksum_crc32"));
     const std::size_t at = old.find(key);
     REQUIRE(at != std::string::npos);
-    old.erase(at, old.find_first_of(",}", at + 2) - at);
+    old.erase(at, old.find_first_of(until, at + 2) - at);
     char line[40];
     std::snprintf(line, sizeof line, "checksum_crc32: \"%08x\"\n", base::crc32(old));
-    const auto before = formats::parse_manifest("manifest.yaml", old + line);
+    return old + line;
+  };
+  // The same limits without the hole pattern's (a database trained before it, issue 11) or without an edge's (before
+  // issue 10's edges): read, but not learnt.
+  for (const char* key : {", max_hole_pattern_m2: ", ", edge_centre_left_m: ", ", max_edge_dev_top_m: "}) {
+    const std::string old = older(key, ",}");
     INFO(old);
+    const auto before = formats::parse_manifest("manifest.yaml", old);
     REQUIRE(before.ok());
     CHECK_FALSE(before->parts.at(0).thresholds.learnt);
   }
   // The centres' gains in the depth slope came later and are optional: without them the limits are learnt, and the
   // centres stand alone (gain 0).
   {
-    std::string old = text.substr(0, text.find("checksum_crc32"));
-    const std::size_t at = old.find(", size_gain_x_m: ");
-    REQUIRE(at != std::string::npos);
-    old.erase(at, old.find('}', at) - at);
+    const std::string old = older(", size_gain_x_m: ", "}");
     REQUIRE(old.find("gain") == std::string::npos);
-    char line[40];
-    std::snprintf(line, sizeof line, "checksum_crc32: \"%08x\"\n", base::crc32(old));
-    const auto before = formats::parse_manifest("manifest.yaml", old + line);
+    const auto before = formats::parse_manifest("manifest.yaml", old);
     REQUIRE(before.ok());
     CHECK(before->parts.at(0).thresholds.learnt);
     CHECK(before->parts.at(0).thresholds.size_gain_x_m == 0.0);
