@@ -495,8 +495,10 @@ class Cascade {
                                    const PlanarPose& pose, int& outside_points);
   void level_scan_depth(const Roi& roi, const Eigen::Vector2d& centre_m, MatchReport& report);
   void window_range(const std::vector<float>& lo, const std::vector<float>& hi, const Roi& roi);
-  // Whether `other` has occupied cells within fine_window_m of (x, y) but none with depths within tol of [lo, hi].
-  [[nodiscard]] bool depth_contradicted(int x, int y, float lo, float hi, const std::vector<float>& other_lo,
+  // Whether `other` has occupied cells within fine_window_m of (x, y) but none with depths within tol of [lo, hi],
+  // unless both surfaces cross a relief wall there (`own_lo` / `own_hi`: this cell's surface).
+  [[nodiscard]] bool depth_contradicted(int x, int y, float lo, float hi, const std::vector<float>& own_lo,
+                                        const std::vector<float>& own_hi, const std::vector<float>& other_lo,
                                         const std::vector<float>& other_hi, float tol) const;
   // MatchReport::size_dx_m / size_dy_m and edge_m from the rasters. Per template column: the scan's height there (its
   // points' own y extent, continuous) less the template's (its occupied cells' centres: a surface spanning [a, b]
