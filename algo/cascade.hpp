@@ -281,7 +281,7 @@ struct MatchReport {
   double size_dx_m = std::numeric_limits<double>::quiet_NaN();
   double size_dy_m = std::numeric_limits<double>::quiet_NaN();
   // Edges (Edge order): how far the scan's edge lies beyond the template's, outwards (so that the width's dx is
-  // about left + right), the interquartile mean over the same lines as the size, metres, with the scan placed on
+  // about left + right), the windowed mean over the same lines as the size, metres, with the scan placed on
   // the template by their holes (Cascade::edges_against_holes: an edge moves with the pose, and a flat sheet's pose
   // is pulled by its edges). NaN when not measured (lines ending in lost data, or no hole to place it by).
   std::array<double, kEdges> edge_m = {
@@ -502,10 +502,11 @@ class Cascade {
                                         const std::vector<float>& other_hi, float tol) const;
   // MatchReport::size_dx_m / size_dy_m and edge_m from the rasters. Per template column: the scan's height there (its
   // points' own y extent, continuous) less the template's (its occupied cells' centres: a surface spanning [a, b]
-  // gives floor(b) - floor(a), b - a on average); the interquartile mean over the columns that both hold, away from
+  // gives floor(b) - floor(a), b - a on average); the mean over the columns that both hold within 1.5 cells of their
+  // median (windowed_mean in the .cpp: a turned edge's staircase in its shares), away from
   // the template's left and right ends (slanted there by a turn). The same per row for the width. Extents do not
   // move with the pose, so Perfect Match splitting a 5 mm difference into 2.5 mm at either edge (which no area sees)
-  // leaves it whole here. Glare, a chain or a hook spoils some columns; the trimmed mean does not mind. Each line's
+  // leaves it whole here. Glare, a chain or a hook spoils some columns; the window leaves them out. Each line's
   // ends also give the two edges across it (outward offsets, scan less template; edges_against_holes places them).
   void measure_size(const Roi& roi, MatchReport& r);
   // Marks the missing cells that lie in a region of lost data (kLost): see the definition.

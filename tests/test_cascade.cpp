@@ -795,6 +795,44 @@ SCENARIO("The two-way check tells louvres from ribs of the same footprint, which
   }
 }
 
+TEST_CASE("The outer size resolves a fraction of the profile spacing on a turned part", "[cascade][size]") {
+  // Plates 300.9 mm wide plus 0 .. 1.6 mm, turned 2.3 deg, profiles 2.2 mm apart: along the left and right edges the
+  // first profile inside lies 0-2.2 mm in, the two gaps moving together, so each row's width takes one of two values
+  // a cell apart, in shares set by the width. Their mean follows the width; the value most rows take does not,
+  // until the shares tip, and then it jumps by a whole cell.
+  constexpr double kWidth = 0.3009, kHeight = 0.400, kSheet = 0.10, kTheta = 2.3 * kDeg;
+  const Eigen::Vector2d centre(0.30, 0.55);
+  // Profiles every 2.2 mm along x from `phase_m`, rows every 1.6 mm; the plate turned by theta about its centre.
+  auto plate = [&](double width, double phase_m, double theta) {
+    std::vector<ScanPoint> out;
+    const Eigen::Rotation2Dd back(-theta);
+    for (double x = 0.10 + phase_m; x < 0.50; x += 0.0022) {
+      for (double y = 0.30; y < 0.80; y += 0.0016) {
+        const Eigen::Vector2d q = back * (Eigen::Vector2d(x, y) - centre);
+        if (std::abs(q.x()) > 0.5 * width || std::abs(q.y()) > 0.5 * kHeight) continue;
+        out.push_back({static_cast<float>(x), static_cast<float>(y), static_cast<float>(kSheet), 0, 0});
+      }
+    }
+    return out;
+  };
+  const auto t = teach_from("turned_plate", {}, plate(kWidth, 0.0011, 0.0));
+  Cascade cascade(CascadeParams{}, pm_params(), test_grid());
+  // The pose maps the template onto the scan: about the template's centroid, shifted so that the plate's centre
+  // stays put.
+  const Eigen::Vector2d shift = centre - t->centroid_m - Eigen::Rotation2Dd(kTheta) * (centre - t->centroid_m);
+  const PlanarPose at{shift.x(), shift.y(), kTheta};
+  auto width_off = [&](double wider) {
+    return cascade.two_way_check(model_of(*t, 0, 1), plate(kWidth + wider, 0.0007, kTheta), at).size_dx_m;
+  };
+  const double base = width_off(0.0);
+  REQUIRE(std::isfinite(base));
+  for (double wider : {0.0004, 0.0008, 0.0012, 0.0016}) {
+    const double seen = width_off(wider) - base;
+    INFO(wider * 1e3 << " mm wider: measured " << seen * 1e3 << " mm wider");
+    CHECK(seen == Approx(wider).margin(0.0003));
+  }
+}
+
 SCENARIO("The outer size of a part taught and scanned by a sensor with rows 3.3 mm apart is its own",
          "[cascade][two-way][size]") {
   GIVEN("plate_4h and ribbed_v4 taught from scans with every second row, turned by 0.6 deg") {
