@@ -732,9 +732,8 @@ SCENARIO("The two-way check sees one pressed rib more or less, which a flat x-y 
         return out;
       };
       const auto plate = teach_from("ridge_plate", {}, ridge_plate(0.0, true));
-      Cascade at_pose(CascadeParams{}, pm_params(), test_grid());
-      const MatchReport own = at_pose.two_way_check(model_of(*plate, 0, 1), ridge_plate(0.0012, true), {});
-      const MatchReport twin = at_pose.two_way_check(model_of(*plate, 0, 1), ridge_plate(0.0, false), {});
+      const MatchReport own = cascade.two_way_check(model_of(*plate, 0, 1), ridge_plate(0.0012, true), {});
+      const MatchReport twin = cascade.two_way_check(model_of(*plate, 0, 1), ridge_plate(0.0, false), {});
       THEN("the flanks count as seen; the plate without the rib still misses the rib's top") {
         INFO("own: missing " << own.missing_area_m2 * 1e6 << " extra " << own.extra_area_m2 * 1e6
                              << " mm^2; no rib: missing " << twin.missing_area_m2 * 1e6 << " mm^2");
