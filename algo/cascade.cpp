@@ -569,6 +569,10 @@ Cascade::Cascade(const CascadeParams& params, const PerfectMatchParams& pm_param
   edge_lo_work_.assign(lines, 0.0);
   edge_hi_work_.assign(lines, 0.0);
   holes_.resize(kMaxEdgeHoles);
+  hole_pairs_.resize(kMaxEdgeHoles);
+  chord_below_.assign(kMaxEdgeHoles * kMaxHoleColumns, 0.0F);
+  chord_above_.assign(kMaxEdgeHoles * kMaxHoleColumns, 0.0F);
+  hole_label_.assign(cells, 0);
   edt_in_.assign(cells, 0);
   edt_out_.assign(cells, 0.0F);
   outline_.assign(cells, Eigen::Vector2d::Zero());
@@ -1204,7 +1208,7 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
     measure_size(roi, r);
     const double covered_hole = covered_hole_cells(roi);
     r.hole_pattern_m2 = hole_pattern_cells(roi) * cell_area_m2;
-    edges_against_holes(roi, r);
+    edges_against_holes(roi, scan, r);
     const BlobEvidence missing = blob_evidence(roi, kMissing, false);
     const BlobEvidence extra = blob_evidence(roi, kExtra, true);
     r.missing_area_m2 = missing.largest_cells * cell_area_m2;
@@ -1482,6 +1486,7 @@ Cascade::Roi Cascade::rasterise_scan(std::span<const ScanPoint> scan, const Eige
   const double axx = cos_t * inv, axy = sin_t * inv, ayx = -sin_t * inv, ayy = cos_t * inv;
   const double bx = (centre_m.x() - raster_origin_m_.x()) * inv - axx * ox - axy * oy;
   const double by = (centre_m.y() - raster_origin_m_.y()) * inv - ayx * ox - ayy * oy;
+  scan_map_ = {axx, axy, bx, ayx, ayy, by};
   const double wd = width_, hd = height_;
   const auto w = static_cast<std::size_t>(width_);
   int x0 = width_, y0 = height_, x1 = -1, y1 = -1;
@@ -1792,7 +1797,7 @@ double Cascade::hole_pattern_cells(const Roi& roi) {
   return total;
 }
 
-void Cascade::edges_against_holes(const Roi& roi, MatchReport& r) {
+void Cascade::edges_against_holes(const Roi& roi, std::span<const ScanPoint> scan, MatchReport& r) {
   // The part's holes fix its place on the sheet where Perfect Match and the outline fit may not: on a flat sheet the
   // edges carry most of their in-plane pull, and an end seen short or long by a varying length (a bent flange)
   // pulls the pose by as much as 2 of 3 mm (the scenario of a twin 5 mm taller). Each template hole (a 4-connected
@@ -1800,18 +1805,18 @@ void Cascade::edges_against_holes(const Roi& roi, MatchReport& r) {
   // shadow beside a rib differs between poses, and 11306's rnd03 s940005 paired one 12 mm off) is paired with the
   // scan's empty piece around its centre cell when that is about as large (kMinRatio..1 / kMinRatio), holds no lost
   // data (a hole glare opened into is no reference) and lies within the check's window of it (else it is another
-  // piece); the pairs' mean centre shift, weighted by area, is how far the scan lies off the template at its holes,
-  // and the edges (measure_size's) are taken against it. Fewer than kMinPairedCells paired: no hole holds the pose,
-  // the edges stay unmeasured (NaN, never failing).
+  // piece); the pairs' mean centre shift (along y from the profiles' chords through the hole: hole_chord_centres),
+  // weighted by area, is how far the scan lies off the template at its holes, and the edges (measure_size's) are
+  // taken against it. Fewer than kMinPairedCells paired: no hole holds the pose, the edges stay unmeasured (NaN,
+  // never failing).
   constexpr std::size_t kMinCells = 4;     // ~19 mm^2: a 5 mm hole
   constexpr std::size_t kMaxCells = 2000;  // ~9 700 mm^2: a window 100 mm square
   constexpr double kMinRatio = 0.7;
-  constexpr double kMinPairedCells = 30.0;  // ~145 mm^2: one 14 mm hole
   const int w = width_;
   auto at = [&](int x, int y) { return static_cast<std::size_t>(y) * static_cast<std::size_t>(w) + x; };
   // One piece of empty cells (mask_b_) from `seed`, its moments; false when it reaches the box's edge, lost data or
-  // a relief wall, or grows beyond `limit` cells.
-  auto piece = [&](std::size_t seed, std::size_t limit, CellMoments& m) {
+  // a relief wall, or grows beyond `limit` cells. With `record`, its cells go to blob_cells_ from *record on.
+  auto piece = [&](std::size_t seed, std::size_t limit, CellMoments& m, std::size_t* record = nullptr) {
     std::size_t top = 0;
     bool clean = true;
     flags_[seed] |= kVisited;
@@ -1820,6 +1825,7 @@ void Cascade::edges_against_holes(const Roi& roi, MatchReport& r) {
       const std::int32_t c = stack_[--top];
       const int cx = c % w, cy = c / w;
       m.add(cx, cy);
+      if (record != nullptr) blob_cells_[(*record)++] = c;
       if ((flags_[static_cast<std::size_t>(c)] & (kLost | kStep)) != 0 || m.n > static_cast<double>(limit)) {
         clean = false;
       }
@@ -1853,7 +1859,7 @@ void Cascade::edges_against_holes(const Roi& roi, MatchReport& r) {
   }
   clear_flag(roi, kVisited);
   mark_empty_cells(roi, true);
-  double paired = 0.0, shift_x = 0.0, shift_y = 0.0;
+  std::size_t pairs = 0, recorded = 0;  // pairs; their pieces' cells in blob_cells_
   for (std::size_t h = 0; h < holes; ++h) {
     const HoleRef& t = holes_[h];
     const int x = static_cast<int>(std::lround(t.x)), y = static_cast<int>(std::lround(t.y));
@@ -1861,14 +1867,38 @@ void Cascade::edges_against_holes(const Roi& roi, MatchReport& r) {
     if (mask_b_[i] == 0 || (flags_[i] & kVisited) != 0) continue;
     CellMoments m;
     const auto limit = static_cast<std::size_t>(t.cells / kMinRatio);
-    if (!piece(i, limit, m) || m.n < kMinRatio * t.cells) continue;
+    const std::size_t first = recorded;
+    if (!piece(i, limit, m, &recorded) || m.n < kMinRatio * t.cells) {
+      recorded = first;
+      continue;
+    }
     const double sx = m.sx / m.n - t.x, sy = m.sy / m.n - t.y;
-    if (sx * sx + sy * sy > static_cast<double>(window_cells_ * window_cells_)) continue;  // another piece
-    paired += t.cells;
-    shift_x += t.cells * sx;
-    shift_y += t.cells * sy;
+    if (sx * sx + sy * sy > static_cast<double>(window_cells_ * window_cells_)) {  // another piece
+      recorded = first;
+      continue;
+    }
+    int x0 = roi.x1;
+    for (std::size_t j = first; j < recorded; ++j) {
+      hole_label_[static_cast<std::size_t>(blob_cells_[j])] = static_cast<std::uint16_t>(pairs + 1);
+      x0 = std::min(x0, blob_cells_[j] % w);
+    }
+    hole_pairs_[pairs++] = {t.y, t.cells, sx, sy, x0};
   }
   clear_flag(roi, kVisited);
+  hole_chord_centres(roi, scan, pairs);
+  for (std::size_t j = 0; j < recorded; ++j) hole_label_[static_cast<std::size_t>(blob_cells_[j])] = 0;
+  edges_by_pairs(pairs, r);
+}
+
+void Cascade::edges_by_pairs(std::size_t pairs, MatchReport& r) const {
+  constexpr double kMinPairedCells = 30.0;  // ~145 mm^2: one 14 mm hole
+  double paired = 0.0, shift_x = 0.0, shift_y = 0.0;
+  for (std::size_t p = 0; p < pairs; ++p) {
+    const HolePair& q = hole_pairs_[p];
+    paired += q.cells;
+    shift_x += q.cells * q.shift_x;
+    shift_y += q.cells * q.shift_y;
+  }
   auto& e = r.edge_m;
   if (paired < kMinPairedCells) {
     e.fill(std::numeric_limits<double>::quiet_NaN());
@@ -1880,6 +1910,66 @@ void Cascade::edges_against_holes(const Roi& roi, MatchReport& r) {
   e[static_cast<std::size_t>(Edge::kRight)] -= dx_m;
   e[static_cast<std::size_t>(Edge::kBottom)] += dy_m;
   e[static_cast<std::size_t>(Edge::kTop)] -= dy_m;
+}
+
+void Cascade::hole_chord_centres(const Roi& roi, std::span<const ScanPoint> scan, std::size_t pairs) {
+  // A piece of empty cells places its hole to within a cell at best: a rim cell counts as material once one point
+  // falls into it, so the piece's centroid moves with where the rim falls between the cells, and a dropout run beside
+  // the rim adds cells to one side (louvred_panel's two 20 mm holes, 45 cells each: their y shift spread over 1.2
+  // cells between passes, and 1.5 mm of it put one pass's bottom edge 1.2 mm off). Along y the profiles sample the
+  // part far finer than a cell (the camera's rows, ~1 mm apart): per column of the piece, the highest scan point in
+  // the cell below it and the lowest in the cell above are the ends of the profile's chord through the hole, and a
+  // chord's midpoint is the hole's centre row whatever the chord's length. The mean of the middle half of the
+  // midpoints leaves out the few chords a dropout run lengthened (a median jumps between the values the samples
+  // allow: 0.25 cells on test_cascade's plate with two of 18 chords lengthened). Along x the samples are the
+  // profiles, a cell apart: nothing finer than the piece to be had there. Needs kMinChords columns with both ends,
+  // else the piece's centroid stays.
+  constexpr std::size_t kMinChords = 3;
+  if (pairs == 0) return;
+  const auto columns = pairs * static_cast<std::size_t>(kMaxHoleColumns);
+  std::fill_n(chord_below_.begin(), columns, -std::numeric_limits<float>::infinity());
+  std::fill_n(chord_above_.begin(), columns, std::numeric_limits<float>::infinity());
+  const auto w = static_cast<std::size_t>(width_);
+  const ScanMap& a = scan_map_;
+  // The chord's end in column x of the pair labelling cell n (a neighbour of the point's cell along y).
+  auto end_at = [&](std::size_t n, int x, std::vector<float>& ends, float fy, bool below) {
+    const std::uint16_t label = hole_label_[n];
+    if (label == 0) return;
+    const HolePair& q = hole_pairs_[label - 1U];
+    const int c = x - q.x0;
+    if (c < 0 || c >= kMaxHoleColumns) return;
+    float& end = ends[(label - 1U) * static_cast<std::size_t>(kMaxHoleColumns) + static_cast<std::size_t>(c)];
+    end = below ? std::max(end, fy) : std::min(end, fy);
+  };
+  for (const ScanPoint& p : scan) {
+    const double fx = a.axx * p.x + a.axy * p.y + a.bx;
+    const double fy = a.ayx * p.x + a.ayy * p.y + a.by;
+    if (!(fx >= roi.x0 && fx < roi.x1 && fy >= roi.y0 + 1 && fy < roi.y1 - 1)) continue;
+    const int x = static_cast<int>(fx), y = static_cast<int>(fy);
+    const std::size_t i = static_cast<std::size_t>(y) * w + static_cast<std::size_t>(x);
+    end_at(i + w, x, chord_below_, static_cast<float>(fy), true);   // the piece lies above this point
+    end_at(i - w, x, chord_above_, static_cast<float>(fy), false);  // ... below it
+  }
+  for (std::size_t p = 0; p < pairs; ++p) {
+    HolePair& q = hole_pairs_[p];
+    std::size_t n = 0;
+    for (std::size_t c = 0; c < static_cast<std::size_t>(kMaxHoleColumns); ++c) {
+      const std::size_t k = p * static_cast<std::size_t>(kMaxHoleColumns) + c;
+      if (std::isfinite(chord_below_[k]) && std::isfinite(chord_above_[k])) {
+        size_work_[n++] = 0.5 * (static_cast<double>(chord_below_[k]) + static_cast<double>(chord_above_[k]));
+      }
+    }
+    if (n < kMinChords) continue;
+    // The mean of the middle half (the chords' ends lie on the profile's samples, so their midpoints scatter by half
+    // a sample spacing either way about the centre; the few a data loss lengthened lie beyond).
+    std::sort(size_work_.begin(), size_work_.begin() + static_cast<std::ptrdiff_t>(n));
+    const std::size_t cut = n / 4;
+    double sum = 0.0;
+    for (std::size_t j = cut; j < n - cut; ++j) sum += size_work_[j];
+    const double centre = sum / static_cast<double>(n - 2 * cut);
+    // Continuous rows: a cell's centroid index k is the middle of [k, k + 1).
+    q.shift_y = centre - (q.template_y + 0.5);
+  }
 }
 
 void Cascade::mark_empty_cells(const Roi& roi, bool scan_side) {

@@ -548,8 +548,14 @@ class Cascade {
   [[nodiscard]] bool clean_unmatched_hole(const Roi& roi, const Eigen::Vector2d& centre, double radius,
                                           bool scan_holes) const;
   // The edges (MatchReport::edge_m, measured by measure_size) taken against the part's holes (after
-  // hole_pattern_cells: uses mask_b_ and kVisited).
-  void edges_against_holes(const Roi& roi, MatchReport& r);
+  // hole_pattern_cells: uses mask_b_ and kVisited); `scan` is the one rasterise_scan placed last.
+  void edges_against_holes(const Roi& roi, std::span<const ScanPoint> scan, MatchReport& r);
+  // edges_against_holes' centre of the scan's paired holes along y from the scan's own points (see the definition):
+  // shift_y[p] of pair p becomes the chords' centre less the template's, where enough chords were measured.
+  void hole_chord_centres(const Roi& roi, std::span<const ScanPoint> scan, std::size_t pairs);
+  // edges_against_holes' last step: the pairs' mean shift, weighted by area, moves the edges (kMinPairedCells paired
+  // at least, else they are unmeasured).
+  void edges_by_pairs(std::size_t pairs, MatchReport& r) const;
   // unmatched_hole_cells()'s empty cells of one side into mask_b_.
   void mark_empty_cells(const Roi& roi, bool scan_side);
   // Whether raster cell i holds a point of the scan (scan_side) or of the template.
@@ -594,6 +600,22 @@ class Cascade {
   };
   static constexpr std::size_t kMaxEdgeHoles = 256;  // edges_against_holes pairs at most this many
   std::vector<HoleRef> holes_;
+  // edges_against_holes' pairs: the template hole's centre row (cells), the scan piece's first column and the
+  // pair's y shift (cells); per pair and column (at most kMaxHoleColumns), the highest scan point below the piece
+  // and the lowest above it (hole_chord_centres); per raster cell the pair whose piece holds it (1-based, 0: none).
+  struct HolePair {
+    double template_y = 0.0, cells = 0.0, shift_x = 0.0, shift_y = 0.0;
+    int x0 = 0;
+  };
+  static constexpr int kMaxHoleColumns = 64;  // a compact piece of kMaxCells (2 000) spans ~50
+  std::vector<HolePair> hole_pairs_;
+  std::vector<float> chord_below_, chord_above_;
+  std::vector<std::uint16_t> hole_label_;
+  // rasterise_scan's map of the last scan into continuous cell coordinates: f = (axx x + axy y + bx, ayx x + ...).
+  struct ScanMap {
+    double axx = 0, axy = 0, bx = 0, ayx = 0, ayy = 0, by = 0;
+  };
+  ScanMap scan_map_;
   std::vector<std::uint8_t> edt_in_;
   std::vector<float> edt_out_;  // distance to the template outline, cells, over edt_box_
   EdtScratch edt_scratch_;
