@@ -48,6 +48,9 @@ PartIsolator::PartIsolator(const GridSpec& grid, const IsolationParams& params)
   piece_border_.assign(cells, 0);
   for (auto* v : {&piece_x0_, &piece_x1_, &piece_y0_, &piece_y1_}) v->assign(cells, 0);
   piece_keep_.assign(cells, 0);
+  piece_off_depth_.assign(cells, 0);
+  piece_points_.assign(cells, 0);
+  piece_on_depth_.assign(cells, 0);
   mask_.assign(cells, 0);
   closed_.assign(cells, 0);
   opened_.assign(cells, 0);
@@ -55,14 +58,17 @@ PartIsolator::PartIsolator(const GridSpec& grid, const IsolationParams& params)
   depth_count_.assign(static_cast<std::size_t>(std::max(grid.nz, 1)), 0);
 }
 
+int PartIsolator::depth_layer(const ScanPoint& p) const {
+  const int nz = static_cast<int>(depth_count_.size());
+  const double f = (static_cast<double>(p.z) - grid_.origin_m.z()) * inv_resolution_;
+  if (!(f >= 0.0)) return -1;
+  return f < nz ? static_cast<int>(f) : nz;
+}
+
 std::size_t PartIsolator::drop_depth_outliers(ScanBuffer& part) {
   const int nz = static_cast<int>(depth_count_.size());
   std::fill(depth_count_.begin(), depth_count_.end(), 0);
-  const auto layer_of = [&](const ScanPoint& p) {  // -1 below the grid, nz above it (NaN: below)
-    const double f = (static_cast<double>(p.z) - grid_.origin_m.z()) * inv_resolution_;
-    if (!(f >= 0.0)) return -1;
-    return f < nz ? static_cast<int>(f) : nz;
-  };
+  const auto layer_of = [&](const ScanPoint& p) { return depth_layer(p); };
   std::size_t counted = 0;
   for (const ScanPoint& p : part.points()) {
     const int z = layer_of(p);
@@ -213,13 +219,16 @@ IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, dou
   }
   const double min_cells = params_.min_keep_share * piece_cells_[static_cast<std::size_t>(largest)];
   mark_end_pieces(pieces, largest, min_cells);
+  mark_off_depth_pieces(part, pieces, largest, min_cells);
   for (int i = 0; i < pieces; ++i) {
     const auto u = static_cast<std::size_t>(i);
     const bool large = piece_cells_[u] >= min_cells;
-    const bool keep = i == largest || (large && (piece_border_[u] == 0 || keep_edge_pieces));
+    const bool off_depth = piece_off_depth_[u] != 0;
+    const bool keep = i == largest || (large && !off_depth && (piece_border_[u] == 0 || keep_edge_pieces));
     piece_keep_[u] = keep ? 1 : 0;
     report.dropped_pieces += keep ? 0 : 1;
-    report.edge_pieces += !keep && large ? 1 : 0;
+    report.depth_pieces += !keep && large && off_depth ? 1 : 0;
+    report.edge_pieces += !keep && large && !off_depth ? 1 : 0;
   }
   if (report.dropped_pieces == 0) return report;
   report.dropped_points += part.filter([&](const ScanPoint& p) {
@@ -255,6 +264,53 @@ void PartIsolator::mark_end_pieces(int pieces, int largest, double min_cells) {
       const int shorter = std::min(piece_y1_[u] - piece_y0_[u], piece_y1_[b] - piece_y0_[b]) + 1;
       if (beyond && 2 * overlap >= shorter) piece_border_[u] = 1;
     }
+  }
+}
+
+void PartIsolator::mark_off_depth_pieces(const ScanBuffer& part, int pieces, int largest, double min_cells) {
+  std::fill_n(piece_off_depth_.begin(), pieces, std::uint8_t{0});
+  bool any = false;  // (the usual case: no other piece large enough to be kept, and nothing to count)
+  for (int i = 0; i < pieces; ++i)
+    any = any || (i != largest && piece_cells_[static_cast<std::size_t>(i)] >= min_cells);
+  if (!any) return;
+  const auto nx = static_cast<std::size_t>(grid_.nx);
+  const auto piece_of = [&](const ScanPoint& p) {
+    int x = 0, y = 0;
+    return border_cell_of(p, x, y) ? label_[static_cast<std::size_t>(y) * nx + static_cast<std::size_t>(x)] : -1;
+  };
+  // The part's depths: the largest piece's points per layer (those beyond the grid's depth in its end layers).
+  const int nz = static_cast<int>(depth_count_.size());
+  std::fill(depth_count_.begin(), depth_count_.end(), 0);
+  std::fill_n(piece_points_.begin(), pieces, 0);
+  std::fill_n(piece_on_depth_.begin(), pieces, 0);
+  std::int64_t counted = 0;
+  for (const ScanPoint& p : part.points()) {
+    if (piece_of(p) != largest) continue;
+    ++depth_count_[static_cast<std::size_t>(std::clamp(depth_layer(p), 0, nz - 1))];
+    ++counted;
+  }
+  if (counted == 0) return;
+  int lo = 0, hi = nz - 1;
+  std::int64_t below = 0;
+  for (int z = 0; z < nz; ++z) {
+    if (100 * below <= counted) lo = z;  // the 1st percentile's layer
+    below += depth_count_[static_cast<std::size_t>(z)];
+    if (100 * below >= 99 * counted) {  // the 99th's
+      hi = z;
+      break;
+    }
+  }
+  const int margin = static_cast<int>(std::ceil(params_.piece_depth_margin_m * inv_resolution_));
+  for (const ScanPoint& p : part.points()) {
+    const int id = piece_of(p);
+    if (id < 0 || id == largest) continue;
+    const int z = depth_layer(p);
+    ++piece_points_[static_cast<std::size_t>(id)];
+    if (z >= lo - margin && z <= hi + margin) ++piece_on_depth_[static_cast<std::size_t>(id)];
+  }
+  for (int i = 0; i < pieces; ++i) {
+    const auto u = static_cast<std::size_t>(i);
+    piece_off_depth_[u] = piece_points_[u] > 0 && piece_on_depth_[u] < params_.piece_depth_share * piece_points_[u];
   }
 }
 

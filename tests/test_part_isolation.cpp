@@ -294,6 +294,41 @@ SCENARIO("A ghost of the stripe in front of the part is dropped, the part's own 
         CHECK(count_tag(b, kPart) == part_points);
       }
     }
+    WHEN("a reflection's ghost lies beside its right edge, 20 mm apart, from 25 mm in front of its rib to 400 mm") {
+      // (Fresh random catalogue 11335, pass 1110009: the stripe's reflection off louvres, in front of the part's edge,
+      // its depths running on from just before the part's relief, so no depth gap sets it apart.)
+      add_sheet(points, 0.20, 0.40, 0.50, 0.52, 0.12, kRelief);
+      const int relief_points = static_cast<int>(points.size()) - part_points;
+      for (double x = 0.57; x < 0.62; x += 0.0022) {
+        for (double y = 0.35; y < 0.85; y += 0.0016) {
+          const double z = 0.145 + 0.3 * (y - 0.35) / 0.5;
+          points.push_back({static_cast<float>(x), static_cast<float>(y), static_cast<float>(z), 0, kStray});
+        }
+      }
+      algo::ScanBuffer b = buffer_of(points);
+      const algo::IsolationReport r = isolator.isolate(b, 0.0165, 0.64);
+      THEN("the ghost goes as a piece apart in depth; the plate and its rib stay whole") {
+        CHECK(count_tag(b, kStray) == 0);
+        CHECK(r.depth_pieces == 1);
+        CHECK(r.edge_pieces == 0);
+        CHECK(count_tag(b, kPart) == part_points);
+        CHECK(count_tag(b, kRelief) == relief_points);
+      }
+    }
+    WHEN("a glare band 15 mm wide cuts off a 40 mm strip at its right edge that has a 20 mm rib on it") {
+      std::vector<ScanPoint> cut;
+      for (const ScanPoint& p : points) {
+        if (p.x < 0.495F || p.x > 0.51F) cut.push_back(p);
+      }
+      add_sheet(cut, 0.52, 0.54, 0.30, 0.80, 0.12, kRelief);
+      algo::ScanBuffer b = buffer_of(cut);
+      const algo::IsolationReport r = isolator.isolate(b, 0.0165, 0.64);
+      THEN("the strip is the part's: nothing is dropped") {
+        CHECK(r.pieces == 2);
+        CHECK(r.dropped_pieces == 0);
+        CHECK(b.size() == cut.size());
+      }
+    }
     WHEN("a few stray points sit 300 mm in front of it") {
       for (int i = 0; i < 5; ++i) points.push_back({0.3F + 0.01F * static_cast<float>(i), 0.5F, 0.40F, 0, kSpeck});
       algo::ScanBuffer b = buffer_of(points);
