@@ -68,10 +68,9 @@ int PartIsolator::depth_layer(const ScanPoint& p) const {
 std::size_t PartIsolator::drop_depth_outliers(ScanBuffer& part) {
   const int nz = static_cast<int>(depth_count_.size());
   std::fill(depth_count_.begin(), depth_count_.end(), 0);
-  const auto layer_of = [&](const ScanPoint& p) { return depth_layer(p); };
   std::size_t counted = 0;
   for (const ScanPoint& p : part.points()) {
-    const int z = layer_of(p);
+    const int z = depth_layer(p);
     if (z < 0 || z >= nz) continue;
     ++depth_count_[static_cast<std::size_t>(z)];
     ++counted;
@@ -93,7 +92,7 @@ std::size_t PartIsolator::drop_depth_outliers(ScanBuffer& part) {
   // Points beyond the grid's depth stay when the part reaches that end (the outside-the-grid check judges them).
   const int keep_lo = lo == 0 ? -1 : lo, keep_hi = hi == nz - 1 ? nz : hi;
   return part.filter([&](const ScanPoint& p) {
-    const int z = layer_of(p);
+    const int z = depth_layer(p);
     return z >= keep_lo && z <= keep_hi;
   });
 }
@@ -270,8 +269,9 @@ void PartIsolator::mark_end_pieces(int pieces, int largest, double min_cells) {
 void PartIsolator::mark_off_depth_pieces(const ScanBuffer& part, int pieces, int largest, double min_cells) {
   std::fill_n(piece_off_depth_.begin(), pieces, std::uint8_t{0});
   bool any = false;  // (the usual case: no other piece large enough to be kept, and nothing to count)
-  for (int i = 0; i < pieces; ++i)
+  for (int i = 0; i < pieces; ++i) {
     any = any || (i != largest && piece_cells_[static_cast<std::size_t>(i)] >= min_cells);
+  }
   if (!any) return;
   const auto nx = static_cast<std::size_t>(grid_.nx);
   const auto piece_of = [&](const ScanPoint& p) {
