@@ -1490,6 +1490,7 @@ Cascade::Roi Cascade::rasterise_scan(std::span<const ScanPoint> scan, const Eige
   const double bx = (centre_m.x() - raster_origin_m_.x()) * inv - axx * ox - axy * oy;
   const double by = (centre_m.y() - raster_origin_m_.y()) * inv - ayx * ox - ayy * oy;
   scan_map_ = {axx, axy, bx, ayx, ayy, by};
+  const ScanMap& map = scan_map_;
   const double wd = width_, hd = height_;
   const auto w = static_cast<std::size_t>(width_);
   int x0 = width_, y0 = height_, x1 = -1, y1 = -1;
@@ -1502,8 +1503,7 @@ Cascade::Roi Cascade::rasterise_scan(std::span<const ScanPoint> scan, const Eige
   std::fill(row_lo_.begin(), row_lo_.end(), kEmptyLo);
   std::fill(row_hi_.begin(), row_hi_.end(), kEmptyHi);
   for (const ScanPoint& p : scan) {
-    const double fx = axx * p.x + axy * p.y + bx;
-    const double fy = ayx * p.x + ayy * p.y + by;
+    const double fx = map.fx(p), fy = map.fy(p);
     if (!(fx >= 0.0 && fy >= 0.0 && fx < wd && fy < hd)) {
       outside += std::isnan(fx) || std::isnan(fy) ? 0 : 1;  // a non-finite point is no point (a NaN depth marks none)
       continue;
@@ -1933,7 +1933,7 @@ void Cascade::hole_chord_centres(const Roi& roi, std::span<const ScanPoint> scan
   std::fill_n(chord_below_.begin(), columns, -std::numeric_limits<float>::infinity());
   std::fill_n(chord_above_.begin(), columns, std::numeric_limits<float>::infinity());
   const auto w = static_cast<std::size_t>(width_);
-  const ScanMap& a = scan_map_;
+  const ScanMap& map = scan_map_;
   // The chord's end in column x of the pair labelling cell n (a neighbour of the point's cell along y).
   auto end_at = [&](std::size_t n, int x, std::vector<float>& ends, float fy, bool below) {
     const std::uint16_t label = hole_label_[n];
@@ -1945,8 +1945,7 @@ void Cascade::hole_chord_centres(const Roi& roi, std::span<const ScanPoint> scan
     end = below ? std::max(end, fy) : std::min(end, fy);
   };
   for (const ScanPoint& p : scan) {
-    const double fx = a.axx * p.x + a.axy * p.y + a.bx;
-    const double fy = a.ayx * p.x + a.ayy * p.y + a.by;
+    const double fx = map.fx(p), fy = map.fy(p);
     if (!(fx >= roi.x0 && fx < roi.x1 && fy >= roi.y0 + 1 && fy < roi.y1 - 1)) continue;
     const int x = static_cast<int>(fx), y = static_cast<int>(fy);
     const std::size_t i = static_cast<std::size_t>(y) * w + static_cast<std::size_t>(x);

@@ -611,9 +611,12 @@ class Cascade {
   std::vector<HolePair> hole_pairs_;
   std::vector<float> chord_below_, chord_above_;
   std::vector<std::uint16_t> hole_label_;
-  // rasterise_scan's map of the last scan into continuous cell coordinates: f = (axx x + axy y + bx, ayx x + ...).
+  // rasterise_scan's map of the last scan into continuous cell coordinates (its pose and the raster's scale), which
+  // hole_chord_centres applies to the same points again.
   struct ScanMap {
     double axx = 0, axy = 0, bx = 0, ayx = 0, ayy = 0, by = 0;
+    [[nodiscard]] double fx(const ScanPoint& p) const { return axx * p.x + axy * p.y + bx; }
+    [[nodiscard]] double fy(const ScanPoint& p) const { return ayx * p.x + ayy * p.y + by; }
   };
   ScanMap scan_map_;
   std::vector<std::uint8_t> edt_in_;

@@ -1598,9 +1598,7 @@ SCENARIO("Evidence is judged by its shape: data loss and hangers weigh little, a
     WHEN("a 32 mm hole it lacks lies more than half under a 16 mm glare band that leaves no point") {
       // (Fresh random catalogue 11344 under `mixed`: an untaught twin's 46 mm hole under a 20 mm band showed 126 mm2
       // of itself beside the band, under its sibling's 165 mm2 limit, and the twin was given the sibling's id.)
-      float cy = 0.0F;
-      for (const ScanPoint& p : clean) cy += p.y;
-      cy /= static_cast<float>(clean.size());
+      const auto cy = static_cast<float>(mean_point(clean).y());
       auto with_hole = [&](std::vector<ScanPoint> scan) {  // centred 7 mm right of the band's centre line
         std::erase_if(scan, [&](const ScanPoint& p) {
           const float dx = p.x - (cx + 0.007F), dy = p.y - cy;
