@@ -163,7 +163,8 @@ struct CascadeParams {
   // that tells it from a twin is lost (a glare band over the one rib they differ by): then every candidate is
   // verified (within the budget), not only its learnt look-alikes, and any other that passes needs the margin.
   double verify_all_lost_m2 = 0.0003;
-  // Outer size (TemplateThresholds::max_size_dev_m): the own-class maximum deviation * size_factor + size_floor_m.
+  // Outer size (TemplateThresholds::max_size_dev_m): the own-class maximum deviation * size_factor + size_floor_m,
+  // at least three robust sigmas of the own deviations (a bent flange's end: learn_thresholds, tail_limit).
   // A scan's extent is sampled: across profiles at the profile spacing (2.2 mm), along them at the sensor's row
   // spacing (~1.6 mm), so a scan whose part lies square to the sampling is off by up to a step (its own scans show
   // it in their maximum); a turned part averages it out over the lines. A part 5 mm taller deviates by ~5 mm: the
