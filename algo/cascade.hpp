@@ -453,12 +453,20 @@ class Cascade {
   // shortcut (check_prepared).
   bool evaluate_candidate(std::span<const TemplateModel> templates, std::span<const ScanPoint> scan,
                           std::chrono::steady_clock::time_point deadline, bool first_ranked, Candidate& out);
-  // A failing first-ranked candidate whose check settled on a pose far from Perfect Match's: Perfect Match once
-  // more from that pose, and its check, replace the report when they leave less evidence.
   // Perfect Match from the centroid start turned by turn_rad (evaluate_candidate's and evaluate_own's further starts).
   [[nodiscard]] PerfectMatchResult match_turned(const TemplateModel& model, double turn_rad,
                                                 double give_up_error) const;
+  // A failing first-ranked candidate whose check settled on a pose far from Perfect Match's: Perfect Match once
+  // more from that pose, and its check, replace the report when they leave less evidence.
   void rematch_from_outline(const TemplateModel& model, std::span<const ScanPoint> scan, Candidate& c);
+  // A failing first-ranked candidate whose Perfect Match met its error limit at once: the turned starts too, each
+  // checked, replace the report when they leave less evidence (see the definition).
+  void rematch_turned(const TemplateModel& model, std::span<const ScanPoint> scan,
+                      std::chrono::steady_clock::time_point deadline, Candidate& c);
+  // The two rematches' last step: a further Perfect Match of a failing candidate within its error limit is checked,
+  // and its report replaces the candidate's when it leaves less evidence.
+  void check_again(const TemplateModel& model, std::span<const ScanPoint> scan, const PerfectMatchResult& again,
+                   Candidate& c);
   // The check proper (takes the scan's outline when it first needs it and outline_valid_ is false). With
   // thresholds, a gross failure at `pose` ends it when settle_on_gross, and so does a pass when settle_on_pass (the
   // outline pose is only tried when the given one fails).
