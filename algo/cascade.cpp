@@ -354,7 +354,7 @@ void learn_centres(std::span<const MatchReport> own_class, const CascadeParams& 
   auto slope_x = [](const MatchReport& r) { return r.depth_slope_x; };
   auto slope_y = [](const MatchReport& r) { return r.depth_slope_y; };
   const CentreLine width = centre_line(
-      own_class, [](const MatchReport& r) { return r.size_dx_m; }, slope_x, params.size_floor_m);
+      own_class, [](const MatchReport& r) { return r.size_dx_m; }, slope_x, params.size_floor_x_m);
   const CentreLine height = centre_line(
       own_class, [](const MatchReport& r) { return r.size_dy_m; }, slope_y, params.size_floor_m);
   t.size_centre_x_m = width.centre;
@@ -439,7 +439,7 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
                                    params.size_factor,  params.size_factor, params.size_factor, params.size_factor};
   const double floor[kFigures] = {params.error_floor,    params.area_floor_m2, params.area_floor_m2,
                                   params.share_floor,    params.share_floor,   params.hole_pattern_floor_m2,
-                                  params.size_floor_m,   params.size_floor_m,  params.edge_floor_x_m,
+                                  params.size_floor_x_m, params.size_floor_m,  params.edge_floor_x_m,
                                   params.edge_floor_x_m, params.edge_floor_m,  params.edge_floor_m};
   // 0. The size's and the edges' centres: the own class's medians (all its scans: a median is not moved by the few
   //    that disagree), or their lines in the depth slope (centre_line: a trimmed fit, not moved by them either).

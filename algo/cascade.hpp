@@ -168,9 +168,12 @@ struct CascadeParams {
   // A scan's extent is sampled: across profiles at the profile spacing (2.2 mm), along them at the sensor's row
   // spacing (~1.6 mm), so a scan whose part lies square to the sampling is off by up to a step (its own scans show
   // it in their maximum); a turned part averages it out over the lines. A part 5 mm taller deviates by ~5 mm: the
-  // maximum plus a floor, not a multiple, keeps the gate under that.
+  // maximum plus a floor, not a multiple, keeps the gate under that. The width has a floor of its own, a profile
+  // step: a few taught passes turned a little need not show it (fresh catalogue 11350 taught with 5: rnd00's within
+  // 0.44 mm, a pass square to the profiles 2.1 mm narrower, the step that every line of it lost alike).
   double size_factor = 1.0;
   double size_floor_m = 0.0015;
+  double size_floor_x_m = 0.0022;
   // Edges (TemplateThresholds::max_edge_dev_m): the own-class maximum deviation * size_factor + edge_floor_m. A
   // part 5 mm taller whose other end is a bent flange (seen 0-8 mm short of the sheet's end as the part swings and
   // turns) has a height no tighter than the flange's scatter, but its clean edge lies 2.5-5 mm off the twin's

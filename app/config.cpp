@@ -264,6 +264,7 @@ void read_cascade_section(formats::YamlSection s, Config& cfg) {
   s.number("verify_all_lost_m2", cfg.cascade.verify_all_lost_m2, 0.0, 1.0, "m^2");
   s.number("size_factor", cfg.cascade.size_factor, 1.0, 100.0, "");
   s.number("size_floor_m", cfg.cascade.size_floor_m, 0.0, 1.0, "m");
+  s.number("size_floor_x_m", cfg.cascade.size_floor_x_m, 0.0, 1.0, "m");
   s.number("edge_floor_m", cfg.cascade.edge_floor_m, 0.0, 1.0, "m");
   s.number("edge_floor_x_m", cfg.cascade.edge_floor_x_m, 0.0, 1.0, "m");
   s.number("robust_k", cfg.cascade.robust_k, 1.0, 100.0, "");

@@ -389,6 +389,30 @@ TEST_CASE("learn_thresholds learns the width's and the height's limits apart", "
   }
 }
 
+TEST_CASE("learn_thresholds gives the width a profile step of floor, which a few passes turned a little do not show",
+          "[cascade][size]") {
+  // Fresh catalogue 11350 taught with 5 passes (measured): rnd00's taught widths within 0.44 mm of each other, each
+  // pass turned a little so its lines lose different fractions of a profile step; a fresh pass square to the profiles
+  // (turned 0.01 deg) came out 2.1 mm narrower, a whole step on every line, against a limit of 1.8 mm.
+  const CascadeParams p;  // the defaults: size_floor_m 1.5 mm, size_floor_x_m 2.2 mm
+  constexpr std::array<double, 5> kWidthMm = {0.110, -0.285, -0.386, 0.143, -0.057};
+  std::vector<MatchReport> own(kWidthMm.size());
+  for (std::size_t i = 0; i < own.size(); ++i) {
+    own[i] = bottom_top_report(0.0, 0.0);
+    own[i].size_dx_m = 0.001 * kWidthMm[i];
+  }
+  const algo::TemplateThresholds t = algo::learn_thresholds(own, p);
+  MatchReport square = own[4];
+  square.size_dx_m = -0.002145;
+  MatchReport wider = own[4];
+  wider.size_dx_m = 0.005 - 0.0022;  // a twin 5 mm wider, as narrow as the sampling makes it
+  CHECK(t.max_size_dev_x_m == Approx(0.001 * (0.386 - 0.057) + p.size_floor_x_m));  // about the median, -0.057
+  CHECK(square.check_passes(t));
+  double value = 0.0, limit = 0.0;
+  CHECK(algo::first_failed_gate(wider, t, value, limit) == algo::RejectReason::kSize);
+  CHECK(t.max_size_dev_y_m == Approx(p.size_floor_m));
+}
+
 TEST_CASE("learn_thresholds learns each edge's limit apart, so a clean edge tells a twin a flange's end hides",
           "[cascade][size]") {
   // Catalogue 11301's rnd00 / rnd08 at Perfect Match's pose (measured): rnd08 is 5 mm taller, both have a bent

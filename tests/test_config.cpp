@@ -127,6 +127,7 @@ TEST_CASE(
   CHECK(cfg->cascade.verify_all_lost_m2 == d.cascade.verify_all_lost_m2);
   CHECK(cfg->cascade.size_factor == d.cascade.size_factor);
   CHECK(cfg->cascade.size_floor_m == d.cascade.size_floor_m);
+  CHECK(cfg->cascade.size_floor_x_m == d.cascade.size_floor_x_m);
   CHECK(cfg->cascade.edge_floor_m == d.cascade.edge_floor_m);
   CHECK(cfg->cascade.edge_floor_x_m == d.cascade.edge_floor_x_m);
   CHECK(cfg->cascade.robust_k == d.cascade.robust_k);
@@ -513,6 +514,7 @@ const RangedKey kRangedKeys[] = {
     {"cascade.verify_all_lost_m2", kNumber, "0", "1", "m^2"},
     {"cascade.size_factor", kNumber, "1", "100", ""},
     {"cascade.size_floor_m", kNumber, "0", "1", "m"},
+    {"cascade.size_floor_x_m", kNumber, "0", "1", "m"},
     {"cascade.edge_floor_m", kNumber, "0", "1", "m"},
     {"cascade.edge_floor_x_m", kNumber, "0", "1", "m"},
     {"cascade.robust_k", kNumber, "1", "100", ""},
