@@ -129,6 +129,9 @@ constexpr double kGiveUpFactor = 2.0;
 // evaluate_candidate: Perfect Match's further starts for a first-ranked candidate over its error limit, turned this
 // much either way (passes turn up to +-5 deg each, so 10 deg against the taught one).
 constexpr double kRestartTurnRad = 5.0 * std::numbers::pi / 180.0;
+// rematch_turned: a first-ranked candidate's check failing at a Perfect Match error above this share of its limit
+// gets the turned starts too (11347's rnd02: 0.67).
+constexpr double kTurnedRetryShare = 0.1;
 // rematch_from_outline: a check pose this far from Perfect Match's (turned or shifted) starts Perfect Match again
 // (11309's three passes below: 3.2-3.9 deg; the test's: 1.0 deg; the outline recheck itself moves from 0.05 deg).
 constexpr double kRematchTurnRad = 0.5 * std::numbers::pi / 180.0;
@@ -1027,6 +1030,9 @@ void Cascade::rematch_turned(const TemplateModel& model, std::span<const ScanPoi
   // catalogue 11347's rnd02 (a chamfered plate, six louvres), s1140002 and s1140010, turned ~5 deg against the taught
   // pass, stopped at 0.2 deg with an error of 4e-4 against a limit of 6e-4 and 14 000 mm2 of its edge missing. A
   // first-ranked candidate failing so gets the two turned starts too, each checked, kept when it leaves less evidence.
+  // Not when its error is an aligned pass's (fresh catalogue 11352: the first two candidates of taught passes, the
+  // true part and its near twin, erred 0.006-0.015 x their limits): then the evidence is the part's, not the pose's.
+  if (!(c.report.pm.error > kTurnedRetryShare * model.thresholds.max_error)) return;
   for (const double turn : {kRestartTurnRad, -kRestartTurnRad}) {
     if (c.passed || Clock::now() >= deadline) return;
     check_again(model, scan, match_turned(model, turn, kGiveUpFactor * model.thresholds.max_error), c);
