@@ -231,6 +231,9 @@ constexpr int kEdgeFigure = 8;  // the left edge's deviation; the other edges' f
 // learn_thresholds: the size's and the edges' limits are at least this many robust sigmas (tail_limit), learnt from
 // at least kMinTailScans own scans.
 constexpr double kTailSigmas = 3.0;
+// A normal distribution's standard deviation per median absolute deviation: the robust sigmas of learn_thresholds
+// and centre_line.
+constexpr double kMadToSigma = 1.4826;
 constexpr std::size_t kMinTailScans = 5;
 [[nodiscard]] std::array<double, kFigures> figures_of(const MatchReport& r, const TemplateThresholds& t) {
   std::array<double, kFigures> f = {r.pm.error,
@@ -331,7 +334,7 @@ CentreLine centre_line(std::span<const MatchReport> own_class, Figure figure, Sl
   std::vector<double> dev = res;
   const double res_median = median_of(res);
   for (double& d : dev) d = std::abs(d - res_median);
-  const double sigma = std::max(1.4826 * median_of(dev), 0.25 * floor);
+  const double sigma = std::max(kMadToSigma * median_of(dev), 0.25 * floor);
   for (std::size_t i = 0; i < xs.size(); ++i) keep[i] = std::abs(res[i] - res_median) <= kGainTrimSigmas * sigma;
   line = fit();
   // The kept scans' scatter about the line against that about their median.
@@ -398,7 +401,7 @@ constexpr double kSizeWindowCells = 1.5;
 }
 
 // learn_thresholds' step 2 for the size and the edges: kTailSigmas robust sigmas of the own scans' deviations from
-// their centre (1.4826 x their median: the centre is their median or a line through them), 0 for fewer than
+// their centre (kMadToSigma x their median: the centre is their median or a line through them), 0 for fewer than
 // kMinTailScans. A bent flange's end scatters widely as the part swings and turns, and the most of a dozen passes
 // falls short of that scatter's tail: fresh catalogue 11345's rnd03 (a bottom flange bent 110 deg) had its 12 taught
 // passes' height within 2.7 mm of the centre (limit 4.2 mm with the floor) and a fresh pass 5.0 mm off (robust sigma
@@ -406,7 +409,7 @@ constexpr double kSizeWindowCells = 1.5;
 // below the maximum plus the floor and the limit is as before: a twin's clean edge 2.5 mm off is still told.
 [[nodiscard]] double tail_limit(const std::vector<double>& deviations) {
   if (deviations.size() < kMinTailScans) return 0.0;
-  return kTailSigmas * 1.4826 * median_of(deviations);
+  return kTailSigmas * kMadToSigma * median_of(deviations);
 }
 
 }  // namespace
@@ -463,7 +466,7 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
     if (v.size() < 3) continue;  // too few to tell who disagrees
     const double med = median_of(v);
     for (double& x : v) x = std::abs(x - med);
-    const double sigma = std::max(1.4826 * median_of(v), 0.25 * floor[f]);
+    const double sigma = std::max(kMadToSigma * median_of(v), 0.25 * floor[f]);
     const double cut = med + params.robust_k * sigma;
     for (std::size_t i = 0; i < own_class.size(); ++i) {
       const double x = figures_of(own_class[i], centres)[static_cast<std::size_t>(f)];
