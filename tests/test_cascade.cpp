@@ -461,10 +461,7 @@ TEST_CASE("learn_thresholds takes a flange end's scatter to its tail, and keeps 
   // bottom flange bent 110 deg, its visible end 2.7 mm either side of the centre; a fresh pass (s1130009) had its
   // bottom edge 4.05 mm short and its height 5.0 mm off its centre, against limits of 3.5 and 4.2 mm from the taught
   // passes' maxima. Its clean top edge lay within 0.4 mm of its centre.
-  CascadeParams p;
-  p.size_factor = 1.0;
-  p.size_floor_m = 0.0015;
-  p.edge_floor_m = 0.0008;
+  const CascadeParams p;  // the defaults: size_factor 1, size_floor_m 1.5 mm, edge_floor_m 0.8 mm
   const auto top = static_cast<std::size_t>(algo::Edge::kTop);
   const auto bottom = static_cast<std::size_t>(algo::Edge::kBottom);
   constexpr std::array<double, 9> kBottomMm = {0.003, 1.974, 2.411, -0.825, 1.652, 2.989, -2.080, -1.092, -1.549};
