@@ -204,10 +204,16 @@ bool TemplateThresholds::size_beyond(const MatchReport& r, double factor, double
   return std::abs(r.size_dx_m - size_centre_x_at(r)) > factor * max_size_dev_x_m + slack_m ||
          std::abs(r.size_dy_m - size_centre_y_at(r)) > factor * max_size_dev_y_m + slack_m;
 }
+double TemplateThresholds::edge_deviation_at(std::size_t edge, const MatchReport& r) const {
+  const double about_line = std::abs(r.edge_m[edge] - edge_centre_at(edge, r));
+  if (!(max_edge_dev_median_m[edge] > 0.0)) return about_line;
+  const double about_median = std::abs(r.edge_m[edge] - edge_median_m[edge]);
+  return std::min(about_line, std::max(0.0, about_median - max_edge_dev_median_m[edge] + max_edge_dev_m[edge]));
+}
 double TemplateThresholds::edge_deviation(const MatchReport& r) const {
   double worst = 0.0;
   for (std::size_t e = 0; e < kEdges; ++e) {
-    const double d = std::abs(r.edge_m[e] - edge_centre_at(e, r));
+    const double d = edge_deviation_at(e, r);
     if (d > worst) worst = d;
   }
   return worst;
@@ -215,7 +221,7 @@ double TemplateThresholds::edge_deviation(const MatchReport& r) const {
 bool TemplateThresholds::edge_beyond(const MatchReport& r, double slack_x_m, double slack_y_m) const {
   for (std::size_t e = 0; e < kEdges; ++e) {
     const double slack_m = e < static_cast<std::size_t>(Edge::kBottom) ? slack_x_m : slack_y_m;
-    if (std::abs(r.edge_m[e] - edge_centre_at(e, r)) > max_edge_dev_m[e] + slack_m) return true;
+    if (edge_deviation_at(e, r) > max_edge_dev_m[e] + slack_m) return true;
   }
   return false;
 }
@@ -244,7 +250,7 @@ constexpr std::size_t kMinTailScans = 5;
                                     r.hole_pattern_m2,
                                     std::abs(r.size_dx_m - t.size_centre_x_at(r)),
                                     std::abs(r.size_dy_m - t.size_centre_y_at(r))};
-  for (std::size_t e = 0; e < kEdges; ++e) f[kEdgeFigure + e] = std::abs(r.edge_m[e] - t.edge_centre_at(e, r));
+  for (std::size_t e = 0; e < kEdges; ++e) f[kEdgeFigure + e] = t.edge_deviation_at(e, r);
   return f;
 }
 [[nodiscard]] std::array<double, kFigures> limits_of(const TemplateThresholds& t) {
@@ -269,7 +275,10 @@ void set_limit(TemplateThresholds& t, int figure, double v) {
     case kHolePatternFigure: t.max_hole_pattern_m2 = v; break;
     case kSizeFigure: t.max_size_dev_x_m = v; break;
     case kSizeFigure + 1: t.max_size_dev_y_m = v; break;
-    default: t.max_edge_dev_m[static_cast<std::size_t>(figure - kEdgeFigure)] = v; break;
+    default:  // an edge: the limit of its line or centre alone (learn_bands adds a band afterwards)
+      t.max_edge_dev_m[static_cast<std::size_t>(figure - kEdgeFigure)] = v;
+      t.max_edge_dev_median_m[static_cast<std::size_t>(figure - kEdgeFigure)] = 0.0;
+      break;
   }
   t.max_size_dev_m = std::max(t.max_size_dev_x_m, t.max_size_dev_y_m);
 }
@@ -294,9 +303,15 @@ constexpr double kMinGainSpread = 0.02;  // ~1.1 deg of swing or tilt between th
 constexpr double kGainShare = 0.5;
 constexpr double kMaxGainM = 0.15;  // the offset of a 150 mm wall's shadow edge, per unit of slope
 constexpr double kGainTrimSigmas = 3.0;
+// A line whose largest deviation is kBandShare of that from the median or more explains the scans only in part: the
+// edge keeps the band about the median beside it. Measured ratios: 11315's rnd03 right edge 0.1 and shipped
+// channel_u's right edge 0.25 (shadow ends that follow the swing as a line), channel_u's left edge 0.47 (a step).
+constexpr double kBandShare = 0.35;
 struct CentreLine {
   double centre = 0.0;
   double gain = 0.0;
+  double median = 0.0;   // the own scans' median, line or not
+  bool partial = false;  // a line that leaves kBandShare of their scatter or more (TemplateThresholds::edge_median_m)
 };
 template <typename Figure, typename Slope>
 CentreLine centre_line(std::span<const MatchReport> own_class, Figure figure, Slope slope, double floor) {
@@ -307,7 +322,7 @@ CentreLine centre_line(std::span<const MatchReport> own_class, Figure figure, Sl
       ss.push_back(slope(r));
     }
   }
-  CentreLine out{median_of(xs), 0.0};
+  CentreLine out{median_of(xs), 0.0, median_of(xs)};
   if (xs.size() < kMinGainScans) return out;
   const auto [s_lo, s_hi] = std::minmax_element(ss.begin(), ss.end());
   if (*s_hi - *s_lo < kMinGainSpread) return out;
@@ -323,9 +338,9 @@ CentreLine centre_line(std::span<const MatchReport> own_class, Figure figure, Sl
       sxy += ss[i] * xs[i];
     }
     const double det = n * sxx - sx * sx;
-    if (!(det > 0.0)) return CentreLine{out.centre, 0.0};
+    if (!(det > 0.0)) return out;
     const double gain = (n * sxy - sx * sy) / det;
-    return CentreLine{(sy - gain * sx) / n, gain};
+    return CentreLine{(sy - gain * sx) / n, gain, out.median, false};
   };
   // One trimmed refit: a scan with glare along the edge is not on the line and must not bend it.
   CentreLine line = fit();
@@ -351,12 +366,15 @@ CentreLine centre_line(std::span<const MatchReport> own_class, Figure figure, Sl
     about_line = std::max(about_line, std::abs(kept_res[i] - r_median));
   }
   if (about_median <= floor || about_line > kGainShare * about_median || std::abs(line.gain) > kMaxGainM) return out;
-  return CentreLine{line.centre + r_median, line.gain};
+  return CentreLine{line.centre + r_median, line.gain, out.median, about_line >= kBandShare * about_median};
 }
 
 // learn_thresholds' step 0: the size's and the edges' centres, the own class's medians of the measured values, or
-// their lines in the depth slope (TemplateThresholds::edge_gain_m).
-void learn_centres(std::span<const MatchReport> own_class, const CascadeParams& params, TemplateThresholds& t) {
+// their lines in the depth slope (TemplateThresholds::edge_gain_m). Returns which edges' lines are partial (they
+// keep the band about the median, TemplateThresholds::edge_median_m).
+std::array<bool, kEdges> learn_centres(std::span<const MatchReport> own_class, const CascadeParams& params,
+                                       TemplateThresholds& t) {
+  std::array<bool, kEdges> partial{};
   auto slope_x = [](const MatchReport& r) { return r.depth_slope_x; };
   auto slope_y = [](const MatchReport& r) { return r.depth_slope_y; };
   const CentreLine width = centre_line(
@@ -374,7 +392,10 @@ void learn_centres(std::span<const MatchReport> own_class, const CascadeParams& 
                                    : centre_line(own_class, figure, slope_y, params.edge_floor_m);
     t.edge_centre_m[e] = line.centre;
     t.edge_gain_m[e] = line.gain;
+    t.edge_median_m[e] = line.partial ? line.median : 0.0;
+    partial[e] = line.partial;
   }
+  return partial;
 }
 
 // The mean of v's first `count` values within kSizeWindowCells of their median (reorders them). A line's deviation
@@ -410,6 +431,24 @@ constexpr double kSizeWindowCells = 1.5;
 [[nodiscard]] double tail_limit(const std::vector<double>& deviations) {
   if (deviations.size() < kMinTailScans) return 0.0;
   return kTailSigmas * kMadToSigma * median_of(deviations);
+}
+
+// learn_thresholds' step 2b: an edge whose line explains its scans in part also gets the band its agreeing scans
+// span about their median, the limit it would have without the line (TemplateThresholds::edge_median_m).
+void learn_bands(std::span<const MatchReport> own_class, const std::vector<char>& disagrees,
+                 const std::array<bool, kEdges>& partial, const CascadeParams& params, TemplateThresholds& t) {
+  for (std::size_t e = 0; e < kEdges; ++e) {
+    if (!partial[e]) continue;
+    std::vector<double> spread;
+    for (std::size_t i = 0; i < own_class.size(); ++i) {
+      const double d = std::abs(own_class[i].edge_m[e] - t.edge_median_m[e]);
+      if (disagrees[i] == 0 && std::isfinite(d)) spread.push_back(d);
+    }
+    if (spread.empty()) continue;
+    const double floor = e < static_cast<std::size_t>(Edge::kBottom) ? params.edge_floor_x_m : params.edge_floor_m;
+    const double worst = *std::max_element(spread.begin(), spread.end());
+    t.max_edge_dev_median_m[e] = std::max(worst * params.size_factor + floor, tail_limit(spread));
+  }
 }
 
 }  // namespace
@@ -449,7 +488,7 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
                                   params.edge_floor_x_m, params.edge_floor_m,  params.edge_floor_m};
   // 0. The size's and the edges' centres: the own class's medians (all its scans: a median is not moved by the few
   //    that disagree), or their lines in the depth slope (centre_line: a trimmed fit, not moved by them either).
-  learn_centres(own_class, params, out.thresholds);
+  const std::array<bool, kEdges> partial = learn_centres(own_class, params, out.thresholds);
   const TemplateThresholds& centres = out.thresholds;
   // 1. Robust agreement: per figure the median and the MAD of the own class; a scan above median + k sigma on any
   //    figure disagrees. Sigma never goes below a quarter of the floor, so scans that are all alike do not flag the
@@ -496,14 +535,14 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
     }
   }
   for (int f = 0; f < kFigures; ++f) {
-    double v = own_max[static_cast<std::size_t>(f)] * factor[f] + floor[f];
-    v = std::max(v, tail_limit(deviations[static_cast<std::size_t>(f)]));
+    double v = std::max(own_max[static_cast<std::size_t>(f)] * factor[f] + floor[f],
+                        tail_limit(deviations[static_cast<std::size_t>(f)]));
     if (f == 3 || f == 4) v = std::min(1.0, v);  // shares
-    // An edge no own scan measured (lost data along it on every pass) has no centre: 1 m, the manifest's largest
-    // limit, never fails.
+    // An edge no own scan measured (lost data along it on every pass): 1 m, the manifest's largest, never fails.
     if (f >= kEdgeFigure && !measured[static_cast<std::size_t>(f)]) v = 1.0;
     set_limit(out.thresholds, f, v);
   }
+  learn_bands(own_class, disagrees, partial, params, out.thresholds);  // (step 3's set_limit drops an edge's band)
   // 3. Margin to the runner-up: an other-class scan that would pass is pushed out by the figure on which it stands
   //    farthest above the own class, provided it stands clearly above it there (kClearSeparation times the own
   //    maximum): that limit goes to the geometric mean of the two, still well above every own scan. A scan no figure

@@ -236,11 +236,25 @@ struct TemplateThresholds {
   double size_gain_x_m = 0.0;
   double size_gain_y_m = 0.0;
   std::array<double, kEdges> edge_gain_m{};
+  // Where an edge's line explains its own scans only in part (learn_thresholds), also the band they span about their
+  // median (the centre and limit the edge would have without the line): a report within either passes. Beside a
+  // flange the shadow's end may follow the swing as a step rather than a line (shipped channel_u: its left edge
+  // -2.3..-0.5 mm at slopes 0-0.006, +0.9..+2.1 mm at 0.046-0.088 over 12 taught passes; the line through them says
+  // +2.6 mm at 0.095 where a fresh pass measured -0.7), and a pass the line misses but the taught passes' own
+  // scatter holds is no evidence against the part. A line that explains its scans closely stands alone (a twin's
+  // offset shows against it), and so does the size's: a twin 5 mm longer shows there. 0 limit (the default, an
+  // edge without such a line, a template learnt before): no band.
+  std::array<double, kEdges> edge_median_m{};
+  std::array<double, kEdges> max_edge_dev_median_m{};
   // The centres at a report's slopes.
   [[nodiscard]] double size_centre_x_at(const MatchReport& r) const;
   [[nodiscard]] double size_centre_y_at(const MatchReport& r) const;
   [[nodiscard]] double edge_centre_at(std::size_t edge, const MatchReport& r) const;
-  // The largest deviation of a report's edges from their centres, metres; unmeasured (NaN) edges are left out (0
+  // An edge's deviation from its centre, metres, against max_edge_dev_m[edge]; with a band about the median, the
+  // smaller of that and the band's deviation shifted to the same limit (0 at least): it exceeds the limit by as much
+  // as the nearer of the two exceeds its own. NaN for an unmeasured edge.
+  [[nodiscard]] double edge_deviation_at(std::size_t edge, const MatchReport& r) const;
+  // The largest of a report's edges' deviations (edge_deviation_at), metres; unmeasured (NaN) edges are left out (0
   // when none is measured).
   [[nodiscard]] double edge_deviation(const MatchReport& r) const;
   // Whether an edge deviates by more than its limit plus a slack (left and right: slack_x_m; an unmeasured edge, NaN,

@@ -161,6 +161,8 @@ algo::TemplateThresholds template_thresholds(const formats::PartThresholds& p) {
   t.size_gain_x_m = p.size_gain_x_m;
   t.size_gain_y_m = p.size_gain_y_m;
   t.edge_gain_m = p.edge_gain_m;
+  t.edge_median_m = p.edge_median_m;
+  t.max_edge_dev_median_m = p.max_edge_dev_median_m;
   return t;
 }
 
@@ -183,6 +185,8 @@ formats::PartThresholds part_thresholds(const algo::TemplateThresholds& t, bool 
   p.size_gain_x_m = t.size_gain_x_m;
   p.size_gain_y_m = t.size_gain_y_m;
   p.edge_gain_m = t.edge_gain_m;
+  p.edge_median_m = t.edge_median_m;
+  p.max_edge_dev_median_m = t.max_edge_dev_median_m;
   return p;
 }
 

@@ -28,6 +28,10 @@ constexpr std::array<const char*, 4> kEdgeDevKeys = {"max_edge_dev_left_m", "max
                                                      "max_edge_dev_bottom_m", "max_edge_dev_top_m"};
 constexpr std::array<const char*, 4> kEdgeGainKeys = {"edge_gain_left_m", "edge_gain_right_m", "edge_gain_bottom_m",
                                                       "edge_gain_top_m"};
+constexpr std::array<const char*, 4> kEdgeMedianKeys = {"edge_median_left_m", "edge_median_right_m",
+                                                        "edge_median_bottom_m", "edge_median_top_m"};
+constexpr std::array<const char*, 4> kEdgeMedianDevKeys = {"max_edge_dev_median_left_m", "max_edge_dev_median_right_m",
+                                                           "max_edge_dev_median_bottom_m", "max_edge_dev_median_top_m"};
 constexpr double kMaxGainM = 1.0;  // metres per unit of slope: the range a gain is read in
 constexpr std::size_t kMaxPartName = 64;
 
@@ -70,6 +74,10 @@ std::string manifest_text(const Manifest& m) {
       << ", size_gain_y_m: " << number(p.thresholds.size_gain_y_m);
     for (std::size_t e = 0; e < p.thresholds.edge_gain_m.size(); ++e) {
       t << ", " << kEdgeGainKeys[e] << ": " << number(p.thresholds.edge_gain_m[e]);
+    }
+    for (std::size_t e = 0; e < p.thresholds.edge_median_m.size(); ++e) {
+      t << ", " << kEdgeMedianKeys[e] << ": " << number(p.thresholds.edge_median_m[e]) << ", " << kEdgeMedianDevKeys[e]
+        << ": " << number(p.thresholds.max_edge_dev_median_m[e]);
     }
     t << "}\n";
     if (!p.confusable.empty()) {
@@ -201,6 +209,13 @@ void read_thresholds(YamlSection t, PartThresholds& thresholds) {
   if (t.has("size_gain_y_m")) t.number("size_gain_y_m", thresholds.size_gain_y_m, -kMaxGainM, kMaxGainM, "m");
   for (std::size_t e = 0; e < thresholds.edge_gain_m.size(); ++e) {
     if (t.has(kEdgeGainKeys[e])) t.number(kEdgeGainKeys[e], thresholds.edge_gain_m[e], -kMaxGainM, kMaxGainM, "m");
+  }
+  // So are the bands about the edges' medians (absent: none).
+  for (std::size_t e = 0; e < thresholds.edge_median_m.size(); ++e) {
+    if (t.has(kEdgeMedianKeys[e])) t.number(kEdgeMedianKeys[e], thresholds.edge_median_m[e], -1.0, 1.0, "m");
+    if (t.has(kEdgeMedianDevKeys[e])) {
+      t.number(kEdgeMedianDevKeys[e], thresholds.max_edge_dev_median_m[e], 0.0, 1.0, "m");
+    }
   }
   t.finish();
 }

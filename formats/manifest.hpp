@@ -39,6 +39,10 @@ struct PartThresholds {
   double size_gain_x_m = 0.0;
   double size_gain_y_m = 0.0;
   std::array<double, 4> edge_gain_m{};
+  // Beside an edge's line, the band its own scans span about their median (algo::TemplateThresholds::edge_median_m;
+  // keys edge_median_left_m, max_edge_dev_median_left_m, ..). Optional: absent, no band (0), as learnt before it.
+  std::array<double, 4> edge_median_m{};
+  std::array<double, 4> max_edge_dev_median_m{};
 };
 
 struct ScanEntry {

@@ -530,6 +530,7 @@ TEST_CASE("learn_thresholds follows an edge that moves with the swing, so its li
   THEN("the right edge's centre follows the slope, the left edge's does not; the glare scan is flagged") {
     CHECK(t.edge_gain_m[right] == Approx(kGain).margin(0.005));
     CHECK(t.edge_gain_m[left] == 0.0);
+    CHECK(t.max_edge_dev_median_m[right] == 0.0);  // the line explains it: no band about the median beside it
     CHECK(t.max_edge_dev_m[right] < 0.0005 + p.edge_floor_x_m);
     CHECK(learnt.flagged == std::vector<int>{static_cast<int>(kGlare)});
     for (std::size_t i = 0; i < own.size(); ++i) {
@@ -548,6 +549,54 @@ TEST_CASE("learn_thresholds follows an edge that moves with the swing, so its li
     MatchReport level_twin = twin;
     level_twin.depth_slope_x = 0.0;
     CHECK(level_twin.check_passes(centred));
+  }
+}
+
+TEST_CASE("learn_thresholds keeps the band about the median beside a line that explains an edge only in part",
+          "[cascade][size]") {
+  // The shipped channel_u (measured, 12 taught passes of the glare set on eval seeds 1140001..): its left edge, where
+  // the left flange's laser shadow ends, follows the swing as a step (-2.3..-0.5 mm at slopes 0-0.006, +0.9..+2.1 mm
+  // at 0.046-0.088); its right edge follows it as a line. A fresh pass at a slope of 0.0947 measured its left edge
+  // at -0.7 mm, where the line through the taught passes says +2.6 mm: 3.3 mm off against a 3.0 mm limit.
+  CascadeParams p;
+  const auto left = static_cast<std::size_t>(algo::Edge::kLeft);
+  const auto right = static_cast<std::size_t>(algo::Edge::kRight);
+  constexpr std::array<double, 12> kSlope = {0.0654, 0.0878, 0.0464, 0.0061, 0.0574, 0.0668,
+                                             0.0482, 0.0,    0.0861, 0.0754, 0.0491, 0.0029};
+  constexpr std::array<double, 12> kLeftMm = {0.936, 0.976,  0.898, -0.454, 1.455, 2.051,
+                                              1.223, -2.266, 2.009, 1.494,  1.049, -1.660};
+  constexpr std::array<double, 12> kRightMm = {-2.824, -5.191, -2.100, 0.400,  -2.024, -3.894,
+                                               -1.969, 2.220,  -6.030, -4.165, -1.611, 1.766};
+  auto pass = [](double slope, double left_mm, double right_mm) {
+    MatchReport r = bottom_top_report(0.0, 0.0);
+    r.depth_slope_x = slope;
+    r.edge_m[static_cast<std::size_t>(algo::Edge::kLeft)] = 0.001 * left_mm;
+    r.edge_m[static_cast<std::size_t>(algo::Edge::kRight)] = 0.001 * right_mm;
+    r.size_dx_m = 0.001 * (left_mm + right_mm);
+    return r;
+  };
+  std::vector<MatchReport> own;
+  for (std::size_t i = 0; i < kSlope.size(); ++i) own.push_back(pass(kSlope[i], kLeftMm[i], kRightMm[i]));
+  const algo::TemplateThresholds t = algo::learn_thresholds(own, p);
+  REQUIRE(t.edge_gain_m[left] > 0.02);  // both edges keep their lines
+  REQUIRE(t.edge_gain_m[right] < -0.05);
+  const MatchReport fresh = pass(0.0947, -0.703, -4.136);
+  THEN("the fresh pass is off the left edge's line but within the taught passes' scatter, and passes") {
+    CHECK(std::abs(fresh.edge_m[left] - t.edge_centre_at(left, fresh)) > t.max_edge_dev_m[left]);
+    CHECK(t.max_edge_dev_median_m[left] > 0.0);
+    CHECK(fresh.check_passes(t));
+    for (const MatchReport& r : own) CHECK(r.check_passes(t));
+  }
+  THEN("the right edge, which its line explains, has no band; an edge beyond both the line and the band fails") {
+    CHECK(t.max_edge_dev_median_m[right] == 0.0);
+    // Swung as the most swung taught passes, 0.5 mm short of the band's end (and 6 mm short of the line's centre).
+    // As wide as the taught passes at that swing: the left edge is the first gate it fails.
+    MatchReport beyond = pass(0.088, 1000.0 * (t.edge_median_m[left] - t.max_edge_dev_median_m[left]) - 0.5, -5.0);
+    beyond.size_dx_m = t.size_centre_x_at(beyond);
+    double value = 0.0, limit = 0.0;
+    CHECK(algo::first_failed_gate(beyond, t, value, limit) == algo::RejectReason::kEdge);
+    CHECK(limit == Approx(t.max_edge_dev_m[left]));
+    CHECK(value - limit == Approx(0.0005).margin(1e-6));  // by as much as it exceeds the nearer of the two
   }
 }
 

@@ -348,6 +348,15 @@ TEST_CASE("limits learnt before a gate existed read as not learnt, so the databa
     CHECK(before->parts.at(0).thresholds.size_gain_x_m == 0.0);
     CHECK(before->parts.at(0).thresholds.edge_gain_m == std::array<double, 4>{});
   }
+  // So are the bands about the edges' medians beside a line: without them, no band (limit 0).
+  {
+    const std::string old = older(", edge_median_left_m: ", "}");
+    REQUIRE(old.find("median") == std::string::npos);
+    const auto before = formats::parse_manifest("manifest.yaml", old);
+    REQUIRE(before.ok());
+    CHECK(before->parts.at(0).thresholds.learnt);
+    CHECK(before->parts.at(0).thresholds.max_edge_dev_median_m == std::array<double, 4>{});
+  }
 }
 
 TEST_CASE("a part's limits go from the manifest to the cascade and back field by field", "[model_db]") {
@@ -368,7 +377,9 @@ TEST_CASE("a part's limits go from the manifest to the cascade and back field by
                                   {1.7e-3, 1.8e-3, 1.9e-3, 2.1e-3},
                                   -2.2e-2,
                                   2.3e-2,
-                                  {2.4e-2, -2.5e-2, 2.6e-2, -2.7e-2}};
+                                  {2.4e-2, -2.5e-2, 2.6e-2, -2.7e-2},
+                                  {2.8e-3, -2.9e-3, 3.1e-3, -3.2e-3},
+                                  {3.3e-3, 3.4e-3, 3.5e-3, 3.6e-3}};
   const algo::TemplateThresholds t = app::template_thresholds(p);
   CHECK(t.max_error == p.max_error);
   CHECK(t.max_missing_area_m2 == p.max_missing_area_m2);
@@ -386,6 +397,8 @@ TEST_CASE("a part's limits go from the manifest to the cascade and back field by
   CHECK(t.size_gain_x_m == p.size_gain_x_m);
   CHECK(t.size_gain_y_m == p.size_gain_y_m);
   CHECK(t.edge_gain_m == p.edge_gain_m);
+  CHECK(t.edge_median_m == p.edge_median_m);
+  CHECK(t.max_edge_dev_median_m == p.max_edge_dev_median_m);
   // ... and back: the manifest writes the same limits (every field is in its text).
   auto text_of = [](const formats::PartThresholds& limits) {
     formats::Manifest m;
