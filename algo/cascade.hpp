@@ -633,7 +633,7 @@ class Cascade {
     double template_y = 0.0, cells = 0.0, shift_x = 0.0, shift_y = 0.0;
     int x0 = 0;
   };
-  static constexpr int kMaxHoleColumns = 64;  // a compact piece of kMaxCells (2 000) spans ~50
+  static constexpr int kMaxHoleColumns = 128;  // a compact piece of kMaxCells (12 000) spans ~110
   std::vector<HolePair> hole_pairs_;
   std::vector<float> chord_below_, chord_above_;
   std::vector<std::uint16_t> hole_label_;
