@@ -432,11 +432,18 @@ constexpr double kSizeWindowCells = 1.5;
   if (deviations.size() < kMinTailScans) return 0.0;
   return kTailSigmas * kMadToSigma * median_of(deviations);
 }
+// learn_thresholds' step 2 limit: the agreeing own scans' largest value x factor + floor, and for the size and the
+// edges (`deviations` given) at least tail_limit.
+[[nodiscard]] double learnt_limit(double worst, double factor, double floor, const std::vector<double>& deviations) {
+  return std::max(worst * factor + floor, tail_limit(deviations));
+}
 
 // learn_thresholds' step 2b: an edge whose line explains its scans in part also gets the band its agreeing scans
-// span about their median, the limit it would have without the line (TemplateThresholds::edge_median_m).
+// span about their median, learnt as the edge's limit would be without the line (TemplateThresholds::edge_median_m);
+// `factor` and `floor` per figure, as learn_thresholds has them.
 void learn_bands(std::span<const MatchReport> own_class, const std::vector<char>& disagrees,
-                 const std::array<bool, kEdges>& partial, const CascadeParams& params, TemplateThresholds& t) {
+                 const std::array<bool, kEdges>& partial, const double (&factor)[kFigures],
+                 const double (&floor)[kFigures], TemplateThresholds& t) {
   for (std::size_t e = 0; e < kEdges; ++e) {
     if (!partial[e]) continue;
     std::vector<double> spread;
@@ -445,9 +452,9 @@ void learn_bands(std::span<const MatchReport> own_class, const std::vector<char>
       if (disagrees[i] == 0 && std::isfinite(d)) spread.push_back(d);
     }
     if (spread.empty()) continue;
-    const double floor = e < static_cast<std::size_t>(Edge::kBottom) ? params.edge_floor_x_m : params.edge_floor_m;
-    const double worst = *std::max_element(spread.begin(), spread.end());
-    t.max_edge_dev_median_m[e] = std::max(worst * params.size_factor + floor, tail_limit(spread));
+    const std::size_t f = kEdgeFigure + e;
+    t.max_edge_dev_median_m[e] =
+        learnt_limit(*std::max_element(spread.begin(), spread.end()), factor[f], floor[f], spread);
   }
 }
 
@@ -535,14 +542,14 @@ ThresholdLearning learn_thresholds(std::span<const MatchReport> own_class, std::
     }
   }
   for (int f = 0; f < kFigures; ++f) {
-    double v = std::max(own_max[static_cast<std::size_t>(f)] * factor[f] + floor[f],
-                        tail_limit(deviations[static_cast<std::size_t>(f)]));
+    double v = learnt_limit(own_max[static_cast<std::size_t>(f)], factor[f], floor[f],
+                            deviations[static_cast<std::size_t>(f)]);
     if (f == 3 || f == 4) v = std::min(1.0, v);  // shares
     // An edge no own scan measured (lost data along it on every pass): 1 m, the manifest's largest, never fails.
     if (f >= kEdgeFigure && !measured[static_cast<std::size_t>(f)]) v = 1.0;
     set_limit(out.thresholds, f, v);
   }
-  learn_bands(own_class, disagrees, partial, params, out.thresholds);  // (step 3's set_limit drops an edge's band)
+  learn_bands(own_class, disagrees, partial, factor, floor, out.thresholds);  // step 3's set_limit drops a band
   // 3. Margin to the runner-up: an other-class scan that would pass is pushed out by the figure on which it stands
   //    farthest above the own class, provided it stands clearly above it there (kClearSeparation times the own
   //    maximum): that limit goes to the geometric mean of the two, still well above every own scan. A scan no figure
