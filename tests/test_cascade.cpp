@@ -1076,6 +1076,50 @@ SCENARIO("A twin 5 mm taller whose other end is seen short by a varying length f
   }
 }
 
+SCENARIO("A strip missing along part of an edge is missing material, even where the holes measure the edge",
+         "[cascade][two-way][evidence]") {
+  // A twin without a tab, or with a step in one edge, differs from its sibling only there. The edge's measure is a
+  // robust mean over the whole edge and barely moves (0.2 mm here), so the strip itself must count: weighing thin
+  // strips along measured edges weakly (tried for a flange's end a rare pose sees short) let such a twin pass.
+  GIVEN("the plate with three holes, and the same plate without holes, each taught") {
+    sim::PartSpec plain = twin_plate(0.0);
+    plain.name = "plain";
+    plain.features.clear();
+    Cascade cascade(CascadeParams{}, pm_params(), test_grid());
+    const sim::PartPose pose = kTestPose;
+    // The right half of the bottom end `short_mm` short.
+    auto scan_of = [&](const sim::PartSpec& spec, double short_mm) {
+      std::vector<ScanPoint> scan = sample_part(spec, pose, 540);
+      const Eigen::Isometry3d to_part = part_to_carrier(spec, pose).inverse();
+      const double cut_m = 1e-3 * (-0.5 * spec.height_mm + short_mm);
+      std::erase_if(scan, [&](const ScanPoint& p) {
+        const Eigen::Vector3d q = to_part * Eigen::Vector3d(p.x, p.y, p.z);
+        return q.x() > 0.0 && q.y() < cut_m;
+      });
+      return scan;
+    };
+    for (const bool holes : {true, false}) {
+      const sim::PartSpec spec = holes ? twin_plate(0.0) : plain;
+      const auto t = teach_from(spec.name, kTaughtPose, sample_part(spec, kTaughtPose, 51));
+      const TemplateModel m = model_of(*t, 0, 1);
+      const PlanarPose at = true_relative_pose(spec, *t, pose);
+      WHEN(spec.name + ": a scan lacks a 7 mm strip along the right half of its bottom end") {
+        const MatchReport r = cascade.two_way_check(m, scan_of(spec, 7.0), at);
+        const MatchReport clean = cascade.two_way_check(m, scan_of(spec, 0.0), at);
+        const auto bottom = static_cast<std::size_t>(algo::Edge::kBottom);
+        THEN("the strip beyond the check's window counts as missing, whatever the edge's measure says") {
+          INFO("missing " << r.missing_area_m2 * 1e6 << " mm^2 (clean " << clean.missing_area_m2 * 1e6
+                          << "), bottom edge " << r.edge_m[bottom] * 1e3 << " mm (clean " << clean.edge_m[bottom] * 1e3
+                          << ")");
+          CHECK(std::isfinite(r.edge_m[bottom]) == holes);
+          CHECK(clean.missing_area_m2 < 30e-6);
+          CHECK(r.missing_area_m2 > 200e-6);
+        }
+      }
+    }
+  }
+}
+
 SCENARIO("The holes place the edges by the profiles' chords through them, which a dropout run at a rim moves little",
          "[cascade][two-way][size]") {
   GIVEN("a plate with three holes, taught at one pose, and scans of it at other poses") {
