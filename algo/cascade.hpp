@@ -107,6 +107,11 @@ struct CascadeParams {
   // The robot's accuracy need (issue 13: z 0.5 mm, tilt and swing 0.15 deg): a 1-sigma above it is no measurement.
   double max_sigma_m = 0.0005;
   double max_sigma_rad = 0.15 * kRadPerDeg;
+  // The full pose is refined from the check's pose too (check_pose, the one the gates verified) when Perfect Match's
+  // lies further from it than this, at the template's centroid; the closer fit is published. The outline pose is
+  // known to a profile step along x (2.2 mm); a theta of 0.5 deg moves a corner 300 mm out 2.6 mm.
+  double pose_agree_m = 0.003;
+  double pose_agree_rad = 0.5 * kRadPerDeg;
   // Before the depth comparison the scan's depth is levelled onto the template's by a robust plane fit
   // (z offset + slopes in x and y): the swing about the hook's vertical axis (+-2 deg, up to 16 mm of depth at the
   // edge of a 450 mm part between two passes) is not part of the planar pose; a local difference (a rib) is.
@@ -426,6 +431,12 @@ class Cascade {
   [[nodiscard]] MatchReport two_way_check(const TemplateModel& model, std::span<const ScanPoint> scan,
                                           const PlanarPose& pose);
 
+  // Decision's full pose and sigmas from an accepted candidate's report (CascadeParams::full_pose): Perfect Match's
+  // planar result refined, and refined from the check's pose too when Perfect Match's lies apart from it
+  // (CascadeParams::pose_agree_m). The report must be of the scan the matcher holds (the last evaluate() or match).
+  // Exposed for tests and diagnostics.
+  void publish_full_pose(const TemplateModel& t, const MatchReport& r, Decision& d) const;
+
   [[nodiscard]] const CascadeParams& params() const { return params_; }
   [[nodiscard]] int window_cells() const { return window_cells_; }
 
@@ -460,8 +471,7 @@ class Cascade {
   [[nodiscard]] Ranking rank_verified(const DecideState& s) const;
   [[nodiscard]] bool clear_of_near_misses(const DecideState& s, const Candidate& best) const;
   void accept_winner(DecideState& s, const Candidate& best);
-  // Decision's full pose and sigmas from the winner's planar result (CascadeParams::full_pose).
-  void publish_full_pose(const TemplateModel& t, const PerfectMatchResult& planar, Decision& d) const;
+  [[nodiscard]] bool poses_agree(const PlanarPose& a, const PlanarPose& b) const;
   void report_unknown(DecideState& s, const Ranking& ranking);
   void report_timeout(DecideState& s);
   void report_candidates(DecideState& s, const Candidate* winner, bool ambiguous) const;
