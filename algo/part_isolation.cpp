@@ -216,19 +216,7 @@ IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, dou
   for (int i = 1; i < pieces; ++i) {
     if (piece_cells_[static_cast<std::size_t>(i)] > piece_cells_[static_cast<std::size_t>(largest)]) largest = i;
   }
-  const double min_cells = params_.min_keep_share * piece_cells_[static_cast<std::size_t>(largest)];
-  mark_end_pieces(pieces, largest, min_cells);
-  mark_off_depth_pieces(part, pieces, largest, min_cells);
-  for (int i = 0; i < pieces; ++i) {
-    const auto u = static_cast<std::size_t>(i);
-    const bool large = piece_cells_[u] >= min_cells;
-    const bool off_depth = piece_off_depth_[u] != 0;
-    const bool keep = i == largest || (large && !off_depth && (piece_border_[u] == 0 || keep_edge_pieces));
-    piece_keep_[u] = keep ? 1 : 0;
-    report.dropped_pieces += keep ? 0 : 1;
-    report.depth_pieces += !keep && large && off_depth ? 1 : 0;
-    report.edge_pieces += !keep && large && !off_depth ? 1 : 0;
-  }
+  choose_pieces(part, pieces, largest, keep_edge_pieces, report);
   if (report.dropped_pieces == 0) return report;
   report.dropped_points += part.filter([&](const ScanPoint& p) {
     int x = 0, y = 0;
@@ -238,6 +226,25 @@ IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, dou
     return id < 0 || piece_keep_[static_cast<std::size_t>(id)] != 0;
   });
   return report;
+}
+
+void PartIsolator::choose_pieces(const ScanBuffer& part, int pieces, int largest, bool keep_edge_pieces,
+                                 IsolationReport& report) {
+  const double min_cells = params_.min_keep_share * piece_cells_[static_cast<std::size_t>(largest)];
+  mark_end_pieces(pieces, largest, min_cells);
+  mark_off_depth_pieces(part, pieces, largest, min_cells);
+  for (int i = 0; i < pieces; ++i) {
+    const auto u = static_cast<std::size_t>(i);
+    const bool large = piece_cells_[u] >= min_cells;
+    const bool off_depth = piece_off_depth_[u] != 0;
+    const bool fragment = !large && is_fragment(i, largest);
+    const bool keep = i == largest || fragment || (large && !off_depth && (piece_border_[u] == 0 || keep_edge_pieces));
+    piece_keep_[u] = keep ? 1 : 0;
+    report.fragments += fragment ? 1 : 0;
+    report.dropped_pieces += keep ? 0 : 1;
+    report.depth_pieces += !keep && large && off_depth ? 1 : 0;
+    report.edge_pieces += !keep && large && !off_depth ? 1 : 0;
+  }
 }
 
 void PartIsolator::mark_end_pieces(int pieces, int largest, double min_cells) {
@@ -268,9 +275,10 @@ void PartIsolator::mark_end_pieces(int pieces, int largest, double min_cells) {
 
 void PartIsolator::mark_off_depth_pieces(const ScanBuffer& part, int pieces, int largest, double min_cells) {
   std::fill_n(piece_off_depth_.begin(), pieces, std::uint8_t{0});
+  const double least = std::min(min_cells, static_cast<double>(params_.fragment_min_cells));
   bool any = false;  // (the usual case: no other piece large enough to be kept, and nothing to count)
   for (int i = 0; i < pieces; ++i) {
-    any = any || (i != largest && piece_cells_[static_cast<std::size_t>(i)] >= min_cells);
+    any = any || (i != largest && piece_cells_[static_cast<std::size_t>(i)] >= least);
   }
   if (!any) return;
   const auto nx = static_cast<std::size_t>(grid_.nx);
@@ -310,8 +318,19 @@ void PartIsolator::mark_off_depth_pieces(const ScanBuffer& part, int pieces, int
   }
   for (int i = 0; i < pieces; ++i) {
     const auto u = static_cast<std::size_t>(i);
-    piece_off_depth_[u] = piece_points_[u] > 0 && piece_on_depth_[u] < params_.piece_depth_share * piece_points_[u];
+    const double share = piece_cells_[u] >= min_cells ? params_.piece_depth_share : params_.fragment_depth_share;
+    piece_off_depth_[u] = piece_points_[u] > 0 && piece_on_depth_[u] < share * piece_points_[u];
   }
+}
+
+bool PartIsolator::is_fragment(int i, int largest) const {
+  const auto u = static_cast<std::size_t>(i), l = static_cast<std::size_t>(largest);
+  if (piece_cells_[u] < params_.fragment_min_cells || piece_border_[u] != 0 || piece_off_depth_[u] != 0) return false;
+  if (piece_points_[u] == 0) return false;  // (not counted: mark_off_depth_pieces found nothing to look at)
+  const int gap = static_cast<int>(std::ceil(params_.fragment_gap_m * inv_resolution_));
+  const int dx = std::max({0, piece_x0_[l] - piece_x1_[u], piece_x0_[u] - piece_x1_[l]});
+  const int dy = std::max({0, piece_y0_[l] - piece_y1_[u], piece_y0_[u] - piece_y1_[l]});
+  return dx <= gap && dy <= gap;
 }
 
 HangerReport PartIsolator::remove_hanger(ScanBuffer& part, double scanned_y1_m) {

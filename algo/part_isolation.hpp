@@ -42,12 +42,22 @@ struct IsolationParams {
   // its limit). The part's own pieces share its depths: a strip a glare band cut off, a flange's column.
   double piece_depth_margin_m = 0.01;
   double piece_depth_share = 0.05;
+  // A piece below min_keep_share is the part's own when a glare band cut it off: at least fragment_min_cells, within
+  // fragment_gap_m of the largest piece's box (a band is 15-35 mm wide), not at the field's end, and at least
+  // fragment_depth_share of its points at the part's depths (piece_depth_margin_m). Shipped catalogue under `glare`,
+  // perforated_fine s1170003: a band across a corner left the corner's 300 points (~150 cells, under the 0.5 % of
+  // the largest piece) beyond it; dropped as clutter, the corner looked cut off (2 362 mm2 missing) and a twin with
+  // that corner chamfered would have matched. Specular outliers are single cells, far below fragment_min_cells.
+  int fragment_min_cells = 20;
+  double fragment_gap_m = 0.04;
+  double fragment_depth_share = 0.5;
 };
 
 struct IsolationReport {
   int pieces = 0;  // connected pieces found (before dropping)
   int dropped_pieces = 0;
   int edge_pieces = 0;             // of the dropped: large enough, dropped only for reaching the field's edge
+  int fragments = 0;               // pieces below min_keep_share kept as cut off the part (fragment_*)
   int depth_pieces = 0;            // of the dropped: large enough, apart from the part's depths (piece_depth_*)
   std::size_t dropped_points = 0;  // of the dropped pieces and beyond the depth gap
   std::size_t depth_points = 0;    // of them, beyond the depth gap
@@ -100,6 +110,8 @@ class PartIsolator {
   // used to be kept unlabelled: shipped catalogue under `stray_edge`, pass 900004, 308 points 200 mm below the part
   // that brought every template's Perfect Match error to 3-6 x its limit). False only for a point that is not finite.
   [[nodiscard]] bool border_cell_of(const ScanPoint& p, int& x, int& y) const;
+  // isolate()'s choice of the pieces to keep (piece_keep_), counted in the report.
+  void choose_pieces(const ScanBuffer& part, int pieces, int largest, bool keep_edge_pieces, IsolationReport& report);
   // isolate()'s pieces of at least min_cells that continue a piece at the field's end toward the part: marked as at
   // the end too (see the definition).
   void mark_end_pieces(int pieces, int largest, double min_cells);
@@ -107,9 +119,13 @@ class PartIsolator {
   std::size_t drop_depth_outliers(ScanBuffer& part);
   // The grid's depth layer of a point: -1 below the grid (or NaN), nz above it.
   [[nodiscard]] int depth_layer(const ScanPoint& p) const;
-  // isolate()'s pieces of at least min_cells apart from the largest one's depths (IsolationParams::piece_depth_*):
+  // isolate()'s pieces of at least min_cells apart from the largest one's depths (IsolationParams::piece_depth_*), and
+  // the smaller ones of at least fragment_min_cells with under fragment_depth_share of their points at those depths:
   // piece_off_depth_ set for them.
   void mark_off_depth_pieces(const ScanBuffer& part, int pieces, int largest, double min_cells);
+  // Whether piece i, below min_cells, is a fragment of the part (IsolationParams::fragment_*), after
+  // mark_off_depth_pieces.
+  [[nodiscard]] bool is_fragment(int i, int largest) const;
   // The cell box of the part's points on the grid (points beyond it left out); with count (isolate's use), points
   // beyond the grid count in their border cell (border_cell_of, as isolate's labels take them) and occupied_ gets the
   // points per cell.
