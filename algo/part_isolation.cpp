@@ -1,12 +1,16 @@
 // Part isolation (see part_isolation.hpp).
 #include "algo/part_isolation.hpp"
 
+#include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
 
 namespace cellsight::algo {
 
 namespace {
+
+// mark_off_depth_pieces: fragment_on_sheet costs a pass over the points; a scan has a corner or two cut off, not more.
+constexpr int kMaxFragmentChecks = 8;
 
 // One line of a square dilation (or erosion) of src into dst over the box: half-width r cells along x or y; cells
 // outside the box count as empty.
@@ -56,6 +60,7 @@ PartIsolator::PartIsolator(const GridSpec& grid, const IsolationParams& params)
   opened_.assign(cells, 0);
   scratch_.assign(cells, 0);
   depth_count_.assign(static_cast<std::size_t>(std::max(grid.nz, 1)), 0);
+  local_count_.assign(static_cast<std::size_t>(std::max(grid.nz, 1)), 0);
 }
 
 int PartIsolator::depth_layer(const ScanPoint& p) const {
@@ -233,6 +238,9 @@ void PartIsolator::choose_pieces(const ScanBuffer& part, int pieces, int largest
   const double min_cells = params_.min_keep_share * piece_cells_[static_cast<std::size_t>(largest)];
   mark_end_pieces(pieces, largest, min_cells);
   mark_off_depth_pieces(part, pieces, largest, min_cells);
+  // The kept pieces' box (a band that cut the part in two leaves two large pieces, its residue between them).
+  CellBox kept{piece_x0_[static_cast<std::size_t>(largest)], piece_x1_[static_cast<std::size_t>(largest)],
+               piece_y0_[static_cast<std::size_t>(largest)], piece_y1_[static_cast<std::size_t>(largest)]};
   for (int i = 0; i < pieces; ++i) {
     const auto u = static_cast<std::size_t>(i);
     const bool large = piece_cells_[u] >= min_cells;
@@ -241,9 +249,19 @@ void PartIsolator::choose_pieces(const ScanBuffer& part, int pieces, int largest
     const bool keep = i == largest || fragment || (large && !off_depth && (piece_border_[u] == 0 || keep_edge_pieces));
     piece_keep_[u] = keep ? 1 : 0;
     report.fragments += fragment ? 1 : 0;
-    report.dropped_pieces += keep ? 0 : 1;
     report.depth_pieces += !keep && large && off_depth ? 1 : 0;
     report.edge_pieces += !keep && large && !off_depth ? 1 : 0;
+    if (keep)
+      kept = {std::min(kept.x0, piece_x0_[u]), std::max(kept.x1, piece_x1_[u]), std::min(kept.y0, piece_y0_[u]),
+              std::max(kept.y1, piece_y1_[u])};
+  }
+  for (int i = 0; i < pieces; ++i) {
+    const auto u = static_cast<std::size_t>(i);
+    if (piece_keep_[u] == 0 && piece_cells_[u] < params_.fragment_min_cells && is_inner_speck(i, kept)) {
+      piece_keep_[u] = 1;
+      ++report.specks;
+    }
+    report.dropped_pieces += piece_keep_[u] != 0 ? 0 : 1;
   }
 }
 
@@ -275,8 +293,9 @@ void PartIsolator::mark_end_pieces(int pieces, int largest, double min_cells) {
 
 void PartIsolator::mark_off_depth_pieces(const ScanBuffer& part, int pieces, int largest, double min_cells) {
   std::fill_n(piece_off_depth_.begin(), pieces, std::uint8_t{0});
-  const double least = std::min(min_cells, static_cast<double>(params_.fragment_min_cells));
-  bool any = false;  // (the usual case: no other piece large enough to be kept, and nothing to count)
+  const double least =
+      params_.keep_inner_specks ? 1.0 : std::min(min_cells, static_cast<double>(params_.fragment_min_cells));
+  bool any = false;  // (no other piece that could be kept: nothing to count)
   for (int i = 0; i < pieces; ++i) {
     any = any || (i != largest && piece_cells_[static_cast<std::size_t>(i)] >= least);
   }
@@ -316,21 +335,99 @@ void PartIsolator::mark_off_depth_pieces(const ScanBuffer& part, int pieces, int
     ++piece_points_[static_cast<std::size_t>(id)];
     if (z >= lo - margin && z <= hi + margin) ++piece_on_depth_[static_cast<std::size_t>(id)];
   }
+  int fragment_checks = 0;
   for (int i = 0; i < pieces; ++i) {
     const auto u = static_cast<std::size_t>(i);
     const double share = piece_cells_[u] >= min_cells ? params_.piece_depth_share : params_.fragment_depth_share;
     piece_off_depth_[u] = piece_points_[u] > 0 && piece_on_depth_[u] < share * piece_points_[u];
+    // A fragment's candidate on the part's depths: also on the sheet beside it (see IsolationParams::fragment_*).
+    const bool candidate = i != largest && piece_cells_[u] < min_cells &&
+                           piece_cells_[u] >= params_.fragment_min_cells && piece_border_[u] == 0 &&
+                           piece_off_depth_[u] == 0 && near_largest(i, largest);
+    if (!candidate) continue;
+    piece_off_depth_[u] = fragment_checks < kMaxFragmentChecks && fragment_on_sheet(part, i, largest) ? 0 : 1;
+    ++fragment_checks;
   }
 }
 
+bool PartIsolator::fragment_on_sheet(const ScanBuffer& part, int i, int largest) {
+  // The sheet beside the piece: the largest piece's points within fragment_gap_m of its box, at most kSheetLayers
+  // from their median depth layer (relief beside it left out), as a plane z = a + b x + c y (a part hangs tilted
+  // by its swing, 35 mm per metre at 2 deg). Three passes over the points; fragments are rare (kMaxFragmentChecks).
+  constexpr int kSheetLayers = 2;
+  const auto u = static_cast<std::size_t>(i);
+  const int gap = static_cast<int>(std::ceil(params_.fragment_gap_m * inv_resolution_));
+  const int nz = static_cast<int>(local_count_.size());
+  const auto nx = static_cast<std::size_t>(grid_.nx);
+  const auto in = [&](const ScanPoint& p, int piece, bool grown) {
+    int x = 0, y = 0;
+    if (!border_cell_of(p, x, y) || label_[static_cast<std::size_t>(y) * nx + static_cast<std::size_t>(x)] != piece) {
+      return false;
+    }
+    const int g = grown ? gap : 0;
+    return x >= piece_x0_[u] - g && x <= piece_x1_[u] + g && y >= piece_y0_[u] - g && y <= piece_y1_[u] + g;
+  };
+  const auto layer = [&](const ScanPoint& p) { return std::clamp(depth_layer(p), 0, nz - 1); };
+  std::fill(local_count_.begin(), local_count_.end(), 0);
+  std::int64_t beside = 0;
+  for (const ScanPoint& p : part.points()) {
+    if (!in(p, largest, true)) continue;
+    ++local_count_[static_cast<std::size_t>(layer(p))];
+    ++beside;
+  }
+  if (beside == 0) return false;
+  int median = 0;
+  for (std::int64_t below = 0; median < nz; ++median) {
+    below += local_count_[static_cast<std::size_t>(median)];
+    if (2 * below >= beside) break;
+  }
+  // Least squares about the piece's box centre (for the conditioning).
+  const double cx = grid_.origin_m.x() + 0.5 * (piece_x0_[u] + piece_x1_[u] + 1) * grid_.resolution_m;
+  const double cy = grid_.origin_m.y() + 0.5 * (piece_y0_[u] + piece_y1_[u] + 1) * grid_.resolution_m;
+  Eigen::Matrix3d normal = Eigen::Matrix3d::Zero();
+  Eigen::Vector3d rhs = Eigen::Vector3d::Zero();
+  for (const ScanPoint& p : part.points()) {
+    if (!in(p, largest, true) || std::abs(layer(p) - median) > kSheetLayers) continue;
+    const Eigen::Vector3d v(1.0, p.x - cx, p.y - cy);
+    normal += v * v.transpose();
+    rhs += v * static_cast<double>(p.z);
+  }
+  Eigen::Vector3d plane(grid_.origin_m.z() + (median + 0.5) * grid_.resolution_m, 0.0, 0.0);
+  const Eigen::LDLT<Eigen::Matrix3d> solver(normal);
+  // (Points on one line, or none: the median's depth, level.)
+  if (solver.info() == Eigen::Success && solver.isPositive() && std::abs(normal.determinant()) > 1e-18) {
+    plane = solver.solve(rhs);
+  }
+  std::int64_t points = 0, on_sheet = 0;
+  for (const ScanPoint& p : part.points()) {
+    if (!in(p, i, false)) continue;
+    ++points;
+    const double sheet = plane.x() + plane.y() * (p.x - cx) + plane.z() * (p.y - cy);
+    on_sheet += std::abs(static_cast<double>(p.z) - sheet) <= params_.fragment_sheet_tolerance_m ? 1 : 0;
+  }
+  return points > 0 && static_cast<double>(on_sheet) >= params_.fragment_depth_share * static_cast<double>(points);
+}
+
 bool PartIsolator::is_fragment(int i, int largest) const {
-  const auto u = static_cast<std::size_t>(i), l = static_cast<std::size_t>(largest);
+  const auto u = static_cast<std::size_t>(i);
   if (piece_cells_[u] < params_.fragment_min_cells || piece_border_[u] != 0 || piece_off_depth_[u] != 0) return false;
   if (piece_points_[u] == 0) return false;  // (not counted: mark_off_depth_pieces found nothing to look at)
+  return near_largest(i, largest);
+}
+
+bool PartIsolator::near_largest(int i, int largest) const {
+  const auto u = static_cast<std::size_t>(i), l = static_cast<std::size_t>(largest);
   const int gap = static_cast<int>(std::ceil(params_.fragment_gap_m * inv_resolution_));
   const int dx = std::max({0, piece_x0_[l] - piece_x1_[u], piece_x0_[u] - piece_x1_[l]});
   const int dy = std::max({0, piece_y0_[l] - piece_y1_[u], piece_y0_[u] - piece_y1_[l]});
   return dx <= gap && dy <= gap;
+}
+
+bool PartIsolator::is_inner_speck(int i, const CellBox& kept) const {
+  const auto u = static_cast<std::size_t>(i);
+  if (!params_.keep_inner_specks || piece_border_[u] != 0 || piece_off_depth_[u] != 0) return false;
+  if (piece_points_[u] == 0) return false;  // (not counted)
+  return piece_x0_[u] >= kept.x0 && piece_x1_[u] <= kept.x1 && piece_y0_[u] >= kept.y0 && piece_y1_[u] <= kept.y1;
 }
 
 HangerReport PartIsolator::remove_hanger(ScanBuffer& part, double scanned_y1_m) {

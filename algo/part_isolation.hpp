@@ -44,13 +44,28 @@ struct IsolationParams {
   double piece_depth_share = 0.05;
   // A piece below min_keep_share is the part's own when a glare band cut it off: at least fragment_min_cells, within
   // fragment_gap_m of the largest piece's box (a band is 15-35 mm wide), not at the field's end, and at least
-  // fragment_depth_share of its points at the part's depths (piece_depth_margin_m). Shipped catalogue under `glare`,
-  // perforated_fine s1170003: a band across a corner left the corner's 300 points (~150 cells, under the 0.5 % of
-  // the largest piece) beyond it; dropped as clutter, the corner looked cut off (2 362 mm2 missing) and a twin with
-  // that corner chamfered would have matched. Specular outliers are single cells, far below fragment_min_cells.
+  // fragment_depth_share of its points within fragment_sheet_tolerance_m of the sheet beside it (a plane through the
+  // largest piece's points within fragment_gap_m of the piece's box, its relief left out): a piece of sheet continues
+  // the sheet.
+  // Shipped catalogue under `glare`, perforated_fine s1170003: a band across a corner left the corner's 300 points
+  // (~150 cells, under the 0.5 % of the largest piece) beyond it; dropped as clutter, the corner looked cut off
+  // (2 362 mm2 missing) and a twin with that corner chamfered would have matched. Specular outliers are single cells,
+  // far below fragment_min_cells. A 90 deg flange seen edge-on shows only its outer part, a line 10 mm beside the
+  // edge and 4-30 mm in front of the sheet: within the part's overall depths (its other flange), it was kept as a
+  // fragment at poses where the taught passes never showed it (development catalogue 11360, rnd04 / rnd10 s1170002:
+  // 397 mm2 of extra material, unknown). Only the first kMaxFragmentChecks such pieces of a scan are looked at.
   int fragment_min_cells = 20;
   double fragment_gap_m = 0.04;
   double fragment_depth_share = 0.5;
+  double fragment_sheet_tolerance_m = 0.004;
+  // A smaller piece (a speck) wholly inside the kept pieces' box, not at the field's end, with at least
+  // fragment_depth_share of its points at the part's depths is the part's too: the residue a glare band leaves is
+  // single points, and where it is sparse they lie farther apart than the bridging reaches. Dropped, they thinned the
+  // residue exactly where it was already thin, and the check took the emptied stretch of the band for a hole
+  // (shipped catalogue under `glare`, plate_4h s1180006: 6 of 13 residue points in the band's right third dropped,
+  // an empty 11 x 53 cell rectangle protected as a hole, 6 505 mm2 missing). A specular outlier that happens to lie
+  // there at the part's depth stays too: one cell, far below any gate.
+  bool keep_inner_specks = true;
 };
 
 struct IsolationReport {
@@ -58,6 +73,7 @@ struct IsolationReport {
   int dropped_pieces = 0;
   int edge_pieces = 0;             // of the dropped: large enough, dropped only for reaching the field's edge
   int fragments = 0;               // pieces below min_keep_share kept as cut off the part (fragment_*)
+  int specks = 0;                  // pieces below fragment_min_cells kept inside the part's box (keep_inner_specks)
   int depth_pieces = 0;            // of the dropped: large enough, apart from the part's depths (piece_depth_*)
   std::size_t dropped_points = 0;  // of the dropped pieces and beyond the depth gap
   std::size_t depth_points = 0;    // of them, beyond the depth gap
@@ -120,12 +136,20 @@ class PartIsolator {
   // The grid's depth layer of a point: -1 below the grid (or NaN), nz above it.
   [[nodiscard]] int depth_layer(const ScanPoint& p) const;
   // isolate()'s pieces of at least min_cells apart from the largest one's depths (IsolationParams::piece_depth_*), and
-  // the smaller ones of at least fragment_min_cells with under fragment_depth_share of their points at those depths:
-  // piece_off_depth_ set for them.
+  // the smaller ones (specks too, with keep_inner_specks) with under fragment_depth_share of their points at those
+  // depths: piece_off_depth_ set for them.
   void mark_off_depth_pieces(const ScanBuffer& part, int pieces, int largest, double min_cells);
   // Whether piece i, below min_cells, is a fragment of the part (IsolationParams::fragment_*), after
   // mark_off_depth_pieces.
   [[nodiscard]] bool is_fragment(int i, int largest) const;
+  // Whether piece i lies within fragment_gap_m of the largest piece's box.
+  [[nodiscard]] bool near_largest(int i, int largest) const;
+  // Whether at least fragment_depth_share of piece i's points lie within fragment_sheet_tolerance_m of the sheet
+  // beside it (see the definition).
+  [[nodiscard]] bool fragment_on_sheet(const ScanBuffer& part, int i, int largest);
+  // Whether piece i, below fragment_min_cells, is a speck of the part's own (IsolationParams::keep_inner_specks)
+  // inside the kept pieces' box, after mark_off_depth_pieces.
+  [[nodiscard]] bool is_inner_speck(int i, const CellBox& kept) const;
   // The cell box of the part's points on the grid (points beyond it left out); with count (isolate's use), points
   // beyond the grid count in their border cell (border_cell_of, as isolate's labels take them) and occupied_ gets the
   // points per cell.
@@ -149,6 +173,7 @@ class PartIsolator {
   std::vector<std::uint8_t> opened_;                         // remove_hanger: its opening
   std::vector<std::uint8_t> scratch_;                        // remove_hanger: a separable pass's rows
   std::vector<std::int32_t> depth_count_;                    // drop_depth_outliers: points per grid depth layer
+  std::vector<std::int32_t> local_count_;                    // fragment_on_sheet: the part's points per layer there
 };
 
 }  // namespace cellsight::algo

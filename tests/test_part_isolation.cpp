@@ -200,6 +200,74 @@ SCENARIO("A neighbour's part at the field's edge and loose specks are separated 
       }
     }
   }
+  GIVEN("the plate with a 30 mm flange at 90 deg on each side edge, the left one joined to it (so its depths count)") {
+    // (Development catalogue 11360, rnd04 s1170002: the right flange seen edge-on showed only its outer part, a line
+    // 10 mm beside the edge and 10-30 mm in front of the sheet; kept as a fragment, 397 mm2 of extra material.)
+    auto flanged = [](double line_z0, double line_z1) {
+      std::vector<ScanPoint> points;
+      add_sheet(points, 0.10, 0.55, 0.20, 0.90, 0.20, kPart);
+      for (double z = 0.20; z < 0.23; z += 0.002) add_sheet(points, 0.10, 0.1022, 0.20, 0.90, z, kPart);
+      for (double z = line_z0; z < line_z1; z += 0.002) add_sheet(points, 0.565, 0.566, 0.30, 0.80, z, kStray);
+      return points;
+    };
+    struct Line {
+      const char* where;
+      double z0, z1;
+      bool kept;
+    };
+    for (const Line& line : {Line{"5-25 mm in front of the sheet (the right flange's outer part)", 0.205, 0.225, false},
+                             Line{"on the sheet's plane (a strip a glare band cut off the edge)", 0.2, 0.201, true}}) {
+      WHEN(std::string("a line 15 mm beside the right edge lies ") + line.where) {
+        const auto points = flanged(line.z0, line.z1);
+        algo::ScanBuffer b = buffer_of(points);
+        const int drawn = count_tag(b, kStray);
+        const algo::IsolationReport r = isolator.isolate(b, 0.0165, 0.635);
+        THEN(std::string(line.kept
+                             ? "it stays, a fragment of the part"
+                             : "it goes: within the part's depths (the left flange's), not on the sheet beside it")) {
+          CHECK(r.pieces == 2);
+          CHECK(r.fragments == (line.kept ? 1 : 0));
+          CHECK(count_tag(b, kStray) == (line.kept ? drawn : 0));
+          CHECK(drawn > 300);
+        }
+      }
+    }
+  }
+  GIVEN("the plate crossed by a 30 mm glare band whose residue is single points 15 mm apart along its middle") {
+    // (Shipped catalogue under `glare`, plate_4h s1180006: residue points out of the bridging's reach were dropped as
+    // clutter where the residue was sparse, and the check took that emptied stretch of the band for a hole.)
+    auto banded = [](double dz) {
+      std::vector<ScanPoint> points;
+      add_sheet(points, 0.10, 0.55, 0.20, 0.50, 0.20, kPart);
+      add_sheet(points, 0.10, 0.55, 0.53, 0.90, 0.20, kPart);
+      for (double x = 0.11; x < 0.55; x += 0.015) {
+        points.push_back({static_cast<float>(x), 0.515F, static_cast<float>(0.20 + dz), 0, kSpeck});
+      }
+      return points;
+    };
+    WHEN("it is isolated") {
+      const auto points = banded(0.0);
+      algo::ScanBuffer b = buffer_of(points);
+      const int residue = count_tag(b, kSpeck);
+      const algo::IsolationReport r = isolator.isolate(b, 0.0165, 0.635);
+      THEN("every residue point stays, each a speck of the part") {
+        CHECK(residue == 30);
+        CHECK(r.specks == residue);
+        CHECK(r.dropped_pieces == 0);
+        CHECK(b.size() == points.size());
+      }
+    }
+    WHEN("the same points lie 30 mm in front of the plate (outliers off its depths)") {
+      const auto points = banded(0.03);
+      algo::ScanBuffer b = buffer_of(points);
+      const algo::IsolationReport r = isolator.isolate(b, 0.0165, 0.635);
+      THEN("they go") {
+        CHECK(r.specks == 0);
+        CHECK(count_tag(b, kSpeck) == 0);
+        CHECK(count_tag(b, kPart) == static_cast<int>(points.size()) - 30);
+      }
+    }
+  }
   GIVEN("a plate hanging 20 mm out of the grid's bottom, and a loose speck 100 mm below the grid beside it") {
     // (Beyond the grid only the column is known: a speck below the part's own columns would join the part.)
     std::vector<ScanPoint> points;
