@@ -398,14 +398,25 @@ bool PartIsolator::fragment_on_sheet(const ScanBuffer& part, int i, int largest)
   if (solver.info() == Eigen::Success && solver.isPositive() && std::abs(normal.determinant()) > 1e-18) {
     plane = solver.solve(rhs);
   }
-  std::int64_t points = 0, on_sheet = 0;
-  for (const ScanPoint& p : part.points()) {
-    if (!in(p, i, false)) continue;
-    ++points;
-    const double sheet = plane.x() + plane.y() * (p.x - cx) + plane.z() * (p.y - cy);
-    on_sheet += std::abs(static_cast<double>(p.z) - sheet) <= params_.fragment_sheet_tolerance_m ? 1 : 0;
+  // Its cells with a point on that plane (scratch_ is free once the pieces are labelled): a corner cut off with the
+  // flange along its edge holds the flange's wall too, many points per cell in front of the sheet, but every cell
+  // also holds the sheet (the shipped catalogue's bracket_l under `glare`, s1190010).
+  for (int y = piece_y0_[u]; y <= piece_y1_[u]; ++y) {
+    std::fill_n(scratch_.begin() + static_cast<std::ptrdiff_t>(static_cast<std::size_t>(y) * nx +
+                                                               static_cast<std::size_t>(piece_x0_[u])),
+                piece_x1_[u] - piece_x0_[u] + 1, std::uint8_t{0});
   }
-  return points > 0 && static_cast<double>(on_sheet) >= params_.fragment_depth_share * static_cast<double>(points);
+  int on_sheet = 0;
+  for (const ScanPoint& p : part.points()) {
+    int x = 0, y = 0;
+    if (!in(p, i, false) || !border_cell_of(p, x, y)) continue;
+    const double sheet = plane.x() + plane.y() * (p.x - cx) + plane.z() * (p.y - cy);
+    std::uint8_t& cell = scratch_[static_cast<std::size_t>(y) * nx + static_cast<std::size_t>(x)];
+    if (cell != 0 || std::abs(static_cast<double>(p.z) - sheet) > params_.fragment_sheet_tolerance_m) continue;
+    cell = 1;
+    ++on_sheet;
+  }
+  return static_cast<double>(on_sheet) >= params_.fragment_depth_share * piece_cells_[u];
 }
 
 bool PartIsolator::is_fragment(int i, int largest) const {
@@ -488,9 +499,13 @@ HangerReport PartIsolator::remove_hanger(ScanBuffer& part, double scanned_y1_m) 
     }
   }
   if (report.removed_cells == 0) return report;
+  // A point beyond the grid goes with the border cell it lies out of: a chain runs on above the grid's top to the
+  // field's (shipped catalogue under `stray_points`, ribbed_v3 s1190002: its 200 mm beyond the grid stayed with the
+  // part, and every template's Perfect Match error was 4.5 times its limit).
   report.removed_points = part.filter([&](const ScanPoint& p) {
-    std::size_t i = 0;
-    return !cell_of(p, i) || (mask_[i] & 2U) == 0;
+    int x = 0, y = 0;
+    const bool in_box = border_cell_of(p, x, y) && x >= b.x0 && x <= b.x1 && y >= b.y0 && y <= b.y1;
+    return !in_box || (mask_[at(x, y)] & 2U) == 0;  // (mask_ beyond b holds other work's marks)
   });
   return report;
 }

@@ -44,9 +44,9 @@ struct IsolationParams {
   double piece_depth_share = 0.05;
   // A piece below min_keep_share is the part's own when a glare band cut it off: at least fragment_min_cells, within
   // fragment_gap_m of the largest piece's box (a band is 15-35 mm wide), not at the field's end, and at least
-  // fragment_depth_share of its points within fragment_sheet_tolerance_m of the sheet beside it (a plane through the
-  // largest piece's points within fragment_gap_m of the piece's box, its relief left out): a piece of sheet continues
-  // the sheet.
+  // fragment_depth_share of its cells holding a point within fragment_sheet_tolerance_m of the sheet beside it (a plane
+  // through the largest piece's points within fragment_gap_m of the piece's box, its relief left out): a piece of
+  // sheet continues the sheet.
   // Shipped catalogue under `glare`, perforated_fine s1170003: a band across a corner left the corner's 300 points
   // (~150 cells, under the 0.5 % of the largest piece) beyond it; dropped as clutter, the corner looked cut off
   // (2 362 mm2 missing) and a twin with that corner chamfered would have matched. Specular outliers are single cells,
@@ -144,8 +144,8 @@ class PartIsolator {
   [[nodiscard]] bool is_fragment(int i, int largest) const;
   // Whether piece i lies within fragment_gap_m of the largest piece's box.
   [[nodiscard]] bool near_largest(int i, int largest) const;
-  // Whether at least fragment_depth_share of piece i's points lie within fragment_sheet_tolerance_m of the sheet
-  // beside it (see the definition).
+  // Whether at least fragment_depth_share of piece i's cells hold a point within fragment_sheet_tolerance_m of the
+  // sheet beside it (see the definition).
   [[nodiscard]] bool fragment_on_sheet(const ScanBuffer& part, int i, int largest);
   // Whether piece i, below fragment_min_cells, is a speck of the part's own (IsolationParams::keep_inner_specks)
   // inside the kept pieces' box, after mark_off_depth_pieces.

@@ -215,8 +215,10 @@ SCENARIO("A neighbour's part at the field's edge and loose specks are separated 
       double z0, z1;
       bool kept;
     };
-    for (const Line& line : {Line{"5-25 mm in front of the sheet (the right flange's outer part)", 0.205, 0.225, false},
-                             Line{"on the sheet's plane (a strip a glare band cut off the edge)", 0.2, 0.201, true}}) {
+    for (const Line& line :
+         {Line{"5-25 mm in front of the sheet (the right flange's outer part)", 0.205, 0.225, false},
+          Line{"on the sheet's plane (a strip a glare band cut off the edge)", 0.2, 0.201, true},
+          Line{"from the sheet's plane to 20 mm in front (a strip cut off with a flange's wall)", 0.2, 0.22, true}}) {
       WHEN(std::string("a line 15 mm beside the right edge lies ") + line.where) {
         const auto points = flanged(line.z0, line.z1);
         algo::ScanBuffer b = buffer_of(points);
@@ -321,6 +323,20 @@ SCENARIO("The chain the part hangs from is cut off where it meets the part, the 
         CHECK(count_tag(b, kChain) == 0);
         CHECK(count_tag(b, kPart) == part_points);
         CHECK(r.removed_points > 0);
+      }
+    }
+    WHEN("the chain runs on beyond the grid's top (1.1 m) to a field's top at 1.3 m") {
+      // (Shipped catalogue under `stray_points`, ribbed_v3 s1190002: the chain's 200 mm beyond the grid stayed with
+      // the part, and every template's Perfect Match error was 4.5 times its limit.)
+      add_sheet(points, 0.30, 0.308, 0.70, 1.3, 0.20, kChain);
+      algo::ScanBuffer b = buffer_of(points);
+      int beyond = 0;
+      for (const ScanPoint& p : b.points()) beyond += p.row == kChain && p.y > 1.1F ? 1 : 0;
+      (void)isolator.remove_hanger(b, 1.3);
+      THEN("its points beyond the grid go with it, and every plate point stays") {
+        CHECK(beyond > 100);
+        CHECK(count_tag(b, kChain) == 0);
+        CHECK(count_tag(b, kPart) == part_points);
       }
     }
     WHEN("the chain is 12 mm wide, lost a profile and 5 % of its points") {
