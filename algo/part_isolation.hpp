@@ -171,7 +171,7 @@ class PartIsolator {
   std::vector<std::uint8_t> mask_;                           // occupancy (bit 0); remove_hanger: cut off (bit 1)
   std::vector<std::uint8_t> closed_;                         // remove_hanger: the occupancy closed by one cell
   std::vector<std::uint8_t> opened_;                         // remove_hanger: its opening
-  std::vector<std::uint8_t> scratch_;                        // remove_hanger: a separable pass's rows
+  std::vector<std::uint8_t> scratch_;                        // square_morphology's rows; fragment_on_sheet's cells
   std::vector<std::int32_t> depth_count_;                    // drop_depth_outliers: points per grid depth layer
   std::vector<std::int32_t> local_count_;                    // fragment_on_sheet: the part's points per layer there
 };
