@@ -102,6 +102,11 @@ std::size_t PartIsolator::drop_depth_outliers(ScanBuffer& part) {
   });
 }
 
+int PartIsolator::piece_of(const ScanPoint& p, int& x, int& y) const {
+  if (!border_cell_of(p, x, y)) return -1;
+  return label_[static_cast<std::size_t>(y) * static_cast<std::size_t>(grid_.nx) + static_cast<std::size_t>(x)];
+}
+
 bool PartIsolator::cell_of(const ScanPoint& p, int& x, int& y) const {
   const double fx = (static_cast<double>(p.x) - grid_.origin_m.x()) * inv_resolution_;
   const double fy = (static_cast<double>(p.y) - grid_.origin_m.y()) * inv_resolution_;
@@ -225,9 +230,7 @@ IsolationReport PartIsolator::isolate(ScanBuffer& part, double scanned_x0_m, dou
   if (report.dropped_pieces == 0) return report;
   report.dropped_points += part.filter([&](const ScanPoint& p) {
     int x = 0, y = 0;
-    if (!border_cell_of(p, x, y)) return true;
-    const std::int32_t id =
-        label_[static_cast<std::size_t>(y) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(x)];
+    const int id = piece_of(p, x, y);
     return id < 0 || piece_keep_[static_cast<std::size_t>(id)] != 0;
   });
   return report;
@@ -300,11 +303,7 @@ void PartIsolator::mark_off_depth_pieces(const ScanBuffer& part, int pieces, int
     any = any || (i != largest && piece_cells_[static_cast<std::size_t>(i)] >= least);
   }
   if (!any) return;
-  const auto nx = static_cast<std::size_t>(grid_.nx);
-  const auto piece_of = [&](const ScanPoint& p) {
-    int x = 0, y = 0;
-    return border_cell_of(p, x, y) ? label_[static_cast<std::size_t>(y) * nx + static_cast<std::size_t>(x)] : -1;
-  };
+  int x = 0, y = 0;  // (piece_of's cell, unused here)
   // The part's depths: the largest piece's points per layer (those beyond the grid's depth in its end layers).
   const int nz = static_cast<int>(depth_count_.size());
   std::fill(depth_count_.begin(), depth_count_.end(), 0);
@@ -312,7 +311,7 @@ void PartIsolator::mark_off_depth_pieces(const ScanBuffer& part, int pieces, int
   std::fill_n(piece_on_depth_.begin(), pieces, 0);
   std::int64_t counted = 0;
   for (const ScanPoint& p : part.points()) {
-    if (piece_of(p) != largest) continue;
+    if (piece_of(p, x, y) != largest) continue;
     ++depth_count_[static_cast<std::size_t>(std::clamp(depth_layer(p), 0, nz - 1))];
     ++counted;
   }
@@ -329,7 +328,7 @@ void PartIsolator::mark_off_depth_pieces(const ScanBuffer& part, int pieces, int
   }
   const int margin = static_cast<int>(std::ceil(params_.piece_depth_margin_m * inv_resolution_));
   for (const ScanPoint& p : part.points()) {
-    const int id = piece_of(p);
+    const int id = piece_of(p, x, y);
     if (id < 0 || id == largest) continue;
     const int z = depth_layer(p);
     ++piece_points_[static_cast<std::size_t>(id)];
@@ -341,9 +340,7 @@ void PartIsolator::mark_off_depth_pieces(const ScanBuffer& part, int pieces, int
     const double share = piece_cells_[u] >= min_cells ? params_.piece_depth_share : params_.fragment_depth_share;
     piece_off_depth_[u] = piece_points_[u] > 0 && piece_on_depth_[u] < share * piece_points_[u];
     // A fragment's candidate on the part's depths: also on the sheet beside it (see IsolationParams::fragment_*).
-    const bool candidate = i != largest && piece_cells_[u] < min_cells &&
-                           piece_cells_[u] >= params_.fragment_min_cells && piece_border_[u] == 0 &&
-                           piece_off_depth_[u] == 0 && near_largest(i, largest);
+    const bool candidate = i != largest && piece_cells_[u] < min_cells && is_fragment(i, largest);
     if (!candidate) continue;
     piece_off_depth_[u] = fragment_checks < kMaxFragmentChecks && fragment_on_sheet(part, i, largest) ? 0 : 1;
     ++fragment_checks;
@@ -359,19 +356,16 @@ bool PartIsolator::fragment_on_sheet(const ScanBuffer& part, int i, int largest)
   const int gap = static_cast<int>(std::ceil(params_.fragment_gap_m * inv_resolution_));
   const int nz = static_cast<int>(local_count_.size());
   const auto nx = static_cast<std::size_t>(grid_.nx);
-  const auto in = [&](const ScanPoint& p, int piece, bool grown) {
-    int x = 0, y = 0;
-    if (!border_cell_of(p, x, y) || label_[static_cast<std::size_t>(y) * nx + static_cast<std::size_t>(x)] != piece) {
-      return false;
-    }
-    const int g = grown ? gap : 0;
-    return x >= piece_x0_[u] - g && x <= piece_x1_[u] + g && y >= piece_y0_[u] - g && y <= piece_y1_[u] + g;
+  int x = 0, y = 0;                                  // piece_of's cell of a point
+  const auto near_piece = [&](const ScanPoint& p) {  // one of the largest piece's points within gap of piece i's box
+    return piece_of(p, x, y) == largest && x >= piece_x0_[u] - gap && x <= piece_x1_[u] + gap &&
+           y >= piece_y0_[u] - gap && y <= piece_y1_[u] + gap;
   };
   const auto layer = [&](const ScanPoint& p) { return std::clamp(depth_layer(p), 0, nz - 1); };
   std::fill(local_count_.begin(), local_count_.end(), 0);
   std::int64_t beside = 0;
   for (const ScanPoint& p : part.points()) {
-    if (!in(p, largest, true)) continue;
+    if (!near_piece(p)) continue;
     ++local_count_[static_cast<std::size_t>(layer(p))];
     ++beside;
   }
@@ -387,7 +381,7 @@ bool PartIsolator::fragment_on_sheet(const ScanBuffer& part, int i, int largest)
   Eigen::Matrix3d normal = Eigen::Matrix3d::Zero();
   Eigen::Vector3d rhs = Eigen::Vector3d::Zero();
   for (const ScanPoint& p : part.points()) {
-    if (!in(p, largest, true) || std::abs(layer(p) - median) > kSheetLayers) continue;
+    if (!near_piece(p) || std::abs(layer(p) - median) > kSheetLayers) continue;
     const Eigen::Vector3d v(1.0, p.x - cx, p.y - cy);
     normal += v * v.transpose();
     rhs += v * static_cast<double>(p.z);
@@ -401,15 +395,14 @@ bool PartIsolator::fragment_on_sheet(const ScanBuffer& part, int i, int largest)
   // Its cells with a point on that plane (scratch_ is free once the pieces are labelled): a corner cut off with the
   // flange along its edge holds the flange's wall too, many points per cell in front of the sheet, but every cell
   // also holds the sheet (the shipped catalogue's bracket_l under `glare`, s1190010).
-  for (int y = piece_y0_[u]; y <= piece_y1_[u]; ++y) {
-    std::fill_n(scratch_.begin() + static_cast<std::ptrdiff_t>(static_cast<std::size_t>(y) * nx +
+  for (int row = piece_y0_[u]; row <= piece_y1_[u]; ++row) {
+    std::fill_n(scratch_.begin() + static_cast<std::ptrdiff_t>(static_cast<std::size_t>(row) * nx +
                                                                static_cast<std::size_t>(piece_x0_[u])),
                 piece_x1_[u] - piece_x0_[u] + 1, std::uint8_t{0});
   }
   int on_sheet = 0;
   for (const ScanPoint& p : part.points()) {
-    int x = 0, y = 0;
-    if (!in(p, i, false) || !border_cell_of(p, x, y)) continue;
+    if (piece_of(p, x, y) != i) continue;
     const double sheet = plane.x() + plane.y() * (p.x - cx) + plane.z() * (p.y - cy);
     std::uint8_t& cell = scratch_[static_cast<std::size_t>(y) * nx + static_cast<std::size_t>(x)];
     if (cell != 0 || std::abs(static_cast<double>(p.z) - sheet) > params_.fragment_sheet_tolerance_m) continue;

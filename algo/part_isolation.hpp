@@ -126,6 +126,8 @@ class PartIsolator {
   // used to be kept unlabelled: shipped catalogue under `stray_edge`, pass 900004, 308 points 200 mm below the part
   // that brought every template's Perfect Match error to 3-6 x its limit). False only for a point that is not finite.
   [[nodiscard]] bool border_cell_of(const ScanPoint& p, int& x, int& y) const;
+  // After isolate()'s labelling: the piece of a point (label_ at its border_cell_of cell, x and y), -1 for none.
+  [[nodiscard]] int piece_of(const ScanPoint& p, int& x, int& y) const;
   // isolate()'s choice of the pieces to keep (piece_keep_), counted in the report.
   void choose_pieces(const ScanBuffer& part, int pieces, int largest, bool keep_edge_pieces, IsolationReport& report);
   // isolate()'s pieces of at least min_cells that continue a piece at the field's end toward the part: marked as at
