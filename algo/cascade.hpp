@@ -24,6 +24,14 @@ namespace cellsight::algo {
 
 inline constexpr double kRadPerDeg = std::numbers::pi / 180.0;
 
+// The version of what `train` learns beside the SVM (the gates' limits, the size's and edges' models, look-alikes),
+// recorded in the model database (formats::Manifest::learn_version). Raised when the check or learn_thresholds
+// change so that limits learnt before no longer keep near twins apart: a database learnt by another version is
+// stale until `train` learns it again. Catalogue 11357's database learnt on b09fc00 gave 7b903f5 a wrong id (rnd11,
+// 5 mm taller, taken for rnd09) that the same build's own training rejects (rnd09's edge 2.6 mm against 1.0).
+// 1: recorded from 7b903f5 on (databases without it count as 0).
+inline constexpr std::uint32_t kLearnVersion = 1;
+
 // The outline's four edges in the template frame (MatchReport::edge_m, TemplateThresholds): x low and high, y low
 // and high.
 enum class Edge : std::uint8_t { kLeft, kRight, kBottom, kTop };

@@ -7,6 +7,7 @@
 #include <sstream>
 #include <string>
 
+#include "algo/cascade.hpp"
 #include "algo/features.hpp"
 #include "base/atomic_file.hpp"
 #include "base/crc32.hpp"
@@ -51,6 +52,7 @@ Expected<ModelDb> ModelDb::open(const std::string& dir, const algo::GridSpec& gr
     }
     db.manifest_.grid = grid;
     db.manifest_.feature_version = algo::kFeatureVersion;
+    db.manifest_.learn_version = algo::kLearnVersion;
     return db;
   }
   auto bytes = base::read_file(path, kMaxManifestBytes);
@@ -134,6 +136,11 @@ std::string ModelDb::svm_stale_reason() const {
   if (manifest_.feature_version != algo::kFeatureVersion) {
     return "the SVM was trained with feature version " + std::to_string(manifest_.feature_version) +
            ", this cellsight computes version " + std::to_string(algo::kFeatureVersion) + ": run 'cellsight train'";
+  }
+  if (manifest_.learn_version != algo::kLearnVersion) {
+    return "the parts' limits were learnt by a cellsight of learn version " + std::to_string(manifest_.learn_version) +
+           ", this one learns version " + std::to_string(algo::kLearnVersion) +
+           " (limits learnt before may not keep near twins apart): run 'cellsight train'";
   }
   if (manifest_.svm.parts_fingerprint != parts_fingerprint()) {
     return "parts or scans changed since the last training (" + manifest_.svm.trained_at + "): run 'cellsight train'";

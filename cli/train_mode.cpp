@@ -10,6 +10,7 @@
 #include <set>
 
 #include "algo/augment.hpp"
+#include "algo/cascade.hpp"
 #include "algo/splitmix.hpp"
 #include "app/recognition.hpp"
 #include "app/scan_acquisition.hpp"
@@ -449,6 +450,7 @@ Expected<std::string> store_trained_model(app::ModelDb& db, const algo::Training
   const std::string old_model = db.manifest().svm.present ? db.manifest().svm.file : "";
   formats::Manifest& mm = db.manifest();
   mm.feature_version = algo::kFeatureVersion;
+  mm.learn_version = algo::kLearnVersion;
   mm.svm.present = true;
   mm.svm.file = model_file;
   mm.svm.crc32 = base::crc32(blob);

@@ -44,6 +44,7 @@ std::string manifest_text(const Manifest& m) {
        "# and delete parts.\n";
   t << "format_version: " << m.format_version << "\n";
   t << "feature_version: " << m.feature_version << "\n";
+  t << "learn_version: " << m.learn_version << "\n";
   t << "grid: {nx: " << m.grid.nx << ", ny: " << m.grid.ny << ", nz: " << m.grid.nz
     << ", resolution_m: " << number(m.grid.resolution_m) << ", origin_m: [" << number(m.grid.origin_m.x()) << ", "
     << number(m.grid.origin_m.y()) << ", " << number(m.grid.origin_m.z()) << "]}\n";
@@ -316,6 +317,11 @@ Expected<Manifest> parse_manifest(const std::string& path, const std::string& by
   std::int64_t feature_version = 0;
   top.integer("feature_version", feature_version, 0, 1000000, "");
   m.feature_version = static_cast<std::uint32_t>(feature_version);
+  if (top.has("learn_version")) {  // optional: a database trained before it was recorded has none (0)
+    std::int64_t learn_version = 0;
+    top.integer("learn_version", learn_version, 0, 1000000, "");
+    m.learn_version = static_cast<std::uint32_t>(learn_version);
+  }
   read_grid(top.section("grid"), m.grid);
   std::set<std::string> names;
   std::set<int> ids;

@@ -88,6 +88,7 @@ struct SvmEntry {
 struct Manifest {
   int format_version = kManifestFormatVersion;
   std::uint32_t feature_version = 0;  // algo::kFeatureVersion at the last training
+  std::uint32_t learn_version = 0;    // algo::kLearnVersion at the last training (0: trained before it was recorded)
   algo::GridSpec grid{};
   std::vector<PartEntry> parts;
   SvmEntry svm;

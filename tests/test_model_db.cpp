@@ -14,6 +14,7 @@
 #include <set>
 #include <sstream>
 
+#include "algo/cascade.hpp"
 #include "app/config.hpp"
 #include "app/model_db.hpp"
 #include "app/recognition.hpp"
@@ -91,6 +92,23 @@ TEST_CASE("teach then train then classify a small database through the executabl
   INFO(unknown.output);
   CHECK(unknown.output.find("\"class\": null") != std::string::npos);
   CHECK(unknown.output.find("\"pose\": null, \"sigma\": null") != std::string::npos);
+
+  // Limits learnt by a cellsight of another learn version (recorded in the manifest) are stale: classify refuses
+  // until train learns them again (an older build's limits gave a newer one a wrong id on a 5 mm taller twin).
+  {
+    auto older = app::ModelDb::open(cell.models, app::grid_spec(cell.config), false);
+    REQUIRE(older.ok());
+    CHECK(older->manifest().learn_version == algo::kLearnVersion);
+    older->manifest().learn_version = 0;
+    REQUIRE(static_cast<bool>(older->save()));
+  }
+  const Run old_limits = cell.run("classify " + probe.string());
+  INFO(old_limits.output);
+  CHECK(old_limits.exit_code == 2);
+  CHECK(old_limits.output.find("learn version 0") != std::string::npos);
+  CHECK(old_limits.output.find("cellsight train") != std::string::npos);
+  REQUIRE(cell.run("train").exit_code == 0);
+  CHECK(cell.run("classify " + probe.string()).exit_code == 0);
 
   // eval --sim: new passes (seeds never taught) of a taught and an untaught part, written as PLY files with the
   // truth of the taught one relative to its template, then evaluated from the files.
@@ -356,6 +374,20 @@ TEST_CASE("limits learnt before a gate existed read as not learnt, so the databa
     REQUIRE(before.ok());
     CHECK(before->parts.at(0).thresholds.learnt);
     CHECK(before->parts.at(0).thresholds.max_edge_dev_median_m == std::array<double, 4>{});
+  }
+  // The learn version is written and read back; a manifest written before it was recorded reads as version 0 (so
+  // the database is stale until `train`: the cycle test).
+  {
+    formats::Manifest v = m;
+    v.learn_version = 5;
+    const auto round = formats::parse_manifest("manifest.yaml", formats::manifest_text(v));
+    REQUIRE(round.ok());
+    CHECK(round->learn_version == 5);
+    const std::string old = older("learn_version: ", "\n");
+    REQUIRE(old.find("learn_version") == std::string::npos);
+    const auto before = formats::parse_manifest("manifest.yaml", old);
+    REQUIRE(before.ok());
+    CHECK(before->learn_version == 0);
   }
 }
 

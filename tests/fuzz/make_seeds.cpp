@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "algo/cascade.hpp"
 #include "algo/svm.hpp"
 #include "base/file_read.hpp"
 #include "formats/manifest.hpp"
@@ -92,6 +93,7 @@ Expected<std::string> svm_file() {
 std::string manifest_file() {
   formats::Manifest m;
   m.feature_version = algo::kFeatureVersion;
+  m.learn_version = algo::kLearnVersion;
   m.grid = fuzz::seed_template_grid();
   for (int p = 0; p < 2; ++p) {
     formats::PartEntry e;
