@@ -4,6 +4,7 @@
 #include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 namespace cellsight::algo {
 
@@ -11,6 +12,12 @@ namespace {
 
 // mark_off_depth_pieces: fragment_on_sheet costs a pass over the points; a scan has a corner or two cut off, not more.
 constexpr int kMaxFragmentChecks = 8;
+// is_edge_line: a line at most this many cells wide on average (its cells per cell of its length) ...
+constexpr double kLineMaxWidthCells = 2.5;
+// ... whose box is at least this many times longer than wide (along the part's edge: a part turns by +-5 deg) ...
+constexpr int kLineMinAspect = 5;
+// ... with at least this share of its cells beyond the largest piece's extent in their row (or column).
+constexpr double kLineBeyondShare = 0.9;
 
 // One line of a square dilation (or erosion) of src into dst over the box: half-width r cells along x or y; cells
 // outside the box count as empty.
@@ -252,7 +259,8 @@ void PartIsolator::choose_pieces(const ScanBuffer& part, int pieces, int largest
     const bool keep = i == largest || fragment || (large && !off_depth && (piece_border_[u] == 0 || keep_edge_pieces));
     piece_keep_[u] = keep ? 1 : 0;
     report.fragments += fragment ? 1 : 0;
-    report.depth_pieces += !keep && large && off_depth ? 1 : 0;
+    report.depth_pieces += !keep && large && off_depth && piece_off_depth_[u] != kOffSheetLine ? 1 : 0;
+    report.edge_lines += piece_off_depth_[u] == kOffSheetLine ? 1 : 0;
     report.edge_pieces += !keep && large && !off_depth ? 1 : 0;
     if (keep)
       kept = {std::min(kept.x0, piece_x0_[u]), std::max(kept.x1, piece_x1_[u]), std::min(kept.y0, piece_y0_[u]),
@@ -339,10 +347,14 @@ void PartIsolator::mark_off_depth_pieces(const ScanBuffer& part, int pieces, int
     const auto u = static_cast<std::size_t>(i);
     const double share = piece_cells_[u] >= min_cells ? params_.piece_depth_share : params_.fragment_depth_share;
     piece_off_depth_[u] = piece_points_[u] > 0 && piece_on_depth_[u] < share * piece_points_[u];
-    // A fragment's candidate on the part's depths: also on the sheet beside it (see IsolationParams::fragment_*).
-    const bool candidate = i != largest && piece_cells_[u] < min_cells && is_fragment(i, largest);
-    if (!candidate) continue;
-    piece_off_depth_[u] = fragment_checks < kMaxFragmentChecks && fragment_on_sheet(part, i, largest) ? 0 : 1;
+    // A fragment's candidate on the part's depths: also on the sheet beside it (see IsolationParams::fragment_*); so
+    // is a line beside the part's edge (is_edge_line), or it is a flange's end seen edge-on (kOffSheetLine).
+    const bool fragment = i != largest && piece_cells_[u] < min_cells && is_fragment(i, largest);
+    const bool line = !fragment && i != largest && piece_off_depth_[u] == 0 && fragment_checks < kMaxFragmentChecks &&
+                      is_edge_line(i, largest);
+    if (!fragment && !line) continue;
+    const bool on_sheet = fragment_checks < kMaxFragmentChecks && fragment_on_sheet(part, i, largest);
+    piece_off_depth_[u] = on_sheet ? 0 : (line ? kOffSheetLine : 1);
     ++fragment_checks;
   }
 }
@@ -417,6 +429,34 @@ bool PartIsolator::is_fragment(int i, int largest) const {
   if (piece_cells_[u] < params_.fragment_min_cells || piece_border_[u] != 0 || piece_off_depth_[u] != 0) return false;
   if (piece_points_[u] == 0) return false;  // (not counted: mark_off_depth_pieces found nothing to look at)
   return near_largest(i, largest);
+}
+
+bool PartIsolator::is_edge_line(int i, int largest) const {
+  const auto u = static_cast<std::size_t>(i), l = static_cast<std::size_t>(largest);
+  if (piece_border_[u] != 0 || piece_points_[u] == 0 || !near_largest(i, largest)) return false;
+  const int w = piece_x1_[u] - piece_x0_[u] + 1, h = piece_y1_[u] - piece_y0_[u] + 1;
+  const int length = std::max(w, h);
+  if (std::min(w, h) * kLineMinAspect > length || piece_cells_[u] > kLineMaxWidthCells * length) return false;
+  // Its cells beyond the largest piece's extent in their row (a line along y) or column (along x).
+  const bool along_y = h >= w;
+  const auto nx = static_cast<std::size_t>(grid_.nx);
+  const auto at = [nx](int x, int y) { return static_cast<std::size_t>(y) * nx + static_cast<std::size_t>(x); };
+  const auto mine = [&](int x, int y) { return occupied_[at(x, y)] > 0 && label_[at(x, y)] == i; };
+  const auto largest_at = [&](int x, int y) { return occupied_[at(x, y)] > 0 && label_[at(x, y)] == largest; };
+  int beyond = 0;
+  for (int a = along_y ? piece_y0_[u] : piece_x0_[u]; a <= (along_y ? piece_y1_[u] : piece_x1_[u]); ++a) {
+    // The largest piece's extent across this row (column); a row it does not reach: every cell is beyond.
+    int lo = std::numeric_limits<int>::max(), hi = std::numeric_limits<int>::min();
+    for (int b = along_y ? piece_x0_[l] : piece_y0_[l]; b <= (along_y ? piece_x1_[l] : piece_y1_[l]); ++b) {
+      if (!(along_y ? largest_at(b, a) : largest_at(a, b))) continue;
+      lo = std::min(lo, b);
+      hi = std::max(hi, b);
+    }
+    for (int b = along_y ? piece_x0_[u] : piece_y0_[u]; b <= (along_y ? piece_x1_[u] : piece_y1_[u]); ++b) {
+      if ((along_y ? mine(b, a) : mine(a, b)) && (b < lo || b > hi)) ++beyond;
+    }
+  }
+  return beyond >= kLineBeyondShare * piece_cells_[u];
 }
 
 bool PartIsolator::near_largest(int i, int largest) const {

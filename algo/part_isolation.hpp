@@ -53,7 +53,11 @@ struct IsolationParams {
   // far below fragment_min_cells. A 90 deg flange seen edge-on shows only its outer part, a line 10 mm beside the
   // edge and 4-30 mm in front of the sheet: within the part's overall depths (its other flange), it was kept as a
   // fragment at poses where the taught passes never showed it (development catalogue 11360, rnd04 / rnd10 s1170002:
-  // 397 mm2 of extra material, unknown). Only the first kMaxFragmentChecks such pieces of a scan are looked at.
+  // 397 mm2 of extra material, unknown). A larger piece that is a thin line beside the part's edge, beyond its
+  // extent, must lie on that sheet too (is_edge_line): the same flange's end at a swing that shows more of it is above
+  // min_keep_share (fresh shipped channel_u s1210001 / s1210002 and catalogue 11376 rnd03 s1210001: a line 40 mm
+  // beside the edge and 60 mm in front of the sheet, 300-330 cells, kept; Perfect Match error 2-8 x every limit).
+  // Only the first kMaxFragmentChecks such pieces of a scan are looked at.
   int fragment_min_cells = 20;
   double fragment_gap_m = 0.04;
   double fragment_depth_share = 0.5;
@@ -75,6 +79,7 @@ struct IsolationReport {
   int fragments = 0;               // pieces below min_keep_share kept as cut off the part (fragment_*)
   int specks = 0;                  // pieces below fragment_min_cells kept inside the part's box (keep_inner_specks)
   int depth_pieces = 0;            // of the dropped: large enough, apart from the part's depths (piece_depth_*)
+  int edge_lines = 0;              // of the dropped: a line beside the part's edge, off its sheet (a flange's end)
   std::size_t dropped_points = 0;  // of the dropped pieces and beyond the depth gap
   std::size_t depth_points = 0;    // of them, beyond the depth gap
 };
@@ -144,6 +149,9 @@ class PartIsolator {
   // Whether piece i, below min_cells, is a fragment of the part (IsolationParams::fragment_*), after
   // mark_off_depth_pieces.
   [[nodiscard]] bool is_fragment(int i, int largest) const;
+  // Whether piece i, at least min_cells, is a thin line beside the largest piece's edge, outside its extent (see the
+  // definition).
+  [[nodiscard]] bool is_edge_line(int i, int largest) const;
   // Whether piece i lies within fragment_gap_m of the largest piece's box.
   [[nodiscard]] bool near_largest(int i, int largest) const;
   // Whether at least fragment_depth_share of piece i's cells hold a point within fragment_sheet_tolerance_m of the
@@ -168,7 +176,8 @@ class PartIsolator {
   std::vector<std::uint8_t> piece_border_;
   std::vector<std::int32_t> piece_x0_, piece_x1_, piece_y0_, piece_y1_;  // occupied cells' box per piece
   std::vector<std::uint8_t> piece_keep_;
-  std::vector<std::uint8_t> piece_off_depth_;
+  std::vector<std::uint8_t> piece_off_depth_;  // 1: off the part's depths; kOffSheetLine: an edge line off its sheet
+  static constexpr std::uint8_t kOffSheetLine = 2;
   std::vector<std::int32_t> piece_points_, piece_on_depth_;  // mark_off_depth_pieces: points, of them at the part's
   std::vector<std::uint8_t> mask_;                           // occupancy (bit 0); remove_hanger: cut off (bit 1)
   std::vector<std::uint8_t> closed_;                         // remove_hanger: the occupancy closed by one cell

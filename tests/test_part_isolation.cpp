@@ -235,6 +235,44 @@ SCENARIO("A neighbour's part at the field's edge and loose specks are separated 
       }
     }
   }
+  GIVEN("the plate with its left flange, and beside its right edge a piece along the whole edge, larger than clutter") {
+    // (Fresh shipped catalogue, channel_u s1210001 / s1210002, and fresh random catalogue 11376, rnd03 s1210001: a
+    // part swung 2.7 deg showed its right 90 deg flange's end edge-on, a line 40 mm beside the edge and 60 mm in
+    // front of the sheet, 300-330 cells, above min_keep_share of the part: kept, and every template's Perfect Match
+    // error was 2-8 x its limit.)
+    auto beside = [](double x1, double z0, double z1) {
+      std::vector<ScanPoint> points;
+      add_sheet(points, 0.10, 0.55, 0.20, 0.90, 0.20, kPart);
+      for (double z = 0.20; z < 0.23; z += 0.002) add_sheet(points, 0.10, 0.1022, 0.20, 0.90, z, kPart);
+      for (double z = z0; z < z1; z += 0.002) add_sheet(points, 0.57, x1, 0.20, 0.90, z, kStray);
+      return points;
+    };
+    struct Piece {
+      const char* what;
+      double x1, z0, z1;
+      bool kept;
+    };
+    for (const Piece& piece :
+         {Piece{"a line two cells wide, 5-25 mm in front of the sheet (a flange's end)", 0.574, 0.205, 0.225, false},
+          Piece{"the same line on the sheet's plane (a strip a glare band cut off)", 0.574, 0.2, 0.201, true},
+          Piece{"a strip 20 mm wide, 5-25 mm in front of the sheet (a flange's face cut off by a band)", 0.59, 0.205,
+                0.225, true}}) {
+      WHEN(std::string("the piece is ") + piece.what) {
+        const auto points = beside(piece.x1, piece.z0, piece.z1);
+        algo::ScanBuffer b = buffer_of(points);
+        const int drawn = count_tag(b, kStray);
+        const algo::IsolationReport r = isolator.isolate(b, 0.0165, 0.635);
+        THEN(std::string(piece.kept ? "it stays" : "it goes: a line beside the edge, not on the sheet")) {
+          CHECK(r.pieces == 2);
+          CHECK(r.fragments == 0);
+          CHECK(r.edge_lines == (piece.kept ? 0 : 1));
+          CHECK(count_tag(b, kStray) == (piece.kept ? drawn : 0));
+          CHECK(count_tag(b, kPart) == count_tag(buffer_of(points), kPart));
+          CHECK(drawn > 600);
+        }
+      }
+    }
+  }
   GIVEN("the plate crossed by a 30 mm glare band whose residue is single points 15 mm apart along its middle") {
     // (Shipped catalogue under `glare`, plate_4h s1180006: residue points out of the bridging's reach were dropped as
     // clutter where the residue was sparse, and the check took that emptied stretch of the band for a hole.)
