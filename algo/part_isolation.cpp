@@ -350,8 +350,7 @@ void PartIsolator::mark_off_depth_pieces(const ScanBuffer& part, int pieces, int
     // A fragment's candidate on the part's depths: also on the sheet beside it (see IsolationParams::fragment_*); so
     // is a line beside the part's edge (is_edge_line), or it is a flange's end seen edge-on (kOffSheetLine).
     const bool fragment = i != largest && piece_cells_[u] < min_cells && is_fragment(i, largest);
-    const bool line = !fragment && i != largest && piece_off_depth_[u] == 0 && fragment_checks < kMaxFragmentChecks &&
-                      is_edge_line(i, largest);
+    const bool line = !fragment && i != largest && fragment_checks < kMaxFragmentChecks && is_edge_line(i, largest);
     if (!fragment && !line) continue;
     const bool on_sheet = fragment_checks < kMaxFragmentChecks && fragment_on_sheet(part, i, largest);
     piece_off_depth_[u] = on_sheet ? 0 : (line ? kOffSheetLine : 1);
@@ -425,36 +424,44 @@ bool PartIsolator::fragment_on_sheet(const ScanBuffer& part, int i, int largest)
 }
 
 bool PartIsolator::is_fragment(int i, int largest) const {
+  return piece_cells_[static_cast<std::size_t>(i)] >= params_.fragment_min_cells && beside_part(i, largest);
+}
+
+bool PartIsolator::beside_part(int i, int largest) const {
   const auto u = static_cast<std::size_t>(i);
-  if (piece_cells_[u] < params_.fragment_min_cells || piece_border_[u] != 0 || piece_off_depth_[u] != 0) return false;
+  if (piece_border_[u] != 0 || piece_off_depth_[u] != 0) return false;
   if (piece_points_[u] == 0) return false;  // (not counted: mark_off_depth_pieces found nothing to look at)
   return near_largest(i, largest);
 }
 
 bool PartIsolator::is_edge_line(int i, int largest) const {
   const auto u = static_cast<std::size_t>(i), l = static_cast<std::size_t>(largest);
-  if (piece_border_[u] != 0 || piece_points_[u] == 0 || !near_largest(i, largest)) return false;
+  if (!beside_part(i, largest)) return false;
   const int w = piece_x1_[u] - piece_x0_[u] + 1, h = piece_y1_[u] - piece_y0_[u] + 1;
   const int length = std::max(w, h);
   if (std::min(w, h) * kLineMinAspect > length || piece_cells_[u] > kLineMaxWidthCells * length) return false;
-  // Its cells beyond the largest piece's extent in their row (a line along y) or column (along x).
+  // Its cells beyond the largest piece's extent in their row (a line along y) or column (along x): a along the line,
+  // b across it.
   const bool along_y = h >= w;
   const auto nx = static_cast<std::size_t>(grid_.nx);
-  const auto at = [nx](int x, int y) { return static_cast<std::size_t>(y) * nx + static_cast<std::size_t>(x); };
-  const auto mine = [&](int x, int y) { return occupied_[at(x, y)] > 0 && label_[at(x, y)] == i; };
-  const auto largest_at = [&](int x, int y) { return occupied_[at(x, y)] > 0 && label_[at(x, y)] == largest; };
+  const auto holds = [&](int a, int b, int piece) {
+    const std::size_t c = along_y ? static_cast<std::size_t>(a) * nx + static_cast<std::size_t>(b)
+                                  : static_cast<std::size_t>(b) * nx + static_cast<std::size_t>(a);
+    return occupied_[c] > 0 && label_[c] == piece;
+  };
+  const int a0 = along_y ? piece_y0_[u] : piece_x0_[u], a1 = along_y ? piece_y1_[u] : piece_x1_[u];
+  const int b0 = along_y ? piece_x0_[u] : piece_y0_[u], b1 = along_y ? piece_x1_[u] : piece_y1_[u];
+  const int l0 = along_y ? piece_x0_[l] : piece_y0_[l], l1 = along_y ? piece_x1_[l] : piece_y1_[l];
   int beyond = 0;
-  for (int a = along_y ? piece_y0_[u] : piece_x0_[u]; a <= (along_y ? piece_y1_[u] : piece_x1_[u]); ++a) {
+  for (int a = a0; a <= a1; ++a) {
     // The largest piece's extent across this row (column); a row it does not reach: every cell is beyond.
     int lo = std::numeric_limits<int>::max(), hi = std::numeric_limits<int>::min();
-    for (int b = along_y ? piece_x0_[l] : piece_y0_[l]; b <= (along_y ? piece_x1_[l] : piece_y1_[l]); ++b) {
-      if (!(along_y ? largest_at(b, a) : largest_at(a, b))) continue;
+    for (int b = l0; b <= l1; ++b) {
+      if (!holds(a, b, largest)) continue;
       lo = std::min(lo, b);
       hi = std::max(hi, b);
     }
-    for (int b = along_y ? piece_x0_[u] : piece_y0_[u]; b <= (along_y ? piece_x1_[u] : piece_y1_[u]); ++b) {
-      if ((along_y ? mine(b, a) : mine(a, b)) && (b < lo || b > hi)) ++beyond;
-    }
+    for (int b = b0; b <= b1; ++b) beyond += holds(a, b, i) && (b < lo || b > hi) ? 1 : 0;
   }
   return beyond >= kLineBeyondShare * piece_cells_[u];
 }

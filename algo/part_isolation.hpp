@@ -149,8 +149,12 @@ class PartIsolator {
   // Whether piece i, below min_cells, is a fragment of the part (IsolationParams::fragment_*), after
   // mark_off_depth_pieces.
   [[nodiscard]] bool is_fragment(int i, int largest) const;
-  // Whether piece i, at least min_cells, is a thin line beside the largest piece's edge, outside its extent (see the
-  // definition).
+  // Whether piece i lies beside the part as its own pieces do: not at the field's end, at the part's depths, counted
+  // (mark_off_depth_pieces) and near_largest. What a fragment (is_fragment) and an edge line (is_edge_line) share.
+  [[nodiscard]] bool beside_part(int i, int largest) const;
+  // Whether piece i (beside_part) is a thin line beside the largest piece's edge, outside its extent (see the
+  // definition). mark_off_depth_pieces asks it of every piece that is not a fragment: meant for those above min_cells;
+  // a smaller line it marks goes as clutter all the same unless it is a speck inside the kept pieces' box.
   [[nodiscard]] bool is_edge_line(int i, int largest) const;
   // Whether piece i lies within fragment_gap_m of the largest piece's box.
   [[nodiscard]] bool near_largest(int i, int largest) const;
