@@ -136,6 +136,9 @@ constexpr double kTurnedRetryShare = 0.1;
 // (11309's three passes below: 3.2-3.9 deg; the test's: 1.0 deg; the outline recheck itself moves from 0.05 deg).
 constexpr double kRematchTurnRad = 0.5 * std::numbers::pi / 180.0;
 constexpr double kRematchShiftM = 0.002;
+// rematch_short_end: a first-ranked candidate's scan this much shorter than its template along x or y, beyond the
+// size's limit, gets Perfect Match started again with the scan placed flush with either end.
+constexpr double kShortEndM = 0.006;
 
 [[nodiscard]] int raster_margin_cells(const GridSpec& grid) {
   return static_cast<int>(std::ceil(kRasterMarginM / grid.resolution_m));
@@ -1095,6 +1098,7 @@ bool Cascade::evaluate_candidate(std::span<const TemplateModel> templates, std::
   if (first_ranked && !out.passed && pm.error <= model.thresholds.max_error && Clock::now() < deadline) {
     rematch_from_outline(model, scan, out);
     if (!turned_tried) rematch_turned(model, scan, deadline, out);
+    rematch_short_end(model, scan, deadline, out);
   }
   out.ms = ms_since(start);
   return true;
@@ -1113,6 +1117,37 @@ void Cascade::rematch_turned(const TemplateModel& model, std::span<const ScanPoi
   for (const double turn : {kRestartTurnRad, -kRestartTurnRad}) {
     if (c.passed || Clock::now() >= deadline) return;
     check_again(model, scan, match_turned(model, turn, kGiveUpFactor * model.thresholds.max_error), c);
+  }
+}
+
+void Cascade::rematch_short_end(const TemplateModel& model, std::span<const ScanPoint> scan, Clock::time_point deadline,
+                                Candidate& c) {
+  // A glare band across one end of a flat part takes a strip of it: the scan's centroid, Perfect Match's start, lies
+  // half the strip off, and on a flat sheet (its pull only at the edges and holes) Perfect Match need not find the
+  // way back (shipped plate_4h under `glare`, s1220004: a 24 mm strip lost at the top, the start 12 mm off in y and
+  // Perfect Match another 12 mm further, the scan flush with the template's top, every hole half uncovered, 8 920 mm2
+  // of the bottom missing, the error 2.7e-5 against a limit of 6e-4; a plain sheet has no pull at all). The size says
+  // by how much the scan is short and along which axis (an extent does not move with the pose); a first-ranked
+  // candidate failing so is matched once more from the scan placed flush with either end (the centroid start moved
+  // by half the shortfall either way, at Perfect Match's turn), each checked.
+  const TemplateThresholds& t = model.thresholds;
+  const double short_x = -c.report.size_dx_m, short_y = -c.report.size_dy_m;  // NaN: not measured, no restart
+  const PlanarPose centred = matcher_.centroid_start(model.centroid_m);
+  const double turn = c.report.pm.pose.theta_rad;
+  for (int axis = 0; axis < 2; ++axis) {
+    const double lost = axis == 0 ? short_x : short_y;
+    const double limit = axis == 0 ? t.max_size_dev_x_m : t.max_size_dev_y_m;
+    if (!(lost > std::max(limit, kShortEndM))) continue;
+    for (const double side : {0.5, -0.5}) {
+      if (c.passed || Clock::now() >= deadline) return;
+      // The scan moved by s in the template frame is the pose's shift moved by R(theta) s (DESIGN.md's pose); the
+      // centroid start's shift maps centroid to centroid at any turn.
+      const double sx = axis == 0 ? side * lost : 0.0, sy = axis == 0 ? 0.0 : side * lost;
+      const PlanarPose start{centred.x_m + std::cos(turn) * sx - std::sin(turn) * sy,
+                             centred.y_m + std::sin(turn) * sx + std::cos(turn) * sy, turn};
+      check_again(model, scan,
+                  matcher_.match(model.map, model.centroid_m, start, kGiveUpFactor * model.thresholds.max_error), c);
+    }
   }
 }
 

@@ -499,6 +499,11 @@ class Cascade {
   // checked, replace the report when they leave less evidence (see the definition).
   void rematch_turned(const TemplateModel& model, std::span<const ScanPoint> scan,
                       std::chrono::steady_clock::time_point deadline, Candidate& c);
+  // A failing first-ranked candidate whose scan is short of its template along x or y by more than the size's limit
+  // (an end lost to glare): Perfect Match from the scan placed flush with either end, each checked (see the
+  // definition).
+  void rematch_short_end(const TemplateModel& model, std::span<const ScanPoint> scan,
+                         std::chrono::steady_clock::time_point deadline, Candidate& c);
   // The two rematches' last step: a further Perfect Match of a failing candidate within its error limit is checked,
   // and its report replaces the candidate's when it leaves less evidence.
   void check_again(const TemplateModel& model, std::span<const ScanPoint> scan, const PerfectMatchResult& again,

@@ -1717,6 +1717,57 @@ TemplateModel learnt_at_other_poses(Cascade& cascade, const Template& t, const s
 
 }  // namespace
 
+SCENARIO("A glare band that takes one end of a flat sheet leaves it placed where it hangs, not centred on the rest",
+         "[cascade][policy]") {
+  GIVEN("a plain 300 x 420 mm sheet (no hole: nothing on it pulls Perfect Match along it) learnt at five poses") {
+    sim::PartSpec sheet;
+    sheet.name = "sheet";
+    sheet.width_mm = 300;
+    sheet.height_mm = 420;
+    Cascade cascade(generous_budget(), pm_params(), test_grid());
+    static const std::unique_ptr<Template> t = teach_from("sheet", kTaughtPose, sample_part(sheet, kTaughtPose, 841));
+    std::vector<MatchReport> own;
+    const TemplateModel m = learnt_at_other_poses(cascade, *t, sheet, own);
+    const PlanarPose truth = true_relative_pose(sheet, *t, kTestPose);
+    const ClassProbability svm[] = {{0, 1.0}};
+    // The strip glare took (3 % of its points left): the top 24 or 36 mm, the bottom 30 mm, the left 30 mm.
+    struct Strip {
+      const char* where;
+      double width_m;
+      int axis;  // 0: x, 1: y
+      int end;   // -1: the low end, +1: the high end
+    };
+    for (const Strip& strip : {Strip{"top", 0.024, 1, 1}, Strip{"top", 0.036, 1, 1}, Strip{"bottom", 0.030, 1, -1},
+                               Strip{"left", 0.030, 0, -1}}) {
+      WHEN("glare took its " << strip.where << " " << strip.width_m * 1e3 << " mm") {
+        auto scan = sample_part(sheet, kTestPose, 842);
+        float lo = 1e9F, hi = -1e9F;
+        auto along = [&](const ScanPoint& p) { return strip.axis == 0 ? p.x : p.y; };
+        for (const ScanPoint& p : scan) {
+          lo = std::min(lo, along(p));
+          hi = std::max(hi, along(p));
+        }
+        std::mt19937_64 rng(843);
+        std::uniform_real_distribution<double> u(0.0, 1.0);
+        std::erase_if(scan, [&](const ScanPoint& p) {
+          const bool in = strip.end > 0 ? along(p) > hi - strip.width_m : along(p) < lo + strip.width_m;
+          return in && u(rng) >= 0.03;
+        });
+        const Decision d = cascade.decide(svm, std::span<const TemplateModel>(&m, 1), scan, far_deadline());
+        THEN("it is accepted at its pose, not half the strip off") {
+          INFO("decision " << d.class_index << ", reason " << algo::to_string(d.unknown_reason) << ", missing "
+                           << d.candidates[0].missing_area_m2 * 1e6 << " mm2, check pose "
+                           << d.candidates[0].check_pose.x_m << ", " << d.candidates[0].check_pose.y_m << "; truth "
+                           << truth.x_m << ", " << truth.y_m);
+          REQUIRE(d.class_index == 0);
+          CHECK(std::abs(d.pose.x_m - truth.x_m) < 0.003);
+          CHECK(std::abs(d.pose.y_m - truth.y_m) < 0.003);
+        }
+      }
+    }
+  }
+}
+
 SCENARIO("The hole pattern sees a field of small holes two pitches over, which the window cannot",
          "[cascade][two-way]") {
   GIVEN("a perforated plate's template with thresholds learnt from its own scans at five other poses") {
