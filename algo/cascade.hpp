@@ -486,9 +486,10 @@ class Cascade {
   void report_candidates(DecideState& s, const Candidate* winner, bool ambiguous) const;
   // Perfect Match + check of the scan set in matcher_; false when the deadline passed before it could start.
   // first_ranked: one of the SVM's most probable candidates (kFirstRanked), checked without the gross-failure
-  // shortcut (check_prepared).
+  // shortcut (check_prepared); rescue_short: such a candidate also gets rematch_short_end (no candidate passed yet).
   bool evaluate_candidate(std::span<const TemplateModel> templates, std::span<const ScanPoint> scan,
-                          std::chrono::steady_clock::time_point deadline, bool first_ranked, Candidate& out);
+                          std::chrono::steady_clock::time_point deadline, bool first_ranked, bool rescue_short,
+                          Candidate& out);
   // Perfect Match from the centroid start turned by turn_rad (evaluate_candidate's and evaluate_own's further starts).
   [[nodiscard]] PerfectMatchResult match_turned(const TemplateModel& model, double turn_rad,
                                                 double give_up_error) const;

@@ -330,6 +330,11 @@ int run(int argc, char** argv) {
 
   // --- the timed tail: scan without carrier -> decision -------------------------------------------------------------
   std::vector<double> t_front, t_svm, t_cascade, t_total, cpu_total;
+  struct Slow {
+    double ms;
+    std::string what;
+  };
+  std::vector<Slow> slowest;  // each test scan's slowest run, for the list of the slowest decisions
   int correct = 0, unknown = 0, wrong = 0, timeouts = 0, by_svm = 0, by_pm = 0;
   std::map<std::string, int> wrong_detail;
   std::vector<std::string> unknown_detail;
@@ -353,6 +358,18 @@ int run(int argc, char** argv) {
         t_svm.push_back(ms_between(t1, t2));
         t_cascade.push_back(ms_between(t2, t3));
         t_total.push_back(ms_between(t0, t3));
+        {
+          char what[160];
+          const int top = p.empty() ? -1 : p[0].class_index;
+          std::snprintf(what, sizeof what, "%s test %zu: %d verified, SVM first %s, decided %s",
+                        taught[c]->name.c_str(), static_cast<std::size_t>(&s - taught[c]->test.data()),
+                        d.verified_count, top >= 0 ? taught[static_cast<std::size_t>(top)]->name.c_str() : "-",
+                        d.accepted() ? taught[static_cast<std::size_t>(d.class_index)]->name.c_str() : "unknown");
+          if (run == 0 || t_total.back() > slowest.back().ms) {
+            if (run != 0) slowest.pop_back();
+            slowest.push_back({t_total.back(), what});
+          }
+        }
         if (run != 0) continue;
         if (d.source == algo::DecisionSource::kTimeout) {
           ++timeouts;
@@ -424,6 +441,11 @@ int run(int argc, char** argv) {
   std::printf("  total, CPU time of the thread                  %8.2f %8.2f\n", median(cpu_total), max_of(cpu_total));
   std::printf("  one candidate: Perfect Match (set_scan + match) %7.2f %8.2f\n", median(t_pm), max_of(t_pm));
   std::printf("  one candidate: two-way check (both poses)       %7.2f %8.2f\n", median(t_check), max_of(t_check));
+  std::sort(slowest.begin(), slowest.end(), [](const Slow& a, const Slow& b) { return a.ms > b.ms; });
+  std::printf("slowest decisions (the slowest of each scan's runs):\n");
+  for (std::size_t i = 0; i < std::min<std::size_t>(5, slowest.size()); ++i) {
+    std::printf("  %8.2f ms  %s\n", slowest[i].ms, slowest[i].what.c_str());
+  }
   return 0;
 }
 
