@@ -769,8 +769,8 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
 bool Cascade::verify(DecideState& s, std::size_t j) {
   // (Not only the first: a near twin ranked first leaves the true part second; 10501 mixed, rnd06 s710010.)
   // The short-end restart is for a part that nothing has explained yet: once a candidate passed, a first-ranked one
-  // of another size (a look-alike 20 mm longer) would only spend two more matches on being refused (bench_cascade:
-  // perforated_fine's test 0, 60 -> 108 ms).
+  // of another size would only spend two more matches on being refused, as the size gate does not move with the pose
+  // (bench_cascade: perforated_fine's test 0, 60 -> 108 ms).
   if (!evaluate_candidate(s.templates_by_class, s.scan, s.deadline, j < kFirstRanked, !s.any_passed, candidates_[j])) {
     return false;
   }
@@ -1152,8 +1152,7 @@ void Cascade::rematch_short_end(const TemplateModel& model, std::span<const Scan
       const double sx = axis == 0 ? side * lost : 0.0, sy = axis == 0 ? 0.0 : side * lost;
       const PlanarPose start{centred.x_m + std::cos(turn) * sx - std::sin(turn) * sy,
                              centred.y_m + std::sin(turn) * sx + std::cos(turn) * sy, turn};
-      check_again(model, scan,
-                  matcher_.match(model.map, model.centroid_m, start, kGiveUpFactor * model.thresholds.max_error), c);
+      check_again(model, scan, matcher_.match(model.map, model.centroid_m, start, kGiveUpFactor * t.max_error), c);
     }
   }
 }

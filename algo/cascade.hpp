@@ -505,7 +505,7 @@ class Cascade {
   // definition).
   void rematch_short_end(const TemplateModel& model, std::span<const ScanPoint> scan,
                          std::chrono::steady_clock::time_point deadline, Candidate& c);
-  // The two rematches' last step: a further Perfect Match of a failing candidate within its error limit is checked,
+  // The rematches' last step: a further Perfect Match of a failing candidate within its error limit is checked,
   // and its report replaces the candidate's when it leaves less evidence.
   void check_again(const TemplateModel& model, std::span<const ScanPoint> scan, const PerfectMatchResult& again,
                    Candidate& c);
