@@ -1765,6 +1765,18 @@ SCENARIO("A glare band that takes one end of a flat sheet leaves it placed where
         }
       }
     }
+    WHEN("the scan is of a variant 24 mm shorter (no glare: nothing of it is lost)") {
+      sim::PartSpec shorter = sheet;
+      shorter.height_mm = 396;
+      const Decision d = cascade.decide(svm, std::span<const TemplateModel>(&m, 1),
+                                        sample_part(shorter, kTestPose, 844), far_deadline());
+      THEN("placed flush with either end it is still short (an extent does not move with the pose): unknown") {
+        INFO("decision " << d.class_index << ", reason " << algo::to_string(d.unknown_reason) << ", size "
+                         << d.candidates[0].size_dev_m * 1e3 << " mm");
+        CHECK(d.class_index == -1);
+        CHECK(d.candidates[0].size_dev_m > 0.02);
+      }
+    }
   }
 }
 
