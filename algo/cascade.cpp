@@ -2755,10 +2755,7 @@ Cascade::CellGroup Cascade::grow_group(const Roi& roi, std::size_t seed, double 
       ++g.with_points;
       bool lone = true;
       for (int k = 0; k < 4; ++k) {
-        if (inside[k] &&
-            s_lo_[static_cast<std::size_t>(neighbours[k])] <= s_hi_[static_cast<std::size_t>(neighbours[k])]) {
-          lone = false;
-        }
+        lone = lone && !(inside[k] && occupied(static_cast<std::size_t>(neighbours[k]), true));  // the scan's fringe
       }
       if (lone) ++g.lone_points;
     }
