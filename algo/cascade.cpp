@@ -1052,6 +1052,11 @@ void Cascade::report_candidates(DecideState& s, const Candidate* winner, bool am
     if (t != nullptr) {
       o.size_dev_m = t->thresholds.size_deviation(c.report);
       o.edge_dev_m = t->thresholds.edge_deviation(c.report);
+      o.size_off_xy_m = {c.report.size_dx_m - t->thresholds.size_centre_x_at(c.report),
+                         c.report.size_dy_m - t->thresholds.size_centre_y_at(c.report)};
+      for (std::size_t e = 0; e < kEdges; ++e) {
+        o.edge_off_m[e] = c.report.edge_m[e] - t->thresholds.edge_centre_at(e, c.report);
+      }
     }
     if (t == nullptr) {
       o.rejected_by = RejectReason::kNoTemplate;

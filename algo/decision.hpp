@@ -100,6 +100,14 @@ struct CandidateOutcome {
   double outliers = std::numeric_limits<double>::quiet_NaN();     // share of the scan its template does not explain
   double size_dev_m = std::numeric_limits<double>::quiet_NaN();   // outer size off its template's (TemplateThresholds)
   double edge_dev_m = std::numeric_limits<double>::quiet_NaN();   // its edges' largest deviation (TemplateThresholds)
+  // Diagnosis of the two above, signed (the scan's minus its template's learnt centre; > 0 wider, taller, an edge
+  // further out): the width and the height, and each edge (left, right, bottom, top: cascade.hpp's Edge order). NaN
+  // where not measured (lines ending in lost data; the edges also where no hole places them, MatchReport::edge_m).
+  std::array<double, 2> size_off_xy_m = {std::numeric_limits<double>::quiet_NaN(),
+                                         std::numeric_limits<double>::quiet_NaN()};
+  std::array<double, 4> edge_off_m = {
+      std::numeric_limits<double>::quiet_NaN(), std::numeric_limits<double>::quiet_NaN(),
+      std::numeric_limits<double>::quiet_NaN(), std::numeric_limits<double>::quiet_NaN()};
   double hole_pattern_m2 = std::numeric_limits<double>::quiet_NaN();  // MatchReport::hole_pattern_m2
   PlanarPose check_pose{};  // the pose its two-way check ran at (diagnosis: a refused candidate's pose)
   double ms = 0.0;

@@ -116,7 +116,11 @@ std::string decision_json(const std::string& scan, const algo::Decision& d, std:
       << ", \"missing_mm2\": " << json_number(c.missing_area_m2 * 1e6)
       << ", \"extra_mm2\": " << json_number(c.extra_area_m2 * 1e6) << ", \"coverage\": " << json_number(c.coverage)
       << ", \"outliers\": " << json_number(c.outliers) << ", \"size_dev_mm\": " << json_number(c.size_dev_m * 1e3)
-      << ", \"edge_dev_mm\": " << json_number(c.edge_dev_m * 1e3)
+      << ", \"edge_dev_mm\": " << json_number(c.edge_dev_m * 1e3) << ", \"size_off_mm\": ["
+      << json_number(c.size_off_xy_m[0] * 1e3) << ", " << json_number(c.size_off_xy_m[1] * 1e3)
+      << "], \"edge_off_mm\": {\"left\": " << json_number(c.edge_off_m[0] * 1e3)
+      << ", \"right\": " << json_number(c.edge_off_m[1] * 1e3) << ", \"bottom\": " << json_number(c.edge_off_m[2] * 1e3)
+      << ", \"top\": " << json_number(c.edge_off_m[3] * 1e3) << "}"
       << ", \"hole_pattern_mm2\": " << json_number(c.hole_pattern_m2 * 1e6);
     if (c.verified) {
       o << ", \"check_pose\": {\"x\": " << json_number(c.check_pose.x_m) << ", \"y\": " << json_number(c.check_pose.y_m)

@@ -1796,6 +1796,13 @@ SCENARIO("A glare band that takes one end of a flat sheet leaves it placed where
         CHECK(d.class_index == -1);
         CHECK(d.candidates[0].size_dev_m > 0.02);
       }
+      THEN("its signed figures (classify --json) say 24 mm shorter and as wide; no hole places its edges") {
+        const algo::CandidateOutcome& c = d.candidates[0];
+        INFO("size off " << c.size_off_xy_m[0] * 1e3 << " x " << c.size_off_xy_m[1] * 1e3 << " mm");
+        CHECK(c.size_off_xy_m[1] == Approx(-0.024).margin(0.003));
+        CHECK(std::abs(c.size_off_xy_m[0]) < 0.0015);
+        for (const double e : c.edge_off_m) CHECK(std::isnan(e));
+      }
     }
   }
 }

@@ -92,6 +92,11 @@ TEST_CASE("teach then train then classify a small database through the executabl
   INFO(unknown.output);
   CHECK(unknown.output.find("\"class\": null") != std::string::npos);
   CHECK(unknown.output.find("\"pose\": null, \"sigma\": null") != std::string::npos);
+  // Each verified candidate's size and edges, signed, added after the fields of issue 10's first version (none
+  // renamed): millimetres, null where not measured.
+  CHECK(unknown.output.find("\"edge_dev_mm\": ") < unknown.output.find("\"size_off_mm\": ["));
+  CHECK(unknown.output.find("\"edge_off_mm\": {\"left\": ") != std::string::npos);
+  CHECK(unknown.output.find("\"bottom\": ") < unknown.output.find("\"top\": "));
 
   // Limits learnt by a cellsight of another learn version (recorded in the manifest) are stale: classify refuses
   // until train learns them again (an older build's limits gave a newer one a wrong id on a 5 mm taller twin).
