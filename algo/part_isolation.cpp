@@ -19,6 +19,10 @@ constexpr int kLineMinAspect = 5;
 // ... with at least this share of its cells beyond the largest piece's extent in their row (or column).
 constexpr double kLineBeyondShare = 0.9;
 
+[[nodiscard]] bool finite_point(const ScanPoint& p) {
+  return std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z);
+}
+
 // One line of a square dilation (or erosion) of src into dst over the box: half-width r cells along x or y; cells
 // outside the box count as empty.
 void line_pass(const std::vector<std::uint8_t>& src, std::vector<std::uint8_t>& dst, int nx, const CellBox& b, int r,
@@ -68,6 +72,8 @@ PartIsolator::PartIsolator(const GridSpec& grid, const IsolationParams& params)
   scratch_.assign(cells, 0);
   depth_count_.assign(static_cast<std::size_t>(std::max(grid.nz, 1)), 0);
   local_count_.assign(static_cast<std::size_t>(std::max(grid.nz, 1)), 0);
+  for (auto* v : {&row_lo_, &row_hi_}) v->assign(static_cast<std::size_t>(grid.ny), 0);
+  for (auto* v : {&col_lo_, &col_hi_}) v->assign(static_cast<std::size_t>(grid.nx), 0);
 }
 
 int PartIsolator::depth_layer(const ScanPoint& p) const {
@@ -548,6 +554,184 @@ HangerReport PartIsolator::remove_hanger(ScanBuffer& part, double scanned_y1_m) 
     return !in_box || (mask_[at(x, y)] & 2U) == 0;  // (mask_ beyond b holds other work's marks)
   });
   return report;
+}
+
+bool PartIsolator::sheet_plane(const ScanBuffer& part, Eigen::Vector3d& plane, double& cx, double& cy) {
+  // Start: the densest depth layer and the layers beside it, level; then least squares on the points near the last
+  // plane, twice (the first band is a strip across a tilted part, the next ones the whole sheet). Relief and ghosts
+  // lie beyond kSheetBandM.
+  constexpr double kSheetBandM = 0.005;
+  constexpr int kMinSheetPoints = 100;
+  const CellBox box = occupied_box(part, false);
+  if (box.x1 < 0) return false;
+  cx = grid_.origin_m.x() + 0.5 * (box.x0 + box.x1 + 1) * grid_.resolution_m;
+  cy = grid_.origin_m.y() + 0.5 * (box.y0 + box.y1 + 1) * grid_.resolution_m;
+  const int nz = static_cast<int>(depth_count_.size());
+  std::fill(depth_count_.begin(), depth_count_.end(), 0);
+  for (const ScanPoint& p : part.points()) {
+    const int z = depth_layer(p);
+    if (z >= 0 && z < nz) ++depth_count_[static_cast<std::size_t>(z)];
+  }
+  const auto densest =
+      static_cast<int>(std::max_element(depth_count_.begin(), depth_count_.end()) - depth_count_.begin());
+  plane = {grid_.origin_m.z() + (densest + 0.5) * grid_.resolution_m, 0.0, 0.0};
+  double band = std::max(kSheetBandM, 1.5 * grid_.resolution_m);
+  for (int pass = 0; pass < 3; ++pass) {
+    Eigen::Matrix3d normal = Eigen::Matrix3d::Zero();
+    Eigen::Vector3d rhs = Eigen::Vector3d::Zero();
+    int used = 0;
+    for (const ScanPoint& p : part.points()) {
+      if (!finite_point(p)) continue;
+      const Eigen::Vector3d v(1.0, p.x - cx, p.y - cy);
+      if (std::abs(static_cast<double>(p.z) - plane.dot(v)) > band) continue;
+      normal += v * v.transpose();
+      rhs += v * static_cast<double>(p.z);
+      ++used;
+    }
+    if (used < kMinSheetPoints) return pass > 0;
+    const Eigen::LDLT<Eigen::Matrix3d> solver(normal);
+    if (solver.info() != Eigen::Success || !solver.isPositive() || !(std::abs(normal.determinant()) > 1e-18)) {
+      return pass > 0;
+    }
+    plane = solver.solve(rhs);
+    band = kSheetBandM;
+  }
+  return true;
+}
+
+GhostReport PartIsolator::drop_ghosts(ScanBuffer& part) {
+  GhostReport report;
+  Eigen::Vector3d plane;
+  double cx = 0.0, cy = 0.0;
+  if (!sheet_plane(part, plane, cx, cy)) return report;
+  const int nx = grid_.nx;
+  const int ny = grid_.ny;
+  const CellBox box = occupied_box(part, false);
+  // One cell of room around the box: the groups are closed across one empty cell.
+  const CellBox b{std::max(0, box.x0 - 1), std::min(nx - 1, box.x1 + 1), std::max(0, box.y0 - 1),
+                  std::min(ny - 1, box.y1 + 1)};
+  auto at = [nx](int x, int y) {
+    return static_cast<std::size_t>(y) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(x);
+  };
+  const auto off_sheet = [&](const ScanPoint& p) {
+    return std::abs(static_cast<double>(p.z) - plane.dot(Eigen::Vector3d(1.0, p.x - cx, p.y - cy))) >
+           params_.ghost_sheet_m;
+  };
+  for (int y = b.y0; y <= b.y1; ++y) {
+    for (int x = b.x0; x <= b.x1; ++x) {
+      mask_[at(x, y)] = 0;
+      label_[at(x, y)] = -1;
+    }
+  }
+  for (const ScanPoint& p : part.points()) {
+    std::size_t i = 0;
+    if (finite_point(p) && cell_of(p, i)) mask_[i] |= off_sheet(p) ? kOffCell : kSheetCell;
+  }
+  // The sheet's extent per row and column.
+  std::fill(row_lo_.begin() + b.y0, row_lo_.begin() + b.y1 + 1, nx);
+  std::fill(row_hi_.begin() + b.y0, row_hi_.begin() + b.y1 + 1, -1);
+  std::fill(col_lo_.begin() + b.x0, col_lo_.begin() + b.x1 + 1, ny);
+  std::fill(col_hi_.begin() + b.x0, col_hi_.begin() + b.x1 + 1, -1);
+  bool any_off = false;
+  for (int y = b.y0; y <= b.y1; ++y) {
+    for (int x = b.x0; x <= b.x1; ++x) {
+      const std::uint8_t m = mask_[at(x, y)];
+      any_off = any_off || m == kOffCell;
+      if ((m & kSheetCell) == 0) continue;
+      const auto yu = static_cast<std::size_t>(y), xu = static_cast<std::size_t>(x);
+      row_lo_[yu] = std::min(row_lo_[yu], x);
+      row_hi_[yu] = std::max(row_hi_[yu], x);
+      col_lo_[xu] = std::min(col_lo_[xu], y);
+      col_hi_[xu] = std::max(col_hi_[xu], y);
+    }
+  }
+  if (!any_off) return report;  // the usual case: every cell holds the sheet or relief rising from it
+  // Groups of the cells holding only off-sheet points: 8-neighbours through their one-cell dilation (gaps of one or two
+  // empty cells: the profiles' sampling).
+  for (int y = b.y0; y <= b.y1; ++y) {
+    for (int x = b.x0; x <= b.x1; ++x) scratch_[at(x, y)] = mask_[at(x, y)] == kOffCell ? 1 : 0;
+  }
+  square_morphology(scratch_, bridged_, closed_, nx, b, 1, true);
+  int groups = 0;
+  for (int y = b.y0; y <= b.y1; ++y) {
+    for (int x = b.x0; x <= b.x1; ++x) {
+      const std::size_t seed = at(x, y);
+      if (mask_[seed] != kOffCell || label_[seed] >= 0) continue;
+      const int id = groups++;
+      CellBox g{x, x, y, y};
+      const int cells = fill_off_group(seed, id, b, g);
+      if (cells < params_.fragment_min_cells || !ghost_group(id, g, cells)) continue;
+      // Marked for the filter below (kOffCell | 4): the group's cells hold no sheet point.
+      for (int yy = g.y0; yy <= g.y1; ++yy) {
+        for (int xx = g.x0; xx <= g.x1; ++xx) {
+          if (label_[at(xx, yy)] == id && mask_[at(xx, yy)] == kOffCell) mask_[at(xx, yy)] |= 4U;
+        }
+      }
+      ++report.pieces;
+    }
+  }
+  if (report.pieces == 0) return report;
+  report.removed_points = part.filter([&](const ScanPoint& p) {
+    std::size_t i = 0;
+    return !cell_of(p, i) || (mask_[i] & 4U) == 0;
+  });
+  return report;
+}
+
+int PartIsolator::fill_off_group(std::size_t seed, int id, const CellBox& b, CellBox& g) {
+  const int nx = grid_.nx;
+  auto at = [nx](int x, int y) {
+    return static_cast<std::size_t>(y) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(x);
+  };
+  int cells = 0;
+  std::size_t top = 0;
+  stack_[top++] = static_cast<std::int32_t>(seed);
+  label_[seed] = id;
+  while (top > 0) {
+    const auto c = static_cast<std::size_t>(stack_[--top]);
+    const int sx = static_cast<int>(c % static_cast<std::size_t>(nx));
+    const int sy = static_cast<int>(c / static_cast<std::size_t>(nx));
+    if (mask_[c] == kOffCell) {
+      ++cells;
+      g = {std::min(g.x0, sx), std::max(g.x1, sx), std::min(g.y0, sy), std::max(g.y1, sy)};
+    }
+    for (int dy = -1; dy <= 1; ++dy) {
+      for (int dx = -1; dx <= 1; ++dx) {
+        const int xx = sx + dx, yy = sy + dy;
+        if (xx < b.x0 || xx > b.x1 || yy < b.y0 || yy > b.y1) continue;
+        const std::size_t n = at(xx, yy);
+        // Through the closed cells that hold no sheet: a cell of the sheet ends the group.
+        if (bridged_[n] == 0 || (mask_[n] & kSheetCell) != 0 || label_[n] >= 0) continue;
+        label_[n] = id;
+        stack_[top++] = static_cast<std::int32_t>(n);
+      }
+    }
+  }
+  return cells;
+}
+
+bool PartIsolator::ghost_group(int id, const CellBox& g, int cells) const {
+  const int nx = grid_.nx;
+  const int ny = grid_.ny;
+  const int r = std::max(0, params_.ghost_touch_cells);
+  auto at = [nx](int x, int y) {
+    return static_cast<std::size_t>(y) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(x);
+  };
+  int beyond = 0;
+  for (int y = g.y0; y <= g.y1; ++y) {
+    for (int x = g.x0; x <= g.x1; ++x) {
+      if (label_[at(x, y)] != id || mask_[at(x, y)] != kOffCell) continue;
+      // Borders the sheet: relief rising from it (a flange's face, a rib's wall), not a ghost.
+      for (int yy = std::max(0, y - r); yy <= std::min(ny - 1, y + r); ++yy) {
+        for (int xx = std::max(0, x - r); xx <= std::min(nx - 1, x + r); ++xx) {
+          if ((mask_[at(xx, yy)] & kSheetCell) != 0) return false;
+        }
+      }
+      const auto yu = static_cast<std::size_t>(y), xu = static_cast<std::size_t>(x);
+      beyond += x < row_lo_[yu] || x > row_hi_[yu] || y < col_lo_[xu] || y > col_hi_[xu] ? 1 : 0;
+    }
+  }
+  return beyond >= params_.ghost_beyond_share * cells;
 }
 
 }  // namespace cellsight::algo

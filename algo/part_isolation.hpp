@@ -2,6 +2,7 @@
 // view, loose clutter) before features and matching: issue 10. Allocation-free after construction.
 #pragma once
 
+#include <Eigen/Core>
 #include <cstddef>
 #include <cstdint>
 #include <vector>
@@ -70,6 +71,23 @@ struct IsolationParams {
   // an empty 11 x 53 cell rectangle protected as a hole, 6 505 mm2 missing). A specular outlier that happens to lie
   // there at the part's depth stays too: one cell, far below any gate.
   bool keep_inner_specks = true;
+  // A ghost beside the part (drop_ghosts): a secondary reflection of the stripe copies a stretch of it shifted in the
+  // image, so it triangulates to points tens of millimetres in front of (or behind) whatever the stripe lit. Beside
+  // the part's edge, within the bridging's reach, it joined the part (fresh random catalogue 11391, rnd07
+  // s1240008: 900 points two profiles beside its right edge, 38-133 mm in front of the sheet, the Perfect Match
+  // error 1.2 and the outliers 2.3 times their limits: unknown; 11366 rnd08 s1180009 alike, 10-25 mm beside a flat
+  // plate and 30-50 mm in front). Material of the part off its sheet (relief, a flange's face or rim) rises from the
+  // sheet or lies over it; a ghost floats: a group of cells none of which holds a point within ghost_sheet_m of the
+  // sheet plane, that no cell holding the sheet borders within ghost_touch_cells, with at least ghost_beyond_share of
+  // its cells beyond the sheet's extent in their row or column and at least fragment_min_cells of them.
+  double ghost_sheet_m = 0.02;
+  int ghost_touch_cells = 2;
+  double ghost_beyond_share = 0.8;
+};
+
+struct GhostReport {
+  std::size_t removed_points = 0;
+  int pieces = 0;
 };
 
 struct IsolationReport {
@@ -122,6 +140,12 @@ class PartIsolator {
   // (a tab, a web between windows) stay. Returns at once when no part cell comes near the top. Never allocates.
   HangerReport remove_hanger(ScanBuffer& part, double scanned_y1_m);
 
+  // Drops ghosts beside the part (IsolationParams::ghost_*), after isolate() and remove_hanger(): fits the sheet's
+  // plane (sheet_plane), marks the cells holding the sheet and those holding only points off it, groups the latter
+  // (8-neighbours, across one or two empty cells) and drops the groups that float beyond the sheet's extent. Never
+  // allocates.
+  GhostReport drop_ghosts(ScanBuffer& part);
+
  private:
   [[nodiscard]] bool cell_of(const ScanPoint& p, std::size_t& index) const;
   [[nodiscard]] bool cell_of(const ScanPoint& p, int& x, int& y) const;
@@ -164,6 +188,15 @@ class PartIsolator {
   // Whether piece i, below fragment_min_cells, is a speck of the part's own (IsolationParams::keep_inner_specks)
   // inside the kept pieces' box, after mark_off_depth_pieces.
   [[nodiscard]] bool is_inner_speck(int i, const CellBox& kept) const;
+  // drop_ghosts' sheet: z = a + b (x - cx) + c (y - cy) about the part's box centre (cx, cy) from its points near
+  // the densest depth, refitted twice to the points near the plane (a part hangs tilted by up to 2 deg: 24 mm over
+  // 700 mm). False when too few points define it.
+  [[nodiscard]] bool sheet_plane(const ScanBuffer& part, Eigen::Vector3d& plane, double& cx, double& cy);
+  // drop_ghosts' flood fill of the group of off-sheet cells from `seed` (label_ = id, through bridged_), growing g
+  // over its cells; returns how many of them hold points.
+  int fill_off_group(std::size_t seed, int id, const CellBox& b, CellBox& g);
+  // drop_ghosts' test of one group (label_ == id over its box): whether it floats beside the part.
+  [[nodiscard]] bool ghost_group(int id, const CellBox& box, int cells) const;
   // The cell box of the part's points on the grid (points beyond it left out); with count (isolate's use), points
   // beyond the grid count in their border cell (border_cell_of, as isolate's labels take them) and occupied_ gets the
   // points per cell.
@@ -189,6 +222,9 @@ class PartIsolator {
   std::vector<std::uint8_t> scratch_;                        // square_morphology's rows; fragment_on_sheet's cells
   std::vector<std::int32_t> depth_count_;                    // drop_depth_outliers: points per grid depth layer
   std::vector<std::int32_t> local_count_;                    // fragment_on_sheet: the part's points per layer there
+  // drop_ghosts: the sheet's extent per row (x) and per column (y), inclusive cells; lo > hi where it has none.
+  std::vector<std::int32_t> row_lo_, row_hi_, col_lo_, col_hi_;
+  static constexpr std::uint8_t kSheetCell = 1, kOffCell = 2;  // drop_ghosts' marks in mask_
 };
 
 }  // namespace cellsight::algo

@@ -84,6 +84,9 @@ PrepareReport ScanPreparer::prepare(std::span<const algo::ScanPoint> raw, bool k
   r.stray_pieces = isolated.dropped_pieces;
   r.edge_pieces = isolated.edge_pieces;
   r.hanger_points = isolator_.remove_hanger(part_, y1).removed_points;
+  const algo::GhostReport ghosts = isolator_.drop_ghosts(part_);
+  r.stray_points += ghosts.removed_points;
+  r.stray_pieces += ghosts.pieces;
   r.part_points = part_.size();
   if (part_.size() == 0) {
     r.status = PrepareStatus::kNoPart;

@@ -42,7 +42,7 @@ enum class PrepareStatus : std::uint8_t {
 struct PrepareReport {
   PrepareStatus status = PrepareStatus::kEmpty;
   std::size_t raw_points = 0, support_points = 0, outside_points = 0, part_points = 0;
-  std::size_t stray_points = 0;  // not connected to the part (a neighbour's part at the field's edge, clutter)
+  std::size_t stray_points = 0;  // not connected to the part (a neighbour's part at the field's edge, clutter, ghosts)
   int stray_pieces = 0;
   int edge_pieces = 0;  // of stray_pieces: large ones dropped for reaching the field's edge (a neighbour's part?)
   std::size_t hanger_points = 0;               // the chain or hook above the part, cut off where it meets the part
