@@ -188,10 +188,11 @@ class PartIsolator {
   // Whether piece i, below fragment_min_cells, is a speck of the part's own (IsolationParams::keep_inner_specks)
   // inside the kept pieces' box, after mark_off_depth_pieces.
   [[nodiscard]] bool is_inner_speck(int i, const CellBox& kept) const;
-  // drop_ghosts' sheet: z = a + b (x - cx) + c (y - cy) about the part's box centre (cx, cy) from its points near
+  // drop_ghosts' sheet: z = a + b (x - cx) + c (y - cy) about the centre (cx, cy) of the part's box from points near
   // the densest depth, refitted twice to the points near the plane (a part hangs tilted by up to 2 deg: 24 mm over
   // 700 mm). False when too few points define it.
-  [[nodiscard]] bool sheet_plane(const ScanBuffer& part, Eigen::Vector3d& plane, double& cx, double& cy);
+  [[nodiscard]] bool sheet_plane(const ScanBuffer& part, const CellBox& box, Eigen::Vector3d& plane, double& cx,
+                                 double& cy);
   // drop_ghosts' flood fill of the group of off-sheet cells from `seed` (label_ = id, through bridged_), growing g
   // over its cells; returns how many of them hold points.
   int fill_off_group(std::size_t seed, int id, const CellBox& b, CellBox& g);
