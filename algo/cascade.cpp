@@ -188,10 +188,6 @@ struct OutlineField {
   return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
 }
 
-[[nodiscard]] bool finite_point(const ScanPoint& p) {
-  return std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z);
-}
-
 }  // namespace
 
 // Depth slopes: x for the width and the left and right edges, y for the height and the bottom and top edges.

@@ -20,8 +20,38 @@ constexpr int kLineMinAspect = 5;
 // ... with at least this share of its cells beyond the largest piece's extent in their row (or column).
 constexpr double kLineBeyondShare = 0.9;
 
-[[nodiscard]] bool finite_point(const ScanPoint& p) {
-  return std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z);
+// Least squares z = a + b (x - cx) + c (y - cy) about (cx, cy), the centre the caller picks for the conditioning:
+// fragment_on_sheet's sheet beside a piece and sheet_plane's whole sheet.
+class PlaneFit {
+ public:
+  PlaneFit(double cx, double cy) : cx_(cx), cy_(cy) {}
+  void add(const ScanPoint& p) {
+    const Eigen::Vector3d v(1.0, p.x - cx_, p.y - cy_);
+    normal_ += v * v.transpose();
+    rhs_ += v * static_cast<double>(p.z);
+    ++points_;
+  }
+  [[nodiscard]] int points() const { return points_; }
+  // False (plane untouched) for points on one line, or none.
+  [[nodiscard]] bool solve(Eigen::Vector3d& plane) const {
+    const Eigen::LDLT<Eigen::Matrix3d> solver(normal_);
+    if (solver.info() != Eigen::Success || !solver.isPositive() || !(std::abs(normal_.determinant()) > 1e-18)) {
+      return false;
+    }
+    plane = solver.solve(rhs_);
+    return true;
+  }
+
+ private:
+  double cx_, cy_;
+  Eigen::Matrix3d normal_ = Eigen::Matrix3d::Zero();
+  Eigen::Vector3d rhs_ = Eigen::Vector3d::Zero();
+  int points_ = 0;
+};
+
+// How far a point lies off a PlaneFit plane about (cx, cy), along z.
+[[nodiscard]] double plane_offset(const ScanPoint& p, const Eigen::Vector3d& plane, double cx, double cy) {
+  return std::abs(static_cast<double>(p.z) - plane.dot(Eigen::Vector3d(1.0, p.x - cx, p.y - cy)));
 }
 
 // One line of a square dilation (or erosion) of src into dst over the box: half-width r cells along x or y; cells
@@ -396,20 +426,12 @@ bool PartIsolator::fragment_on_sheet(const ScanBuffer& part, int i, int largest)
   // Least squares about the piece's box centre (for the conditioning).
   const double cx = grid_.origin_m.x() + 0.5 * (piece_x0_[u] + piece_x1_[u] + 1) * grid_.resolution_m;
   const double cy = grid_.origin_m.y() + 0.5 * (piece_y0_[u] + piece_y1_[u] + 1) * grid_.resolution_m;
-  Eigen::Matrix3d normal = Eigen::Matrix3d::Zero();
-  Eigen::Vector3d rhs = Eigen::Vector3d::Zero();
+  PlaneFit fit(cx, cy);
   for (const ScanPoint& p : part.points()) {
-    if (!near_piece(p) || std::abs(layer(p) - median) > kSheetLayers) continue;
-    const Eigen::Vector3d v(1.0, p.x - cx, p.y - cy);
-    normal += v * v.transpose();
-    rhs += v * static_cast<double>(p.z);
+    if (near_piece(p) && std::abs(layer(p) - median) <= kSheetLayers) fit.add(p);
   }
   Eigen::Vector3d plane(grid_.origin_m.z() + (median + 0.5) * grid_.resolution_m, 0.0, 0.0);
-  const Eigen::LDLT<Eigen::Matrix3d> solver(normal);
-  // (Points on one line, or none: the median's depth, level.)
-  if (solver.info() == Eigen::Success && solver.isPositive() && std::abs(normal.determinant()) > 1e-18) {
-    plane = solver.solve(rhs);
-  }
+  (void)fit.solve(plane);  // (points on one line, or none: the median's depth, level)
   // Its cells with a point on that plane (scratch_ is free once the pieces are labelled): a corner cut off with the
   // flange along its edge holds the flange's wall too, many points per cell in front of the sheet, but every cell
   // also holds the sheet (the shipped catalogue's bracket_l under `glare`, s1190010).
@@ -580,24 +602,12 @@ bool PartIsolator::sheet_plane(const ScanBuffer& part, const CellBox& box, Eigen
   plane = {grid_.origin_m.z() + (densest + 0.5) * grid_.resolution_m, 0.0, 0.0};
   double band = std::max(kSheetBandM, 1.5 * grid_.resolution_m);
   for (int pass = 0; pass < 3; ++pass) {
-    Eigen::Matrix3d normal = Eigen::Matrix3d::Zero();
-    Eigen::Vector3d rhs = Eigen::Vector3d::Zero();
-    int used = 0;
+    PlaneFit fit(cx, cy);
     for (std::size_t i = 0; i < points.size(); i += stride) {
       const ScanPoint& p = points[i];
-      if (!finite_point(p)) continue;
-      const Eigen::Vector3d v(1.0, p.x - cx, p.y - cy);
-      if (std::abs(static_cast<double>(p.z) - plane.dot(v)) > band) continue;
-      normal += v * v.transpose();
-      rhs += v * static_cast<double>(p.z);
-      ++used;
+      if (finite_point(p) && plane_offset(p, plane, cx, cy) <= band) fit.add(p);
     }
-    if (used < kMinSheetPoints) return pass > 0;
-    const Eigen::LDLT<Eigen::Matrix3d> solver(normal);
-    if (solver.info() != Eigen::Success || !solver.isPositive() || !(std::abs(normal.determinant()) > 1e-18)) {
-      return pass > 0;
-    }
-    plane = solver.solve(rhs);
+    if (fit.points() < kMinSheetPoints || !fit.solve(plane)) return pass > 0;
     band = kSheetBandM;
   }
   return true;
@@ -617,10 +627,6 @@ GhostReport PartIsolator::drop_ghosts(ScanBuffer& part) {
   auto at = [nx](int x, int y) {
     return static_cast<std::size_t>(y) * static_cast<std::size_t>(nx) + static_cast<std::size_t>(x);
   };
-  const auto off_sheet = [&](const ScanPoint& p) {
-    return std::abs(static_cast<double>(p.z) - plane.dot(Eigen::Vector3d(1.0, p.x - cx, p.y - cy))) >
-           params_.ghost_sheet_m;
-  };
   for (int y = b.y0; y <= b.y1; ++y) {
     for (int x = b.x0; x <= b.x1; ++x) {
       mask_[at(x, y)] = 0;
@@ -629,7 +635,9 @@ GhostReport PartIsolator::drop_ghosts(ScanBuffer& part) {
   }
   for (const ScanPoint& p : part.points()) {
     std::size_t i = 0;
-    if (finite_point(p) && cell_of(p, i)) mask_[i] |= off_sheet(p) ? kOffCell : kSheetCell;
+    if (finite_point(p) && cell_of(p, i)) {
+      mask_[i] |= plane_offset(p, plane, cx, cy) > params_.ghost_sheet_m ? kOffCell : kSheetCell;
+    }
   }
   // The sheet's extent per row and column.
   std::fill(row_lo_.begin() + b.y0, row_lo_.begin() + b.y1 + 1, nx);

@@ -13,10 +13,6 @@ namespace cellsight::algo {
 
 namespace {
 
-[[nodiscard]] bool finite_point(const ScanPoint& p) {
-  return std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z);
-}
-
 // One RPROP parameter (x, y or theta): its step and the previous derivative.
 struct RpropState {
   double step = 0.0;

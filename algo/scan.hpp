@@ -1,6 +1,7 @@
 // One part's points in the carrier frame, in a buffer of fixed capacity (allocated once, reused every pass).
 #pragma once
 
+#include <cmath>
 #include <cstddef>
 #include <cstdint>
 #include <span>
@@ -13,6 +14,11 @@ struct ScanPoint {
   std::uint16_t frame;  // profile index within the pass
   std::uint16_t row;    // image row it came from
 };
+
+// A point with all three coordinates finite (dropouts and invalid triangulations are NaN).
+[[nodiscard]] inline bool finite_point(const ScanPoint& p) {
+  return std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z);
+}
 
 class ScanBuffer {
  public:
