@@ -29,6 +29,12 @@ check_format() {
       return 1
     fi
   fi
+  # One clang-format for all files (4 s here); a process per file took 85 s in CI, mostly start-up. Only when that
+  # finds something is every file asked alone, to name the ones that deviate.
+  if clang-format --dry-run --Werror "${all_files[@]}" >/dev/null 2>&1; then
+    echo "lint: format: ${#all_files[@]} files match .clang-format"
+    return 0
+  fi
   local bad=()
   for f in "${all_files[@]}"; do
     clang-format --dry-run --Werror "$f" >/dev/null 2>&1 || bad+=("$f")
