@@ -22,9 +22,11 @@ constexpr double kLineBeyondShare = 0.9;
 
 // Least squares z = a + b (x - cx) + c (y - cy) about (cx, cy), the centre the caller picks for the conditioning:
 // fragment_on_sheet's sheet beside a piece and sheet_plane's whole sheet.
-class PlaneFit {
+// (Not algo::PlaneFit of calibration.hpp, a fitted plane's result; canonical.cpp's least_squares keeps its own sums
+// and degenerate-case rule, which the features depend on.)
+class PlaneLeastSquares {
  public:
-  PlaneFit(double cx, double cy) : cx_(cx), cy_(cy) {}
+  PlaneLeastSquares(double cx, double cy) : cx_(cx), cy_(cy) {}
   void add(const ScanPoint& p) {
     const Eigen::Vector3d v(1.0, p.x - cx_, p.y - cy_);
     normal_ += v * v.transpose();
@@ -49,7 +51,7 @@ class PlaneFit {
   int points_ = 0;
 };
 
-// How far a point lies off a PlaneFit plane about (cx, cy), along z.
+// How far a point lies off a PlaneLeastSquares plane about (cx, cy), along z.
 [[nodiscard]] double plane_offset(const ScanPoint& p, const Eigen::Vector3d& plane, double cx, double cy) {
   return std::abs(static_cast<double>(p.z) - plane.dot(Eigen::Vector3d(1.0, p.x - cx, p.y - cy)));
 }
@@ -426,7 +428,7 @@ bool PartIsolator::fragment_on_sheet(const ScanBuffer& part, int i, int largest)
   // Least squares about the piece's box centre (for the conditioning).
   const double cx = grid_.origin_m.x() + 0.5 * (piece_x0_[u] + piece_x1_[u] + 1) * grid_.resolution_m;
   const double cy = grid_.origin_m.y() + 0.5 * (piece_y0_[u] + piece_y1_[u] + 1) * grid_.resolution_m;
-  PlaneFit fit(cx, cy);
+  PlaneLeastSquares fit(cx, cy);
   for (const ScanPoint& p : part.points()) {
     if (near_piece(p) && std::abs(layer(p) - median) <= kSheetLayers) fit.add(p);
   }
@@ -602,7 +604,7 @@ bool PartIsolator::sheet_plane(const ScanBuffer& part, const CellBox& box, Eigen
   plane = {grid_.origin_m.z() + (densest + 0.5) * grid_.resolution_m, 0.0, 0.0};
   double band = std::max(kSheetBandM, 1.5 * grid_.resolution_m);
   for (int pass = 0; pass < 3; ++pass) {
-    PlaneFit fit(cx, cy);
+    PlaneLeastSquares fit(cx, cy);
     for (std::size_t i = 0; i < points.size(); i += stride) {
       const ScanPoint& p = points[i];
       if (finite_point(p) && plane_offset(p, plane, cx, cy) <= band) fit.add(p);

@@ -78,7 +78,7 @@ struct SmallCell {
     replace("  nz: 182", "  nz: 91");
     replace("  resolution_m: 0.0022", "  resolution_m: 0.0044");
     // One frame per grid cell, as the grid (the soak's cell, scripts/sim_cell.sh): half the frames to render and
-    // reconstruct, which were most of these tests' time under the sanitizers (test_model_db 350 s of CI's 648).
+    // reconstruct, which were most of these tests' time under the sanitizers (test_model_db 350 -> 243 CPU-seconds).
     replace("  trigger_every_counts: 22 ", "  trigger_every_counts: 44 ");
     config_path = (dir / "cellsight.yaml").string();
     std::ofstream(config_path) << text;
