@@ -63,6 +63,19 @@ constexpr double kShadowStepM = 0.006;
 // there); fewer than kMinSizeLines usable ones measure nothing.
 constexpr int kSizeEndCells = 3;
 constexpr int kMinSizeLines = 8;  // a lost band's cells reach this far beyond its edge (the window)
+// tell_twins_apart: a cell counts in a hole of the twin when it and its 8 neighbours are material of one template
+// and none is of the other. Inside lost data means at least kTwinLostCells inside a lost band's strip (or a lost
+// cell); clearly beyond it, kTwinBeyondCells to kTwinBeyondCells + kTwinEdgeCells beyond the strip (the band's
+// ragged edge between: the shipped catalogue's plate_4h / plate_5h passes under `glare` had 16-45 % of the cells of
+// both templates empty half a cell beyond the strip, 0-4 % from one cell on). A hole is seen empty when the scan
+// holds none of its cells where the other template's material would have shown kTwinMinExpected (the chance that
+// it shows none is e^-8, 3e-4), and covered when it holds kTwinMinSeen of them and kTwinMinSeenShare of the expected.
+constexpr double kTwinLostCells = 1.0;
+constexpr double kTwinBeyondCells = 1.0;
+constexpr double kTwinEdgeCells = 2.0;
+constexpr double kTwinMinExpected = 8.0;
+constexpr int kTwinMinSeen = 4;
+constexpr double kTwinMinSeenShare = 0.3;
 
 // Second moments of a set of cells, for its elongation (major / minor axis of the equivalent ellipse).
 struct CellMoments {
@@ -759,8 +772,11 @@ Decision Cascade::decide(std::span<const ClassProbability> svm_best_first,
     return finish();
   }
   const Ranking ranking = rank_verified(s);
+  const Candidate* twin = ranking.clear || !s.complete ? nullptr : tell_twins_apart(s, ranking);
   if (ranking.best != nullptr && ranking.clear && s.complete) {
     accept_winner(s, *ranking.best);
+  } else if (twin != nullptr) {
+    accept_winner(s, *twin);
   } else {
     report_unknown(s, ranking);
   }
@@ -908,6 +924,141 @@ bool Cascade::clear_of_near_misses(const DecideState& s, const Candidate& best) 
     if (!clear_margin(b, c.report.evidence_m2)) return false;
   }
   return true;
+}
+
+const Cascade::Candidate* Cascade::tell_twins_apart(DecideState& s, const Ranking& rk) {
+  // Two candidates passed and neither has a clear margin of evidence: near twins whose difference (a hole) lies
+  // under lost data (glare). What shows of the hole beside the band is too thin to weigh (a 25 mm band through a
+  // 40 mm hole leaves two caps of 7 mm: within the check's window of the band), but the two candidates see the same
+  // scan at nearly the same pose, and only where their templates differ can the scan favour one: where one has a
+  // hole (the twin's feature) the other's material would show as the residue a glare band leaves (1-10 % of the
+  // points survive it) and as material beyond the band; the hole itself shows nothing, band or not. Each template
+  // is checked once more with the other beside it (count_twin_votes): the hole's cells the scan holds decide
+  // against the hole, none where the material would have shown kTwinMinExpected decide for it. Expected counts come
+  // from the same scan: its residue in the band and its coverage beyond it over the cells both templates share.
+  // (Shipped catalogue under `glare`, eval seeds 1280001-1510001: 9 of 12 unknowns were plate_4h / plate_5h
+  // `ambiguous`, the fifth hole under the band.)
+  if (rk.best == nullptr || rk.runner == nullptr) return nullptr;
+  int passing = 0;
+  for (std::size_t j = 0; j < s.k; ++j) passing += candidates_[j].evaluated && candidates_[j].passed ? 1 : 0;
+  if (passing != 2) return nullptr;  // a third would need the same margin over both
+  Candidate* pair[2] = {nullptr, nullptr};
+  for (std::size_t j = 0; j < s.k; ++j) {
+    if (&candidates_[j] == rk.best) pair[0] = &candidates_[j];
+    if (&candidates_[j] == rk.runner) pair[1] = &candidates_[j];
+  }
+  const TemplateModel* t[2] = {s.template_of(pair[0]->class_index), s.template_of(pair[1]->class_index)};
+  if (t[0] == nullptr || t[1] == nullptr || !poses_agree(pair[0]->report.check_pose, pair[1]->report.check_pose)) {
+    return nullptr;
+  }
+  int support[2] = {0, 0};  // pair[i] supported (1) or contradicted (-1) by some ordering
+  double seen[2] = {0.0, 0.0}, expected[2] = {0.0, 0.0};
+  for (int i = 0; i < 2; ++i) {  // pair[i]'s material where pair[1 - i] has a hole
+    if (s.over(s.budget_end)) return nullptr;
+    const TemplateModel& m = *t[i];
+    twin_votes_ = TwinVotes{t[1 - i], pair[1 - i]->report.check_pose};
+    const Roi rt = rasterise_template(m);
+    (void)check_at(m.centroid_m, s.scan, pair[i]->report.check_pose, rt);
+    reset_template(rt);
+    const TwinVotes v = twin_votes_;
+    twin_votes_ = TwinVotes{};
+    if (v.hole_lost + v.hole_beyond == 0) continue;  // no hole of the other on this one's material
+    const double residue = v.both_lost > 0 ? static_cast<double>(v.both_lost_seen) / v.both_lost : 0.0;
+    const double coverage = v.both_beyond > 0 ? static_cast<double>(v.both_beyond_seen) / v.both_beyond : 0.0;
+    const double e = residue * v.hole_lost + coverage * v.hole_beyond;
+    const int covered = v.hole_seen >= kTwinMinSeen && v.hole_seen >= kTwinMinSeenShare * e ? 1 : 0;
+    const int empty = v.hole_seen == 0 && e >= kTwinMinExpected ? 1 : 0;
+    if (covered + empty == 0) return nullptr;  // this difference does not tell: neither may be chosen
+    const int winner = covered != 0 ? i : 1 - i;
+    if (support[1 - winner] > 0) return nullptr;  // the orderings disagree
+    support[winner] = 1;
+    seen[winner] = v.hole_seen;
+    expected[winner] = e;
+  }
+  for (int i = 0; i < 2; ++i) {
+    if (support[i] <= 0) continue;
+    pair[i]->twin_decided = true;
+    pair[i]->twin_seen = seen[i];
+    pair[i]->twin_expected = expected[i];
+    return clear_of_near_misses(s, *pair[i]) ? pair[i] : nullptr;
+  }
+  return nullptr;
+}
+
+void Cascade::count_twin_votes(const Roi& roi) {
+  TwinVotes& v = twin_votes_;
+  const TemplateModel& other = *v.other;
+  const auto tol = static_cast<float>(params_.depth_tolerance_m);
+  const auto w = static_cast<std::size_t>(width_);
+  auto at = [&](int x, int y) { return static_cast<std::size_t>(y) * w + static_cast<std::size_t>(x); };
+  auto in_roi = [&](int x, int y) { return x >= roi.x0 && x < roi.x1 && y >= roi.y0 && y < roi.y1; };
+  // The other template in this one's raster (tmp_lo_ as a mask: 1 where it has material; free after
+  // mark_lost_data): its cells from its frame to the carrier frame at its pose, p = c_o + t_o + R(theta_o)(q - c_o),
+  // then by rasterise_scan's map of this check's pose.
+  const double co = std::cos(v.other_pose.theta_rad), so = std::sin(v.other_pose.theta_rad);
+  const Eigen::Vector2d& oc = other.centroid_m;
+  const Eigen::Vector3d& origin = other.map.origin_m();
+  const double res = other.map.dims().resolution_m;
+  for (const SurfaceCell& cell : other.surface_cells) {
+    const double qx = origin.x() + (cell.x + 0.5) * res - oc.x();
+    const double qy = origin.y() + (cell.y + 0.5) * res - oc.y();
+    const ScanPoint p{static_cast<float>(oc.x() + v.other_pose.x_m + co * qx - so * qy),
+                      static_cast<float>(oc.y() + v.other_pose.y_m + so * qx + co * qy), 0.0F, 0, 0};
+    const double fx = scan_map_.fx(p), fy = scan_map_.fy(p);
+    if (!(fx >= roi.x0 && fy >= roi.y0 && fx < roi.x1 && fy < roi.y1)) continue;
+    tmp_lo_[at(static_cast<int>(fx), static_cast<int>(fy))] = 1.0F;
+  }
+  // Whether the 3 x 3 around (x, y) is all material (all) or none (!all) of this template (own) or the other.
+  auto around = [&](int x, int y, bool own, bool all) {
+    for (int dy = -1; dy <= 1; ++dy) {
+      for (int dx = -1; dx <= 1; ++dx) {
+        if (!in_roi(x + dx, y + dy)) return false;
+        const std::size_t n = at(x + dx, y + dy);
+        if ((own ? t_lo_[n] <= t_hi_[n] : tmp_lo_[n] == 1.0F) != all) return false;
+      }
+    }
+    return true;
+  };
+  // Cells beyond the nearest lost band's strip (mark_group_lost's LostBand, within its length; negative inside), a
+  // lost cell outside any band counting as kTwinLostCells inside.
+  auto beyond_lost = [&](int x, int y, std::size_t i) {
+    double d = (flags_[i] & kLost) != 0 ? -kTwinLostCells : std::numeric_limits<double>::infinity();
+    for (int b = 0; b < lost_band_count_; ++b) {
+      const LostBand& band = lost_bands_[static_cast<std::size_t>(b)];
+      const Eigen::Vector2d off = Eigen::Vector2d(x, y) - band.centre;
+      const double along = -off.x() * band.normal.y() + off.y() * band.normal.x();
+      if (along < band.along_lo - kTwinEdgeCells || along > band.along_hi + kTwinEdgeCells) continue;
+      d = std::min(d, std::abs(off.dot(band.normal)) - band.half_width);
+    }
+    return d;
+  };
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    for (int x = roi.x0; x < roi.x1; ++x) {
+      const std::size_t i = at(x, y);
+      if ((flags_[i] & kStep) != 0 || !around(x, y, true, true)) continue;
+      const bool hole = around(x, y, false, false);
+      const bool both = tmp_lo_[i] == 1.0F;
+      if (!hole && !both) continue;
+      const bool seen = s_lo_[i] <= s_hi_[i] && s_hi_[i] >= t_lo_[i] - tol && s_lo_[i] <= t_hi_[i] + tol;
+      const double d = beyond_lost(x, y, i);
+      const bool lost = d <= -kTwinLostCells;
+      const bool beyond = d >= kTwinBeyondCells && d <= kTwinBeyondCells + kTwinEdgeCells;
+      if (hole) {
+        v.hole_seen += seen ? 1 : 0;  // anywhere: the other's hole holds nothing, band or not
+        v.hole_lost += lost ? 1 : 0;
+        v.hole_beyond += d >= kTwinBeyondCells ? 1 : 0;
+      } else if (lost) {
+        ++v.both_lost;
+        v.both_lost_seen += seen ? 1 : 0;
+      } else if (beyond) {
+        ++v.both_beyond;
+        v.both_beyond_seen += seen ? 1 : 0;
+      }
+    }
+  }
+  for (int y = roi.y0; y < roi.y1; ++y) {
+    std::fill_n(tmp_lo_.begin() + static_cast<std::ptrdiff_t>(at(roi.x0, y)), roi.x1 - roi.x0, kEmptyLo);
+  }
 }
 
 bool Cascade::poses_agree(const PlanarPose& a, const PlanarPose& b) const {
@@ -1058,6 +1209,10 @@ void Cascade::report_candidates(DecideState& s, const Candidate* winner, bool am
       o.rejected_by = RejectReason::kNoTemplate;
     } else if (!c.passed) {
       o.rejected_by = first_failed_gate(c.report, t->thresholds, o.value, o.limit);
+    } else if (&c != winner && winner != nullptr && winner->twin_decided) {
+      o.rejected_by = RejectReason::kTwinFeature;
+      o.value = winner->twin_seen;
+      o.limit = winner->twin_expected;
     } else if (&c != winner && (ambiguous || winner != nullptr)) {
       o.rejected_by = RejectReason::kAmbiguous;
       o.value = c.report.evidence_m2;
@@ -1387,6 +1542,7 @@ MatchReport Cascade::check_at(const Eigen::Vector2d& centre_m, std::span<const S
     missing_weighted = missing.total_cells;
     r.lost_area_m2 = missing.weak_cells * cell_area_m2;
     extra_weighted = extra.total_cells;
+    if (twin_votes_.other != nullptr) count_twin_votes(roi);
     for (int y = roi.y0; y < roi.y1; ++y) {  // flags are clear between checks (outline_mask uses them as scratch)
       std::uint8_t* row = flags_.data() + static_cast<std::size_t>(y) * static_cast<std::size_t>(width_);
       std::fill(row + roi.x0, row + roi.x1, std::uint8_t{0});

@@ -461,6 +461,8 @@ class Cascade {
     double probability = 0.0;
     bool evaluated = false;
     bool passed = false;
+    bool twin_decided = false;  // won a tie with its twin by what the scan shows where they differ (tell_twins_apart)
+    double twin_seen = 0.0, twin_expected = 0.0;  // tell_twins_apart's cells seen / expected in the twin's hole
     double ms = 0.0;
     MatchReport report;
   };
@@ -481,6 +483,9 @@ class Cascade {
   [[nodiscard]] bool clear_margin(double best_evidence_m2, double runner_evidence_m2) const;
   [[nodiscard]] Ranking rank_verified(const DecideState& s) const;
   [[nodiscard]] bool clear_of_near_misses(const DecideState& s, const Candidate& best) const;
+  // Two passing candidates without a clear margin: the one the scan shows where their templates differ (see the
+  // definition); nullptr when the scan does not tell, or the budget would end.
+  [[nodiscard]] const Candidate* tell_twins_apart(DecideState& s, const Ranking& rk);
   void accept_winner(DecideState& s, const Candidate& best);
   [[nodiscard]] bool poses_agree(const PlanarPose& a, const PlanarPose& b) const;
   void report_unknown(DecideState& s, const Ranking& ranking);
@@ -622,11 +627,25 @@ class Cascade {
   [[nodiscard]] double solid_unlost_cells(std::size_t count, double& largest);
   [[nodiscard]] MatchReport check_at(const Eigen::Vector2d& centre_m, std::span<const ScanPoint> scan,
                                      const PlanarPose& pose, const Roi& template_box);
+  // tell_twins_apart's count, in check_at while its flags hold the lost data (TwinVotes).
+  void count_twin_votes(const Roi& roi);
   void reset_scan(const Roi& roi);
   void reset_template(const Roi& roi);
 
+  // tell_twins_apart: with `other` set, check_at counts (count_twin_votes) the cells well inside both this template's
+  // material and a hole of `other` (at other_pose), "the hole": inside lost data and clearly beyond it, and how many
+  // the scan holds at this template's depth; and the same for the cells of both templates' material (the scan's
+  // residue inside lost data and its coverage just beyond, from which the hole's expected count follows).
+  struct TwinVotes {
+    const TemplateModel* other = nullptr;
+    PlanarPose other_pose{};
+    int hole_lost = 0, hole_beyond = 0, hole_seen = 0;
+    int both_lost = 0, both_lost_seen = 0, both_beyond = 0, both_beyond_seen = 0;
+  };
+
   // (Fields in an order without padding holes: Eigen's Vector2d first, the ints as one group.)
   Eigen::Vector2d raster_origin_m_ = Eigen::Vector2d::Zero();
+  TwinVotes twin_votes_;
   CascadeParams params_;
   PerfectMatcher matcher_;
   // x-y raster of the grid plus a margin (scan points rotated and shifted by the pose may leave the grid).

@@ -62,6 +62,8 @@ enum class RejectReason : std::uint8_t {
   kEdge,         // one edge off the template's by more than its own scans vary (5 mm taller at a flanged part's end)
   kAmbiguous,    // passed, but another candidate passed as well without a clear margin
   kNotVerified,  // ranked too low: the verification budget or the candidate limit ended first
+  kTwinFeature,  // passed, tied with a near twin, but where the two differ the scan shows the twin (value: cells seen
+                 // in its hole, or in the twin's; limit: the expected count)
 };
 
 [[nodiscard]] constexpr std::string_view to_string(RejectReason reason) {
@@ -78,6 +80,7 @@ enum class RejectReason : std::uint8_t {
     case RejectReason::kEdge: return "edge";
     case RejectReason::kAmbiguous: return "ambiguous";
     case RejectReason::kNotVerified: return "not_verified";
+    case RejectReason::kTwinFeature: return "twin_feature";
   }
   return "invalid";
 }
