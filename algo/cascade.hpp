@@ -32,8 +32,9 @@ inline constexpr double kRadPerDeg = std::numbers::pi / 180.0;
 // 1: recorded from 7b903f5 on (databases without it count as 0). 2: isolation drops a flange's end seen edge-on
 // (the own scans' figures change) and the edges' floors widen for fewer than 12 taught passes. 3: a strip of lost
 // data with a few lone residue cells counts as lost (the own scans' missing areas change). 4: a ghost floating beside
-// the part goes before matching (PartIsolator::drop_ghosts; a taught scan with one measured differently).
-inline constexpr std::uint32_t kLearnVersion = 4;
+// the part goes before matching (PartIsolator::drop_ghosts; a taught scan with one measured differently). 5: the far
+// half of a part a glare band cut in two beside a neighbour's sheet at the field's end stays (mark_end_pieces).
+inline constexpr std::uint32_t kLearnVersion = 5;
 
 // The outline's four edges in the template frame (MatchReport::edge_m, TemplateThresholds): x low and high, y low
 // and high.

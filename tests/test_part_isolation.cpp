@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <catch2/catch.hpp>
 #include <cstdint>
+#include <iterator>
 #include <random>
 #include <string>
 #include <vector>
@@ -91,6 +92,23 @@ SCENARIO("A neighbour's part at the field's edge and loose specks are separated 
         CHECK(r.edge_pieces == 2);
         CHECK(count_tag(b, kStray) == 0);
         CHECK(count_tag(b, kPart) == part_points);
+      }
+    }
+    WHEN("a glare band that leaves no point cuts the plate's right 95 mm off, a neighbour's sheet at the right end") {
+      // (Fresh shipped catalogue under `mixed`, s1570009: the plate's far half lay between the neighbour's piece and
+      // the part, beside both in y, and was dropped as the neighbour's.)
+      std::vector<ScanPoint> cut;
+      std::copy_if(points.begin(), points.end(), std::back_inserter(cut),
+                   [](const ScanPoint& p) { return p.x < 0.44F || p.x > 0.455F; });
+      const int kept_part = static_cast<int>(cut.size());
+      add_sheet(cut, 0.575, 0.635, 0.05, 0.60, 0.21, kStray);
+      algo::ScanBuffer b = buffer_of(cut);
+      const algo::IsolationReport r = isolator.isolate(b, 0.0165, 0.635);
+      THEN("the plate's far half stays (its y range is the plate's), the neighbour's sheet goes") {
+        CHECK(r.pieces == 3);
+        CHECK(r.dropped_pieces == 1);
+        CHECK(count_tag(b, kStray) == 0);
+        CHECK(count_tag(b, kPart) == kept_part);
       }
     }
     WHEN("a strip beyond the plate's end has an end piece beside it only above it (another neighbour's corner)") {
