@@ -951,7 +951,7 @@ const Cascade::Candidate* Cascade::tell_twins_apart(DecideState& s, const Rankin
   if (t[0] == nullptr || t[1] == nullptr || !poses_agree(pair[0]->report.check_pose, pair[1]->report.check_pose)) {
     return nullptr;
   }
-  int support[2] = {0, 0};  // pair[i] supported (1) or contradicted (-1) by some ordering
+  bool support[2] = {false, false};  // some ordering's difference shows pair[i]
   double seen[2] = {0.0, 0.0}, expected[2] = {0.0, 0.0};
   for (int i = 0; i < 2; ++i) {  // pair[i]'s material where pair[1 - i] has a hole
     if (s.over(s.budget_end)) return nullptr;
@@ -970,17 +970,17 @@ const Cascade::Candidate* Cascade::tell_twins_apart(DecideState& s, const Rankin
     const int empty = v.hole_seen == 0 && e >= kTwinMinExpected ? 1 : 0;
     if (covered + empty == 0) return nullptr;  // this difference does not tell: neither may be chosen
     const int winner = covered != 0 ? i : 1 - i;
-    if (support[1 - winner] > 0) return nullptr;  // the orderings disagree
-    support[winner] = 1;
+    if (support[1 - winner]) return nullptr;  // the orderings disagree
+    support[winner] = true;
     seen[winner] = v.hole_seen;
     expected[winner] = e;
   }
   for (int i = 0; i < 2; ++i) {
-    if (support[i] <= 0) continue;
+    if (!support[i] || !clear_of_near_misses(s, *pair[i])) continue;
     pair[i]->twin_decided = true;
     pair[i]->twin_seen = seen[i];
     pair[i]->twin_expected = expected[i];
-    return clear_of_near_misses(s, *pair[i]) ? pair[i] : nullptr;
+    return pair[i];
   }
   return nullptr;
 }
