@@ -1025,10 +1025,10 @@ void Cascade::count_twin_votes(const Roi& roi) {
     double d = (flags_[i] & kLost) != 0 ? -kTwinLostCells : std::numeric_limits<double>::infinity();
     for (int b = 0; b < lost_band_count_; ++b) {
       const LostBand& band = lost_bands_[static_cast<std::size_t>(b)];
-      const Eigen::Vector2d off = Eigen::Vector2d(x, y) - band.centre;
-      const double along = -off.x() * band.normal.y() + off.y() * band.normal.x();
+      const Eigen::Vector2d p(x, y);
+      const double along = band.along(p);
       if (along < band.along_lo - kTwinEdgeCells || along > band.along_hi + kTwinEdgeCells) continue;
-      d = std::min(d, std::abs(off.dot(band.normal)) - band.half_width);
+      d = std::min(d, std::abs(band.across(p)) - band.half_width);
     }
     return d;
   };
@@ -2986,13 +2986,10 @@ void Cascade::mark_group_lost(const CellGroup& g) {
   b.half_width = 0.5 * lost.minor_width() + kBandFringeCells;
   b.along_lo = std::numeric_limits<double>::infinity();
   b.along_hi = -std::numeric_limits<double>::infinity();
-  const Eigen::Vector2d axis(-b.normal.y(), b.normal.x());
   for (std::size_t j = 0; j < g.count; ++j) {
     const std::int32_t c = blob_cells_[j];
     if ((flags_[static_cast<std::size_t>(c)] & kLost) == 0) continue;
-    const int cx = c % wi, cy = c / wi;  // the cell's column and row
-    const double t =
-        (static_cast<double>(cx) - b.centre.x()) * axis.x() + (static_cast<double>(cy) - b.centre.y()) * axis.y();
+    const double t = b.along(Eigen::Vector2d(c % wi, c / wi));  // the cell's column and row
     b.along_lo = std::min(b.along_lo, t);
     b.along_hi = std::max(b.along_hi, t);
   }
@@ -3114,7 +3111,7 @@ void Cascade::follow_lost_bands(const Roi& roi) {
   // a 165 mm2 gate).
   for (int i = 0; i < lost_band_count_; ++i) {
     const LostBand& a = lost_bands_[static_cast<std::size_t>(i)];
-    const Eigen::Vector2d axis(-a.normal.y(), a.normal.x());
+    const Eigen::Vector2d axis = a.axis();
     const int span = static_cast<int>(std::ceil(a.half_width));
     for (const double dir : {-1.0, 1.0}) {
       const double end = dir < 0.0 ? a.along_lo : a.along_hi;
@@ -3156,7 +3153,7 @@ void Cascade::follow_lost_bands(const Roi& roi) {
 void Cascade::mark_band_strip(const Roi& roi, const LostBand& a, double t_lo, double t_hi, double hw) {
   // The strip of a's axis between t_lo and t_hi, hw either side: its missing cells without a scan point become lost.
   const int wi = width_;
-  const Eigen::Vector2d axis(-a.normal.y(), a.normal.x());
+  const Eigen::Vector2d axis = a.axis();
   double x_lo = std::numeric_limits<double>::infinity(), x_hi = -x_lo, y_lo = x_lo, y_hi = -x_lo;
   for (const double t : {t_lo, t_hi}) {
     for (const double u : {-hw, hw}) {
@@ -3173,9 +3170,9 @@ void Cascade::mark_band_strip(const Roi& roi, const LostBand& a, double t_lo, do
     for (int x = x0; x < x1; ++x) {
       const std::size_t k = static_cast<std::size_t>(y) * static_cast<std::size_t>(wi) + static_cast<std::size_t>(x);
       if ((flags_[k] & (kMissing | kVisited)) != kMissing || s_lo_[k] <= s_hi_[k]) continue;
-      const Eigen::Vector2d r(static_cast<double>(x) - a.centre.x(), static_cast<double>(y) - a.centre.y());
-      const double t = r.dot(axis);
-      if (t >= t_lo && t <= t_hi && std::abs(r.dot(a.normal)) <= hw) flags_[k] |= kLost;
+      const Eigen::Vector2d p(x, y);
+      const double t = a.along(p);
+      if (t >= t_lo && t <= t_hi && std::abs(a.across(p)) <= hw) flags_[k] |= kLost;
     }
   }
 }

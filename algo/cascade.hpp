@@ -703,6 +703,11 @@ class Cascade {
   // The lost bands mark_lost_data() found in this check (cells: axis, half width, extent along the axis), for
   // follow_lost_bands(). Fixed capacity: a scan has a few glare bands, not dozens.
   struct LostBand {
+    // A raster position's coordinate along the band's axis (the normal turned a quarter) and across it, from the
+    // centre, in cells.
+    [[nodiscard]] Eigen::Vector2d axis() const { return {-normal.y(), normal.x()}; }
+    [[nodiscard]] double along(const Eigen::Vector2d& p) const { return (p - centre).dot(axis()); }
+    [[nodiscard]] double across(const Eigen::Vector2d& p) const { return (p - centre).dot(normal); }
     Eigen::Vector2d centre{0.0, 0.0};
     Eigen::Vector2d normal{0.0, 0.0};
     double half_width = 0.0;
